@@ -1,0 +1,288 @@
+"""Series-parallel model structures: what the network sees and what it must learn.
+
+The paper identifies each plant class with a model of the same class: the known
+linear part is computed, the network learns only the unknown nonlinear part, and in
+training the *plant's* past outputs (not the model's) form the regressor
+(series-parallel, Fig. 1). This module turns (u, y_p) series into the network's
+inputs and targets, one sample at a time or a whole series at once, with the same
+arithmetic either way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lenn_ros.core.networks import DivergenceError, OnlineRegressor
+
+
+@dataclass(frozen=True)
+class ModelStructure:
+    """y^(k+1) = sum a_i y(k-i) + sum b_i u(k-i) + N[y(k..)/SF_y, u(k..)/SF_u].
+
+    - ``y_lags`` / ``u_lags``: how many past plant outputs / inputs feed the network.
+    - ``known_a`` / ``known_b``: the known linear part (Model 1's a_i, Model 2's b_i).
+    - ``y_scale`` / ``u_scale``: the paper's scale factor SF; the network sees y / SF
+      so its inputs lie in [-1, 1] (a Legendre requirement).
+    - ``separate``: Model 3's N1[y] + N2[u], two networks summed, rather than one.
+    """
+
+    y_lags: int = 0
+    u_lags: int = 1
+    known_a: tuple[float, ...] = ()
+    known_b: tuple[float, ...] = ()
+    y_scale: float = 1.0
+    u_scale: float = 1.0
+    separate: bool = False
+
+    def __post_init__(self) -> None:
+        if self.y_lags < 0 or self.u_lags < 0 or self.y_lags + self.u_lags == 0:
+            raise ValueError("the network needs at least one input: y_lags + u_lags >= 1")
+        if self.y_scale <= 0 or self.u_scale <= 0:
+            raise ValueError("scale factors must be positive")
+        if self.separate and (self.y_lags == 0 or self.u_lags == 0):
+            raise ValueError("separate N1[y] + N2[u] needs both y_lags and u_lags >= 1")
+
+    @property
+    def n_inputs(self) -> int:
+        return self.y_lags + self.u_lags
+
+    @property
+    def y_history(self) -> int:
+        return max(self.y_lags, len(self.known_a), 1)
+
+    @property
+    def u_history(self) -> int:
+        return max(self.u_lags, len(self.known_b), 1)
+
+    @property
+    def warm_up(self) -> int:
+        """Samples needed before the first regressor is complete."""
+        return max(self.y_history, self.u_history)
+
+    def branches(self) -> list[list[int]] | None:
+        """Network input groups: [[y inputs], [u inputs]] for Model 3, else one group."""
+        if not self.separate:
+            return None
+        return [list(range(self.y_lags)), list(range(self.y_lags, self.n_inputs))]
+
+    def regressors(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Network inputs x(k) and known linear part lin(k) for every complete k.
+
+        Rows are for k = warm_up - 1 .. N - 1 (each predicts y(k+1)); ``u``/``y`` hold
+        u(0..N-1) and y(0..N-1), already paired.
+        """
+        u = np.asarray(u, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        first = self.warm_up - 1
+        k = np.arange(first, len(y))
+        columns = [y[k - i] / self.y_scale for i in range(self.y_lags)]
+        columns += [u[k - i] / self.u_scale for i in range(self.u_lags)]
+        x = np.stack(columns, axis=1) if len(k) else np.empty((0, self.n_inputs))
+        linear = np.zeros(len(k))
+        for i, a in enumerate(self.known_a):
+            linear = linear + a * y[k - i]
+        for i, b in enumerate(self.known_b):
+            linear = linear + b * u[k - i]
+        return x, linear
+
+
+@dataclass
+class StepResult:
+    """What one paired sample (u(k), y_p(k)) produced."""
+
+    index: int
+    y_hat_next: float | None = None  # prediction of y_p(k+1), if the regressor is complete
+    error: float | None = None  # e(k) = y_p(k) - y^(k), if y^(k) had been predicted
+    y_hat: float | None = None  # y^(k) itself
+    learned: bool = False
+    event: str = ""  # "", "gap", "duplicate", "rejected", "diverged"
+
+
+@dataclass
+class Identifier:
+    """Online series-parallel identification, one paired sample at a time.
+
+    The live ROS node and the offline evaluation both drive this class, so a
+    recording evaluated offline reproduces what the node computed live, bit for bit
+    (:meth:`run` is :meth:`step` over a whole series, batched into the compiled
+    kernel). Samples carry an index (the publication sequence number of the pair):
+    a gap restarts the regressor history (no prediction across missing samples), a
+    repeated or older index is ignored, and neither is ever learnt from.
+
+    Divergence guard: learning proceeds in blocks of ``health_interval`` learnt
+    samples. After each block the mean squared a-priori error is compared with the
+    variance of y_p over the block; above ``divergence_ratio`` times it (or if an
+    update would make a weight non-finite) the model goes back to the state it had
+    after the last healthy block, learning stops and ``diverged`` is set. Predictions
+    go on from the healthy model.
+    """
+
+    structure: ModelStructure
+    model: OnlineRegressor
+    learning: bool = True
+    health_interval: int = 1000
+    divergence_ratio: float = 100.0
+    counters: dict[str, int] = field(default_factory=dict)
+    diverged: bool = False
+
+    def __post_init__(self) -> None:
+        for name in ("samples", "learned", "gaps", "lost", "duplicates", "rejected", "diverged"):
+            self.counters.setdefault(name, 0)
+        self._y_past: list[float] = []
+        self._u_past: list[float] = []
+        self._last_index: int | None = None
+        self._pending: tuple[np.ndarray, float] | None = None  # x(k-1), lin(k-1)
+        self._block_errors: list[float] = []
+        self._block_outputs: list[float] = []
+        self.mark_healthy()
+
+    # -- one sample ------------------------------------------------------------------
+    def step(self, index: int, u: float, y: float, learn: bool | None = None) -> StepResult:
+        """Process the pair (u(k), y_p(k)) with sample index k."""
+        learn = self.learning if learn is None else learn
+        result = StepResult(index=index)
+        if self._last_index is not None and index <= self._last_index:
+            self.counters["duplicates"] += 1
+            result.event = "duplicate"
+            return result
+        if self._last_index is not None and index != self._last_index + 1:
+            self.counters["gaps"] += 1
+            self.counters["lost"] += index - self._last_index - 1
+            self._restart_history()
+            result.event = "gap"
+        self._last_index = index
+        self.counters["samples"] += 1
+        if self._pending is not None:
+            x_previous, linear_previous = self._pending
+            learn = learn and not self.diverged
+            try:
+                prior = float(self.model.update(x_previous, y - linear_previous, learn=learn)[0])
+            except DivergenceError as error:
+                prior = float(error.predictions[0])
+                self._on_divergence()
+                learn = False
+                result.event = "diverged"
+            result.y_hat = linear_previous + prior
+            result.error = y - result.y_hat
+            result.learned = learn
+            if learn:
+                self.counters["learned"] += 1
+                self._block_errors.append(result.error)
+                self._block_outputs.append(y)
+                if len(self._block_errors) == self.health_interval and not self._check_block():
+                    result.event = "diverged"
+        self._push(u, y)
+        if len(self._y_past) >= self.structure.warm_up:
+            x, linear = self.structure.regressors(np.array(self._u_past[::-1]), np.array(self._y_past[::-1]))
+            self._pending = (x, float(linear[-1]))
+            result.y_hat_next = float(linear[-1] + self.model.predict(x)[0])
+        return result
+
+    def skip(self) -> None:
+        """A sample was rejected before reaching us: the history is broken there."""
+        self.counters["rejected"] += 1
+        self._restart_history()
+
+    def _restart_history(self) -> None:
+        self._y_past.clear()
+        self._u_past.clear()
+        self._pending = None
+
+    def _push(self, u: float, y: float) -> None:
+        keep = self.structure.warm_up
+        self._y_past.insert(0, y)
+        self._u_past.insert(0, u)
+        del self._y_past[keep:], self._u_past[keep:]
+
+    # -- divergence guard --------------------------------------------------------------
+    def _check_block(self) -> bool:
+        """End of a block of learnt samples: keep it (True) or roll back (False)."""
+        errors = np.asarray(self._block_errors)
+        outputs = np.asarray(self._block_outputs)
+        self._block_errors.clear()
+        self._block_outputs.clear()
+        mse = float(np.mean(errors * errors))
+        if not np.isfinite(mse) or mse > self.divergence_ratio * float(np.var(outputs)) + 1e-12:
+            self._on_divergence()
+            return False
+        self.mark_healthy()
+        return True
+
+    def _on_divergence(self) -> None:
+        self.counters["diverged"] += 1
+        self.diverged = True
+        self.model.set_state(self._healthy_state)
+        self._block_errors.clear()
+        self._block_outputs.clear()
+
+    def mark_healthy(self) -> None:
+        """Take the current model state as the one to fall back to.
+
+        Also called to resume after a divergence (e.g. once alpha was lowered) and
+        after loading weights.
+        """
+        if not self.model.is_initialised:
+            self.model._initialise()
+        self._healthy_state = self.model.state()
+        self.diverged = False
+
+    # -- whole series (offline) --------------------------------------------------------------
+    def run(self, u: np.ndarray, y: np.ndarray, learn: np.ndarray | bool = True) -> np.ndarray:
+        """Series-parallel pass over paired series; returns y^(k) (nan where none).
+
+        ``learn`` may be an array over k: whether the error at y(k) is learnt from.
+        Runs of samples go to the compiled kernel in one call, cut at the same
+        health-check boundaries as :meth:`step`, so the result is the same as calling
+        :meth:`step` for every sample (a test checks it).
+        """
+        u = np.asarray(u, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        learn_mask = np.broadcast_to(np.asarray(learn, dtype=bool), y.shape)
+        x, linear = self.structure.regressors(u, y)
+        first = self.structure.warm_up - 1
+        targets = y[first + 1 :] - linear[:-1]
+        inputs, mask, outputs = x[:-1], learn_mask[first + 1 :], y[first + 1 :]
+        y_hat = np.full(len(y), np.nan)
+        start = 0
+        while start < len(targets):
+            learning = bool(mask[start]) and not self.diverged
+            stop = start + 1
+            limit = start + (self.health_interval - len(self._block_errors) if learning else len(targets))
+            while stop < min(limit, len(targets)) and mask[stop] == mask[start]:
+                stop += 1
+            try:
+                prior = self.model.update(inputs[start:stop], targets[start:stop], learn=learning)
+            except DivergenceError as error:
+                stop = start + error.sample_index + 1
+                prior = error.predictions
+                self._on_divergence()
+                learning = False
+            y_hat[first + 1 + start : first + 1 + stop] = linear[start:stop] + prior
+            if learning:
+                self.counters["learned"] += stop - start
+                self._block_errors.extend((outputs[start:stop] - y_hat[first + 1 + start : first + 1 + stop]).tolist())
+                self._block_outputs.extend(outputs[start:stop].tolist())
+                if len(self._block_errors) == self.health_interval:
+                    self._check_block()
+            start = stop
+        self.counters["samples"] += len(y)
+        return y_hat
+
+    def free_run(self, u: np.ndarray, y: np.ndarray, start: int) -> np.ndarray:
+        """Parallel model from ``start`` on: the network fed its own past outputs.
+
+        Plant outputs y(0..start-1) seed the model's history; from then on only u is
+        taken from the data. Returns y^(start..N-1) (frozen weights). Network inputs
+        are clipped to [-1, 1], so an unstable model saturates instead of overflowing.
+        """
+        u = np.asarray(u, dtype=np.float64)
+        y_model = np.array(y, dtype=np.float64, copy=True)
+        window = self.structure.warm_up
+        if start < window:
+            raise ValueError(f"free run needs {window} samples of history before it starts")
+        for k in range(start - 1, len(u) - 1):
+            x, linear = self.structure.regressors(u[k - window + 1 : k + 1], y_model[k - window + 1 : k + 1])
+            y_model[k + 1] = float(linear[-1] + self.model.predict(np.clip(x[-1:], -1.0, 1.0))[0])
+        return y_model[start:]

@@ -1,0 +1,59 @@
+"""ament_python package that is also a plain pip package (see README, "Install")."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+PACKAGE = "lenn_ros"
+
+setup(
+    name=PACKAGE,
+    version="0.1.0",
+    packages=find_packages(include=[PACKAGE, f"{PACKAGE}.*"]),
+    data_files=[
+        ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
+        (f"share/{PACKAGE}", ["package.xml"]),
+        (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml"))),
+    ],
+    python_requires=">=3.11",
+    install_requires=[
+        "numpy>=1.26",
+        "numba>=0.59",
+        "rosbags>=0.11",
+        "matplotlib>=3.8",
+        "tqdm>=4.66",
+        "pyyaml>=6",
+    ],
+    extras_require={
+        # rclpy and its middleware as pip wheels, for machines without a ROS 2 install.
+        # On a full ROS 2 Jazzy install these come from apt; do not install this extra there.
+        "ros": [
+            "ros-jazzy-rclpy",
+            "ros-jazzy-std-msgs",
+            "ros-jazzy-rmw-fastrtps-cpp",
+            "ros-jazzy-domain-coordinator",
+        ],
+        "test": [
+            "pytest>=8",
+            "pytest-timeout>=2.3",
+            "mcap>=1.2",
+            "mcap-ros2-support>=0.5",
+            "ruff>=0.6",
+        ],
+    },
+    zip_safe=True,
+    maintainer="lenn_ros developers",
+    maintainer_email="dev@lenn-ros.local",
+    description="Online LeNN / MLP identification of nonlinear dynamic systems for ROS 2",
+    license="Apache-2.0",
+    tests_require=["pytest"],
+    entry_points={
+        "console_scripts": [
+            "lenn-ros = lenn_ros.cli:main",
+            "identifier = lenn_ros.nodes.identifier:main",
+            "plant_simulator = lenn_ros.nodes.plant_simulator:main",
+            "recorder = lenn_ros.nodes.recorder:main",
+            "replay = lenn_ros.nodes.replay:main",
+        ],
+    },
+)

@@ -120,3 +120,26 @@ def run_example(
     series = simulate(example.plant(), example.noise_db, seed, train_samples, test_samples)
     model = example.make_network(network, seed, parameters, **overrides)
     return train_and_test(Identifier(example.structure, model), series)
+
+
+def least_squares_floor(example: PaperExample, series: Series, **feature_overrides) -> float:
+    """One-step test NMSE (dB) of the best linear fit of the LeNN's features.
+
+    The features are the example's LeNN expansion (or ``feature_overrides``, e.g. a
+    cross-term expansion), fitted by batch least squares to all training targets,
+    then frozen and tested like the online models. No online rule with the same
+    features and a linear output can do better on the same data in the mean-square
+    sense, so it is the bound against which a gap to the paper's figure is judged.
+    """
+    model = example.make_network("lenn", 0, output="linear", output_scale=1.0, **feature_overrides)
+    structure = example.structure
+    train = slice(0, series.test_start)
+    x, linear = structure.regressors(series.u[train], series.y[train])
+    targets = series.y[structure.warm_up : series.test_start] - linear[:-1]
+    features = model.features(x[:-1])
+    model.update(x[:1], targets[:1], learn=False)  # initialise the state arrays
+    model.weights_ = np.linalg.lstsq(features, targets, rcond=None)[0]
+    identifier = Identifier(structure, model, learning=False)
+    y_hat = identifier.run(series.u, series.y, learn=False)
+    test = slice(series.test_start, None)
+    return nmse_db(series.y[test], y_hat[test])

@@ -1,0 +1,160 @@
+"""``lenn-ros``: the command line of the package (offline work and the demo).
+
+Each subcommand lives in its own module and is imported only when used, so
+``lenn-ros reproduce`` starts without loading rclpy. Expected failures (a missing
+bag, a malformed params file, a weights file of another network) end in one line
+on stderr naming the problem and the fix, and exit status 2; a traceback means a bug.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from collections.abc import Sequence
+
+from lenn_ros.core.examples import PARAMETER_SETS, TRAIN_SAMPLES
+
+
+class UserError(Exception):
+    """A problem the user can fix: printed as one line, exit status 2."""
+
+
+def _reproduce(args: argparse.Namespace) -> int:
+    from lenn_ros import reproduce
+
+    if args.beyond:
+        from lenn_ros import beyond
+
+        return beyond.main(args)
+    return reproduce.main(args)
+
+
+def _evaluate(args: argparse.Namespace) -> int:
+    from lenn_ros import evaluate
+
+    return evaluate.main(args)
+
+
+def _import_csv(args: argparse.Namespace) -> int:
+    from lenn_ros.bag import import_csv
+
+    report = import_csv(args.file, args.u, args.y, args.dt, args.output, test_from=args.test_from)
+    print(report if isinstance(report, str) else f"wrote {args.output}")
+    return 0
+
+
+def _bag_info(args: argparse.Namespace) -> int:
+    import json
+
+    from lenn_ros.bag import bag_info
+
+    print(json.dumps(bag_info(args.bag), indent=1, default=str))
+    return 0
+
+
+def _bag_repair(args: argparse.Namespace) -> int:
+    from lenn_ros.bag import recover
+
+    print(recover(args.bag))
+    return 0
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from lenn_ros import demo
+
+    return demo.main(args)
+
+
+def _bench(args: argparse.Namespace) -> int:
+    from lenn_ros import bench
+
+    return bench.main(args)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="lenn-ros",
+        description="Online LeNN / MLP identification of nonlinear dynamic systems (ROS 2).",
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    p = commands.add_parser("reproduce", help="the paper's four examples offline, over several seeds")
+    p.add_argument("--example", type=int, choices=[1, 2, 3, 4], help="one example (default: all four)")
+    p.add_argument("--network", choices=["lenn", "mlp"], help="one network (default: both)")
+    p.add_argument("--seeds", type=_positive_int, default=5, help="seeds 0..K-1 (default 5)")
+    p.add_argument("--iterations", type=_positive_int, default=TRAIN_SAMPLES, help="training samples (50000)")
+    p.add_argument(
+        "--parameters",
+        choices=PARAMETER_SETS,
+        default="calibrated",
+        help="alpha/beta: 'calibrated' for this implementation (default) or as printed in the 'paper'",
+    )
+    p.add_argument("--plots", metavar="DIR", help="write one PNG per example and network (Figs. 4-7 style)")
+    p.add_argument("--json", action="store_true", help="print a JSON list instead of a table")
+    p.add_argument("--beyond", action="store_true", help="RLS, cross terms and other expansions vs the paper")
+    p.set_defaults(handler=_reproduce)
+
+    p = commands.add_parser("evaluate", help="run the identifier over a recorded bag, no ROS graph needed")
+    p.add_argument("bag", help="rosbag2 directory (MCAP) with u and y_p")
+    p.add_argument("--params", metavar="FILE", help="identifier params file (ros__parameters YAML)")
+    p.add_argument("--test-from", type=int, metavar="K", help="first test sample index (default: from the bag)")
+    p.add_argument("--plot", metavar="PNG", help="write plant vs model output and error")
+    p.add_argument("--json", action="store_true", help="print a JSON object")
+    p.set_defaults(handler=_evaluate)
+
+    p = commands.add_parser("import-csv", help="make a bag (u, y_p) from a logged CSV file")
+    p.add_argument("file")
+    p.add_argument("--u", required=True, help="column of the plant input (name or 0-based index)")
+    p.add_argument("--y", required=True, help="column of the plant output (name or 0-based index)")
+    p.add_argument("--dt", type=float, required=True, help="sample time in seconds")
+    p.add_argument("--test-from", type=int, help="first test sample index (1-based), stored in the bag")
+    p.add_argument("-o", "--output", required=True, help="bag directory to create")
+    p.set_defaults(handler=_import_csv)
+
+    p = commands.add_parser("bag-info", help="topics, types and message counts of a bag")
+    p.add_argument("bag")
+    p.set_defaults(handler=_bag_info)
+
+    p = commands.add_parser("bag-repair", help="recover what a killed recorder left into a readable bag")
+    p.add_argument("bag")
+    p.set_defaults(handler=_bag_repair)
+
+    p = commands.add_parser("demo", help="plant simulator + identifier + recorder over DDS, example 1 by default")
+    p.add_argument("--example", type=int, choices=[1, 2, 3, 4], default=1)
+    p.add_argument("--network", choices=["lenn", "mlp"], default="lenn")
+    p.add_argument("--train-samples", type=_positive_int, default=20_000)
+    p.add_argument("--test-samples", type=_positive_int, default=600)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--rate", type=float, default=0.0, help="plant steps per second (0: as fast as kept up with)")
+    p.add_argument("--output", default="demo_output", help="directory for the bag and the plot")
+    p.set_defaults(handler=_demo)
+
+    p = commands.add_parser("bench", help="speed: cost per update, offline and online throughput")
+    p.add_argument("--quick", action="store_true", help="smaller sizes, for CI")
+    p.add_argument("--online-seconds", type=float, default=30.0, help="duration of each online rate trial")
+    p.add_argument("--skip-online", action="store_true", help="offline figures only")
+    p.add_argument("--json", action="store_true")
+    p.set_defaults(handler=_bench)
+    return parser
+
+
+def _positive_int(text: str) -> int:
+    value = int(text)
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    try:
+        return int(args.handler(args) or 0)
+    except KeyboardInterrupt:
+        return 130
+    except (UserError, ValueError, OSError) as error:
+        print(f"lenn-ros {args.command}: error: {error}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

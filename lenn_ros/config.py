@@ -1,0 +1,198 @@
+"""Identifier configuration: one table of parameters for the node, the CLI and files.
+
+The identifier node declares exactly these parameters (with their descriptions and
+ranges), ``lenn-ros evaluate --params FILE`` reads the same ``ros__parameters``
+YAML, and both build the model through :func:`build_identifier`: the offline
+evaluation of a recording runs the very configuration the live node ran.
+
+Defaults come from the chosen paper example (``example`` 1-4); ``example: 0`` means
+"my own plant" and starts from a plain LeNN on u(k), y(k).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from lenn_ros.core.examples import PARAMETER_SETS, get_example
+from lenn_ros.core.networks import OUTPUTS, SOLVERS
+from lenn_ros.core.structure import Identifier, ModelStructure
+
+
+@dataclass(frozen=True)
+class Parameter:
+    """One ROS parameter: name, default, why it exists, allowed range."""
+
+    name: str
+    default: Any
+    description: str
+    low: float | None = None
+    high: float | None = None
+    choices: tuple[str, ...] = ()
+    live: bool = False  # may change while the node runs (others are read-only)
+
+
+def identifier_parameters(example: int, network: str, parameters: str = "calibrated") -> list[Parameter]:
+    """The identifier's parameters with defaults from the example preset."""
+    if example:
+        preset = get_example(example)
+        structure = preset.structure
+        net = preset.network_params(network, parameters)
+    else:
+        structure = ModelStructure(y_lags=1, u_lags=1)
+        net = {"order": 4, "hidden": [20, 10], "output": "tanh", "alpha": 0.01, "beta": 0.5}
+    return [
+        Parameter("y_lags", structure.y_lags, "past plant outputs y(k..k-n+1) fed to the network", 0, 10),
+        Parameter("u_lags", structure.u_lags, "past inputs u(k..k-m+1) fed to the network", 0, 10),
+        Parameter("known_a", list(structure.known_a) or [0.0], "known linear part on y(k), y(k-1).. ([0.0]: none)"),
+        Parameter("known_b", list(structure.known_b) or [0.0], "known linear part on u(k), u(k-1).. ([0.0]: none)"),
+        Parameter(
+            "y_scale",
+            structure.y_scale,
+            "scale factor SF: the network sees y / SF, which must be in [-1, 1]",
+            1e-6,
+            1e6,
+        ),  # fmt: skip
+        Parameter("u_scale", structure.u_scale, "the network sees u / u_scale, which must be in [-1, 1]", 1e-6, 1e6),
+        Parameter("separate", structure.separate, "Model 3 structure: N1[y] + N2[u] instead of one network"),
+        Parameter(
+            "order", int(net.get("order", 4)), "LeNN: polynomial degree per input (paper's terms / inputs)", 1, 30
+        ),  # fmt: skip
+        Parameter(
+            "basis", net.get("basis", "legendre"), "LeNN expansion", choices=("legendre", "chebyshev", "trigonometric")
+        ),  # fmt: skip
+        Parameter(
+            "cross_degree",
+            int(net.get("cross_degree", 0)),
+            "LeNN: tensor-product terms up to this total degree (0: the paper's per-input expansion)",
+            0,
+            6,
+        ),  # fmt: skip
+        Parameter("hidden", [int(h) for h in net.get("hidden", [20, 10])], "MLP hidden layer sizes"),
+        Parameter("output", net.get("output", "tanh"), "output node", choices=OUTPUTS),
+        Parameter("output_scale", float(net.get("output_scale", 1.0)), "tanh output multiplied by this", 1e-6, 1e6),
+        Parameter(
+            "solver", net.get("solver", "sgd"), "LeNN learning rule (nlms/rls need output: linear)", choices=SOLVERS
+        ),  # fmt: skip
+        Parameter("alpha", float(net["alpha"]), "learning rate (eqs. 6-10)", 0.0, 10.0, live=True),
+        Parameter("beta", float(net["beta"]), "momentum factor", 0.0, 0.999, live=True),
+        Parameter(
+            "forgetting", float(net.get("forgetting", 1.0)), "RLS forgetting factor lambda", 0.5, 1.0, live=True
+        ),  # fmt: skip
+        Parameter("nlms_step", float(net.get("nlms_step", 0.5)), "NLMS step size mu", 1e-6, 1.999, live=True),
+        Parameter("seed", 0, "seed of the initial weights", 0, 2**31 - 1),
+    ]
+
+
+def build_identifier(values: dict[str, Any], network: str) -> Identifier:
+    """An :class:`Identifier` from parameter values (node, params file or CLI)."""
+    structure = ModelStructure(
+        y_lags=int(values["y_lags"]),
+        u_lags=int(values["u_lags"]),
+        known_a=_coefficients(values["known_a"]),
+        known_b=_coefficients(values["known_b"]),
+        y_scale=float(values["y_scale"]),
+        u_scale=float(values["u_scale"]),
+        separate=bool(values["separate"]),
+    )
+    common = {
+        "n_inputs": structure.n_inputs,
+        "branches": structure.branches(),
+        "output": values["output"],
+        "output_scale": float(values["output_scale"]),
+        "alpha": float(values["alpha"]),
+        "beta": float(values["beta"]),
+        "random_state": int(values["seed"]),
+    }
+    if network == "mlp":
+        from lenn_ros.core.networks import MLP
+
+        model = MLP(hidden=[int(h) for h in values["hidden"]], **common)
+    elif network == "lenn":
+        from lenn_ros.core.networks import FunctionalLinkNetwork
+
+        model = FunctionalLinkNetwork(
+            order=int(values["order"]),
+            basis=values["basis"],
+            cross_degree=int(values["cross_degree"]),
+            solver=values["solver"],
+            forgetting=float(values["forgetting"]),
+            nlms_step=float(values["nlms_step"]),
+            **common,
+        )
+    else:
+        raise ValueError(f"unknown network {network!r}; use 'lenn' or 'mlp'")
+    return Identifier(structure, model)
+
+
+def _coefficients(values: Any) -> tuple[float, ...]:
+    coefficients = tuple(float(v) for v in values)
+    return () if all(c == 0.0 for c in coefficients) else coefficients
+
+
+def read_params_file(path: str | Path, node_name: str = "identifier") -> dict[str, Any]:
+    """The ``ros__parameters`` of ``node_name`` (or ``/**``) in a ROS 2 params file."""
+    path = Path(path)
+    try:
+        document = yaml.safe_load(path.read_text())
+    except FileNotFoundError:
+        raise ValueError(f"params file {path} does not exist") from None
+    except yaml.YAMLError as error:
+        raise ValueError(f"params file {path} is not valid YAML: {str(error).splitlines()[0]}") from None
+    if not isinstance(document, dict):
+        raise ValueError(f"params file {path} must map node names to {{ros__parameters: ...}}")
+    for key in (node_name, f"/{node_name}", "/**"):
+        section = document.get(key)
+        if isinstance(section, dict) and isinstance(section.get("ros__parameters"), dict):
+            return dict(section["ros__parameters"])
+    raise ValueError(f"params file {path} has no '{node_name}: ros__parameters:' section")
+
+
+def resolve(values: dict[str, Any]) -> tuple[dict[str, Any], str]:
+    """Complete user-given values with the example preset's defaults; check them.
+
+    Returns (all values, network). Unknown names and out-of-range values are errors
+    that name the parameter, so a typo in a params file is not silently ignored.
+    """
+    example = int(values.get("example", 1))
+    network = str(values.get("network", "lenn"))
+    parameter_set = str(values.get("parameters", "calibrated"))
+    if network not in ("lenn", "mlp"):
+        raise ValueError(f"network must be 'lenn' or 'mlp', not {network!r}")
+    if parameter_set not in PARAMETER_SETS:
+        raise ValueError(f"parameters must be one of {PARAMETER_SETS}, not {parameter_set!r}")
+    if example:
+        get_example(example)
+    table = {p.name: p for p in identifier_parameters(example, network, parameter_set)}
+    result = {name: p.default for name, p in table.items()}
+    for name, value in values.items():
+        if name in ("example", "network", "parameters"):
+            continue
+        if name not in table:
+            continue  # node-level parameters (topics, files...) are not the model's business
+        problem = check_value(table[name], value)
+        if problem:
+            raise ValueError(problem)
+        result[name] = value
+    return result, network
+
+
+def check_value(parameter: Parameter, value: Any) -> str | None:
+    """Why ``value`` is not acceptable for ``parameter`` (None if it is)."""
+    if parameter.choices and value not in parameter.choices:
+        return f"{parameter.name} must be one of {', '.join(parameter.choices)}, not {value!r}"
+    if isinstance(parameter.default, bool):
+        return None if isinstance(value, bool) else f"{parameter.name} must be true or false, not {value!r}"
+    if isinstance(parameter.default, int | float) and not isinstance(value, int | float):
+        return f"{parameter.name} must be a number, not {value!r}"
+    if isinstance(value, int | float) and not isinstance(value, bool):
+        if parameter.low is not None and value < parameter.low:
+            return f"{parameter.name} must be >= {parameter.low}, got {value}"
+        if parameter.high is not None and value > parameter.high:
+            return f"{parameter.name} must be <= {parameter.high}, got {value}"
+        if value != value:  # NaN
+            return f"{parameter.name} must be a number, not NaN"
+    return None

@@ -1,0 +1,42 @@
+"""Figures in the style of the paper's Figs. 4-7: plant, model and error over k."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+
+def plot_identification(
+    path: str | Path,
+    y_plant: np.ndarray,
+    y_model: np.ndarray,
+    title: str,
+    y_free_run: np.ndarray | None = None,
+) -> Path:
+    """Write a PNG of plant output, model output and error (one-step), as in the paper."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    y_plant = np.asarray(y_plant)
+    y_model = np.asarray(y_model)
+    k = np.arange(len(y_plant))
+    figure, axis = plt.subplots(figsize=(8, 3.6), dpi=110)
+    axis.plot(k, y_plant, color="black", linewidth=1.4, label="plant")
+    axis.plot(k, y_model, color="tab:red", linestyle="--", linewidth=1.2, label="model (one step)")
+    if y_free_run is not None:
+        axis.plot(k, y_free_run, color="tab:green", linestyle=":", linewidth=1.2, label="model (free run)")
+    axis.plot(k, y_plant - y_model, color="tab:blue", linewidth=0.9, label="error")
+    axis.set_xlabel("discrete time k (test phase)")
+    axis.set_ylabel("plant / model output and error")
+    axis.set_title(title, fontsize=10)
+    axis.grid(alpha=0.3)
+    axis.legend(loc="upper right", fontsize=8, ncol=2)
+    figure.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path)
+    plt.close(figure)
+    return path

@@ -55,33 +55,31 @@ def identifier_parameters(example: int, network: str, parameters: str = "calibra
             "scale factor SF: the network sees y / SF, which must be in [-1, 1]",
             1e-6,
             1e6,
-        ),  # fmt: skip
+        ),
         Parameter("u_scale", structure.u_scale, "the network sees u / u_scale, which must be in [-1, 1]", 1e-6, 1e6),
         Parameter("separate", structure.separate, "Model 3 structure: N1[y] + N2[u] instead of one network"),
         Parameter(
             "order", int(net.get("order", 4)), "LeNN: polynomial degree per input (paper's terms / inputs)", 1, 30
-        ),  # fmt: skip
+        ),
         Parameter(
             "basis", net.get("basis", "legendre"), "LeNN expansion", choices=("legendre", "chebyshev", "trigonometric")
-        ),  # fmt: skip
+        ),
         Parameter(
             "cross_degree",
             int(net.get("cross_degree", 0)),
             "LeNN: tensor-product terms up to this total degree (0: the paper's per-input expansion)",
             0,
             6,
-        ),  # fmt: skip
+        ),
         Parameter("hidden", [int(h) for h in net.get("hidden", [20, 10])], "MLP hidden layer sizes"),
         Parameter("output", net.get("output", "tanh"), "output node", choices=OUTPUTS),
         Parameter("output_scale", float(net.get("output_scale", 1.0)), "tanh output multiplied by this", 1e-6, 1e6),
         Parameter(
             "solver", net.get("solver", "sgd"), "LeNN learning rule (nlms/rls need output: linear)", choices=SOLVERS
-        ),  # fmt: skip
+        ),
         Parameter("alpha", float(net["alpha"]), "learning rate (eqs. 6-10)", 0.0, 10.0, live=True),
         Parameter("beta", float(net["beta"]), "momentum factor", 0.0, 0.999, live=True),
-        Parameter(
-            "forgetting", float(net.get("forgetting", 1.0)), "RLS forgetting factor lambda", 0.5, 1.0, live=True
-        ),  # fmt: skip
+        Parameter("forgetting", float(net.get("forgetting", 1.0)), "RLS forgetting factor lambda", 0.5, 1.0, live=True),
         Parameter("nlms_step", float(net.get("nlms_step", 0.5)), "NLMS step size mu", 1e-6, 1.999, live=True),
         Parameter("seed", 0, "seed of the initial weights", 0, 2**31 - 1),
     ]

@@ -336,17 +336,32 @@ class FunctionalLinkNetwork(OnlineRegressor):
         y = np.empty(phi.shape[0])
         if self.solver == "sgd":
             done = kernels.functional_link_sgd(
-                self.weights_, self.momentum_, phi, d, self.feature_branch_,
-                len(self.branch_inputs_), float(self.alpha), float(self.beta),
-                self.output == "tanh", float(self.output_scale), learn, y,
-            )  # fmt: skip
+                self.weights_,
+                self.momentum_,
+                phi,
+                d,
+                self.feature_branch_,
+                len(self.branch_inputs_),
+                float(self.alpha),
+                float(self.beta),
+                self.output == "tanh",
+                float(self.output_scale),
+                learn,
+                y,
+            )
         elif self.solver == "nlms":
             done = kernels.functional_link_nlms(self.weights_, phi, d, float(self.nlms_step), 1e-6, learn, y)
         else:
             done = kernels.functional_link_rls(
-                self.weights_, self.covariance_, phi, d, float(self.forgetting),
-                float(self.max_trace), learn, y,
-            )  # fmt: skip
+                self.weights_,
+                self.covariance_,
+                phi,
+                d,
+                float(self.forgetting),
+                float(self.max_trace),
+                learn,
+                y,
+            )
         if learn:
             self.n_samples_seen_ += done
         if done < phi.shape[0]:
@@ -455,10 +470,19 @@ class MLP(OnlineRegressor):
         d = np.ascontiguousarray(np.broadcast_to(np.asarray(d, dtype=np.float64), (x.shape[0],)))
         y = np.empty(x.shape[0])
         done = kernels.mlp_sgd(
-            self.params_, self.momentum_, x, d, self.layout_, self.n_activations_,
-            float(self.alpha), float(self.beta), self.output == "tanh",
-            float(self.output_scale), learn, y,
-        )  # fmt: skip
+            self.params_,
+            self.momentum_,
+            x,
+            d,
+            self.layout_,
+            self.n_activations_,
+            float(self.alpha),
+            float(self.beta),
+            self.output == "tanh",
+            float(self.output_scale),
+            learn,
+            y,
+        )
         if learn:
             self.n_samples_seen_ += done
         if done < x.shape[0]:

@@ -15,7 +15,7 @@ import numpy as np
 from lenn_ros.core.examples import TEST_SAMPLES, TRAIN_SAMPLES, PaperExample
 from lenn_ros.core.metrics import nmse_db, rmse
 from lenn_ros.core.plants import Plant
-from lenn_ros.core.signals import noise_std, test_sinusoid, uniform_input
+from lenn_ros.core.signals import Excitation
 from lenn_ros.core.structure import Identifier
 
 
@@ -72,12 +72,8 @@ def simulate(
     reach with noise in the test: the README shows the bound). Separate random
     streams for the input and the noise keep one from shifting the other.
     """
-    input_rng = np.random.default_rng([seed, 0])
-    noise_rng = np.random.default_rng([seed, 1])
-    u = np.concatenate([uniform_input(train_samples, input_rng), test_sinusoid(test_samples)])
-    noise = noise_rng.normal(0.0, 1.0, len(u)) * noise_std(noise_db)
-    if not test_noise:
-        noise[train_samples:] = 0.0
+    excitation = Excitation(seed, "paper", train_samples, test_samples, noise_db, test_noise)
+    u, noise = excitation.series()
     applied = u + noise
     plant.reset()
     y = plant.run(applied)[:-1]

@@ -41,3 +41,95 @@ def noise_std(noise_db: float | None, signal_power: float = UNIFORM_INPUT_POWER)
     if noise_db is None:
         return 0.0
     return float(np.sqrt(signal_power * 10.0 ** (noise_db / 10.0)))
+
+
+SIGNALS = ("paper", "uniform", "sinusoid")
+
+
+class Excitation:
+    """The input u(k) and the plant-input noise n(k), sample after sample.
+
+    ``"paper"``: uniform random for ``train_samples``, then eq. 11 for
+    ``test_samples`` (then exhausted); ``"uniform"`` / ``"sinusoid"``: one of the
+    two forever. Values are drawn in blocks from two seeded streams (input, noise),
+    and a block draw equals the same draws one by one, so the live plant simulator
+    and the offline ``simulate`` produce identical data for the same seed.
+    """
+
+    block = 4096
+
+    def __init__(
+        self,
+        seed: int,
+        signal: str = "paper",
+        train_samples: int = 50_000,
+        test_samples: int = 600,
+        noise_db: float | None = None,
+        test_noise: bool = False,
+    ) -> None:
+        if signal not in SIGNALS:
+            raise ValueError(f"signal must be one of {', '.join(SIGNALS)}, not {signal!r}")
+        self.signal = signal
+        self.train_samples = train_samples if signal == "paper" else (0 if signal == "sinusoid" else -1)
+        self.test_samples = test_samples
+        self.sigma = noise_std(noise_db)
+        self.test_noise = test_noise
+        self._input_rng = np.random.default_rng([seed, 0])
+        self._noise_rng = np.random.default_rng([seed, 1])
+        self._u = np.empty(0)
+        self._noise = np.empty(0)
+        self._offset = 0  # k of self._u[0]
+
+    @property
+    def length(self) -> int | None:
+        """Total samples, or None if endless."""
+        return self.train_samples + self.test_samples if self.signal == "paper" else None
+
+    @property
+    def test_start(self) -> int | None:
+        """k of the first test sample (None: no test phase)."""
+        return self.train_samples if self.signal == "paper" else None
+
+    def in_training(self, k: int) -> bool:
+        return self.train_samples < 0 or k < self.train_samples
+
+    def sample(self, k: int) -> tuple[float, float]:
+        """(u(k), n(k)) for k = 0, 1, 2, ... (never more than a block backwards)."""
+        if self.length is not None and k >= self.length:
+            raise IndexError("the excitation is exhausted")
+        while k >= self._offset + len(self._u):
+            self._extend()
+        if k < self._offset:
+            raise IndexError(f"sample {k} was already discarded")
+        return float(self._u[k - self._offset]), float(self._noise[k - self._offset])
+
+    def series(self) -> tuple[np.ndarray, np.ndarray]:
+        """All of a finite excitation at once."""
+        if self.length is None:
+            raise ValueError("an endless signal has no whole series")
+        u, noise = self._draw(0, self.length)
+        return u, noise
+
+    def _extend(self) -> None:
+        """Next block; an endless signal keeps only the previous block besides it."""
+        start = self._offset + len(self._u)
+        count = self.block if self.length is None else self.length - start
+        u, noise = self._draw(start, count)
+        if len(self._u) > self.block:
+            self._offset += len(self._u) - self.block
+            self._u, self._noise = self._u[-self.block :], self._noise[-self.block :]
+        self._u = np.concatenate([self._u, u])
+        self._noise = np.concatenate([self._noise, noise])
+
+    def _draw(self, start: int, count: int) -> tuple[np.ndarray, np.ndarray]:
+        k = np.arange(start, start + count)
+        train = (k < self.train_samples) | (self.train_samples < 0)
+        u = np.empty(count)
+        u[train] = uniform_input(int(train.sum()), self._input_rng)
+        test_k = k[~train] - max(self.train_samples, 0) + 1
+        if len(test_k):
+            u[~train] = test_sinusoid(len(test_k), start=int(test_k[0]))
+        noise = self._noise_rng.normal(0.0, 1.0, count) * self.sigma
+        if not self.test_noise:
+            noise[~train] = 0.0
+        return u, noise

@@ -180,9 +180,19 @@ class Identifier:
             result.y_hat_next = float(linear[-1] + self.model.predict(x)[0])
         return result
 
-    def skip(self) -> None:
-        """A sample was rejected before reaching us: the history is broken there."""
+    def skip(self, index: int | None = None) -> None:
+        """Sample ``index`` was rejected (bad value): the history is broken there.
+
+        The index still counts as consumed, so the next sample is not a gap.
+        """
         self.counters["rejected"] += 1
+        if index is not None:
+            self._last_index = index
+        self._restart_history()
+
+    def restart_stream(self) -> None:
+        """The sample indices start over (a publisher restarted): forget the history."""
+        self._last_index = None
         self._restart_history()
 
     def _restart_history(self) -> None:

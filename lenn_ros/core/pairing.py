@@ -1,0 +1,65 @@
+"""Pairing u(k) with y_p(k) by sample index, never by luck of arrival order.
+
+u and y_p travel on two topics; an executor may deliver several u before the
+matching y_p, and a fault may lose, repeat or reorder messages. Each message comes
+with an index (the DDS publication sequence number: the plant simulator publishes
+u(k) and y_p(k) once per step from one node, so both are k + 1). A pair is released
+only when both halves with the same index are there, in increasing index order; a
+half that can no longer be paired (its partner's index was passed) is dropped and
+counted, as are repeats and stale indices. Memory is bounded by ``window``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+U, Y = "u", "y"
+
+
+@dataclass
+class Pairer:
+    """Matches halves by index; see the module docstring for the rules."""
+
+    window: int = 10_000
+    restart_gap: int = 1_000_000
+    counters: dict[str, int] = field(
+        default_factory=lambda: {"paired": 0, "duplicates": 0, "stale": 0, "unpaired": 0, "restarts": 0}
+    )
+
+    def __post_init__(self) -> None:
+        self._pending: dict[str, dict[int, float]] = {U: {}, Y: {}}
+        self._last_released = 0
+
+    def add(self, topic: str, index: int, value: float) -> list[tuple[int, float, float]]:
+        """Offer one half; returns the pairs (index, u, y) completed by it."""
+        if index <= self._last_released:
+            if index == 1 and self._last_released > 1 or self._last_released - index > self.restart_gap:
+                self._restart()
+            else:
+                self.counters["stale"] += 1
+                return []
+        pending, other = self._pending[topic], self._pending[U if topic == Y else Y]
+        if index in pending:
+            self.counters["duplicates"] += 1
+            return []
+        if index not in other:
+            pending[index] = value
+            if len(pending) > self.window:
+                del pending[min(pending)]
+                self.counters["unpaired"] += 1
+            return []
+        partner = other.pop(index)
+        u, y = (value, partner) if topic == U else (partner, value)
+        self._last_released = index
+        for halves in self._pending.values():
+            for old in [i for i in halves if i < index]:
+                del halves[old]
+                self.counters["unpaired"] += 1
+        self.counters["paired"] += 1
+        return [(index, u, y)]
+
+    def _restart(self) -> None:
+        """The publisher restarted (its sequence numbers began again at 1)."""
+        self.counters["restarts"] += 1
+        self._pending = {U: {}, Y: {}}
+        self._last_released = 0

@@ -1,0 +1,193 @@
+"""plant_simulator: publishes u(k) and the noisy plant output y_p(k), step by step.
+
+A thin adapter over :mod:`lenn_ros.core` (plants, excitation). At step k it publishes
+u(k) on ``u`` and y_p(k) on ``y_p`` (one message each, so their publication sequence
+numbers both equal k + 1: the identifier pairs them by it), then applies u(k) plus
+noise to the plant. ``test_start`` (latched) tells listeners where training ends.
+
+Stepping: ``rate_hz`` > 0 steps on a wall-clock schedule (catching up in bursts if a
+tick is late); ``rate_hz`` = 0 steps as fast as the identifier keeps up: it counts
+the identifier's ``y_hat`` messages and never runs more than ``window`` steps ahead,
+so the RELIABLE queues (depth topics.DATA_DEPTH) can never overflow.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import rclpy
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from std_msgs.msg import Float64, Int64
+
+from lenn_ros import topics
+from lenn_ros.core.examples import get_example
+from lenn_ros.core.expression import ExpressionError
+from lenn_ros.core.plants import Plant, plant_from_expressions
+from lenn_ros.core.signals import SIGNALS, Excitation
+
+
+def _describe(text: str, low: float | None = None, high: float | None = None, read_only: bool = True):
+    descriptor = ParameterDescriptor(description=text, read_only=read_only)
+    if isinstance(low, int) and isinstance(high, int):
+        descriptor.integer_range = [IntegerRange(from_value=low, to_value=high, step=1)]
+    elif low is not None:
+        descriptor.floating_point_range = [FloatingPointRange(from_value=float(low), to_value=float(high))]
+    return descriptor
+
+
+class PlantSimulator(Node):
+    """Simulates one of the paper's examples (or a user-defined plant) in real time."""
+
+    def __init__(self) -> None:
+        super().__init__("plant_simulator")
+        declare = self.declare_parameter
+        declare("example", 1, _describe("paper example 1-4; 0 = user-defined plant (model, f, g, a, b)", 0, 4))
+        declare("model", 4, _describe("user-defined plant: model class 1-4", 1, 4))
+        declare("n", 1, _describe("user-defined plant: past outputs n", 1, 10))
+        declare("m", 1, _describe("user-defined plant: past inputs m (m <= n)", 1, 10))
+        declare("f", "", _describe("user-defined f over y1..yn (Model 4: then u1..um); arithmetic only"))
+        declare("g", "", _describe("user-defined g over u1..um; arithmetic only"))
+        declare("a", [0.0], _describe("user-defined Model 1 coefficients a_0..a_{n-1}"))
+        declare("b", [0.0], _describe("user-defined Model 2 coefficients b_0..b_{m-1}"))
+        declare("signal", "paper", _describe(f"input signal: {', '.join(SIGNALS)} (paper: uniform, then eq. 11)"))
+        declare("train_samples", 50_000, _describe("samples of uniform random input before the test", 0, 10**9))
+        declare("test_samples", 600, _describe("samples of the eq. 11 test sinusoid", 0, 10**9))
+        example = self.get_parameter("example").value
+        default_noise = get_example(example).noise_db if example else -20.0
+        declare("noise_db", default_noise, _describe("plant-input noise power vs. U[-1,1] input power, dB", -300, 40))
+        declare("test_noise", False, _describe("also add the noise during the test phase"))
+        declare("seed", 0, _describe("seed of the input and noise streams", 0, 2**31 - 1))
+        declare("rate_hz", 100.0, _describe("plant steps per second; 0 = as fast as the identifier keeps up",
+                                            0.0, 1.0e6, read_only=False))  # fmt: skip
+        declare("window", 1000, _describe("rate 0: max steps ahead of the identifier's y_hat", 1,
+                                          topics.DATA_DEPTH // 2))  # fmt: skip
+        declare("wait_for_subscribers", 1, _describe("subscribers to u and y_p needed before stepping", 0, 100))
+        declare("exit_when_done", False, _describe("exit after the last test sample"))
+        self.add_on_set_parameters_callback(self._check_parameters)
+        self.add_post_set_parameters_callback(self._apply_parameters)
+
+        self.plant = self._make_plant()
+        p = self.get_parameter
+        self.excitation = Excitation(
+            p("seed").value, p("signal").value, p("train_samples").value, p("test_samples").value,
+            p("noise_db").value, p("test_noise").value,
+        )  # fmt: skip
+        self.k = 0
+        self.acknowledged = 0
+        self.u_publisher = self.create_publisher(Float64, topics.U, topics.data_qos())
+        self.y_publisher = self.create_publisher(Float64, topics.Y_P, topics.data_qos())
+        self.test_start_publisher = self.create_publisher(Int64, topics.TEST_START, topics.latched_qos())
+        self.create_subscription(Float64, topics.Y_HAT, self._on_y_hat, topics.data_qos())
+        if self.excitation.test_start is not None:
+            self.test_start_publisher.publish(Int64(data=self.excitation.test_start + 1))
+        self.started: float | None = None
+        self.done = False
+        self.timer = self.create_timer(self._period(), self._tick)
+        self.get_logger().info(
+            f"{self.plant.name}: signal {p('signal').value}, {self.excitation.length or 'endless'} samples, "
+            f"noise {p('noise_db').value} dB, rate {p('rate_hz').value or 'lockstep'}"
+        )
+
+    def _make_plant(self) -> Plant:
+        p = self.get_parameter
+        example = p("example").value
+        if example:
+            return get_example(example).plant()
+        try:
+            return plant_from_expressions(
+                p("model").value, p("n").value, p("m").value, p("f").value or None, p("g").value or None,
+                [a for a in p("a").value], [b for b in p("b").value],
+            )  # fmt: skip
+        except (ExpressionError, ValueError) as error:
+            raise SystemExit(f"plant_simulator: user-defined plant: {error}") from None
+
+    def _check_parameters(self, parameters) -> SetParametersResult:
+        for parameter in parameters:
+            if parameter.name == "rate_hz" and parameter.value < 0:
+                return SetParametersResult(successful=False, reason="rate_hz must be >= 0")
+        return SetParametersResult(successful=True)
+
+    def _apply_parameters(self, parameters) -> None:
+        """A new rate takes effect at once: restart the schedule from the current step."""
+        if any(parameter.name == "rate_hz" for parameter in parameters) and hasattr(self, "timer"):
+            self.timer.cancel()
+            self.destroy_timer(self.timer)
+            if self.started is not None:
+                rate = self.get_parameter("rate_hz").value
+                self.started = time.monotonic() - (self.k / rate if rate > 0 else 0.0)
+            self.timer = self.create_timer(self._period(), self._tick)
+
+    def _period(self) -> float:
+        rate = self.get_parameter("rate_hz").value
+        return 0.001 if rate <= 0 else max(1.0 / rate, 0.001)
+
+    def _on_y_hat(self, _message: Float64) -> None:
+        self.acknowledged += 1
+
+    def _ready(self) -> bool:
+        needed = self.get_parameter("wait_for_subscribers").value
+        return (
+            self.u_publisher.get_subscription_count() >= needed and self.y_publisher.get_subscription_count() >= needed
+        )
+
+    def _tick(self) -> None:
+        if self.done:
+            return
+        if self.started is None:
+            if not self._ready():
+                return
+            self.started = time.monotonic()
+        rate = self.get_parameter("rate_hz").value
+        if rate > 0:
+            due = int((time.monotonic() - self.started) * rate) + 1 - self.k
+            due = min(due, self.get_parameter("window").value)
+        else:
+            due = self.get_parameter("window").value - (self.k - self.acknowledged)
+        for _ in range(max(due, 0)):
+            if not self._step():
+                self._finish()
+                return
+
+    def _step(self) -> bool:
+        length = self.excitation.length
+        if length is not None and self.k >= length:
+            return False
+        u, noise = self.excitation.sample(self.k)
+        self.u_publisher.publish(Float64(data=u))
+        self.y_publisher.publish(Float64(data=self.plant.output))
+        self.plant.step(u + noise)
+        self.k += 1
+        return True
+
+    def _finish(self) -> None:
+        self.done = True
+        self.get_logger().info(f"done: published {self.k} samples of u and y_p")
+        if self.get_parameter("exit_when_done").value:
+            raise SystemExit(0)
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args)
+    node = None
+    code = 0
+    try:
+        node = PlantSimulator()
+        rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except SystemExit as stop:
+        if isinstance(stop.code, str):
+            print(stop.code, file=sys.stderr)
+            code = 2
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

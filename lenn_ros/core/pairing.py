@@ -33,7 +33,7 @@ class Pairer:
     def add(self, topic: str, index: int, value: float) -> list[tuple[int, float, float]]:
         """Offer one half; returns the pairs (index, u, y) completed by it."""
         if index <= self._last_released:
-            if index == 1 and self._last_released > 1 or self._last_released - index > self.restart_gap:
+            if (index == 1 and self._last_released > 1) or self._last_released - index > self.restart_gap:
                 self._restart()
             else:
                 self.counters["stale"] += 1

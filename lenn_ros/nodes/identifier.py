@@ -33,18 +33,16 @@ from lenn_ros import topics
 from lenn_ros.config import Parameter, build_identifier, check_value, identifier_parameters
 from lenn_ros.core.metrics import RunningNMSE
 from lenn_ros.core.networks import ModelFileError
-from lenn_ros.core.pairing import U, Y, Pairer
+from lenn_ros.core.pairing import Pairer, U, Y
 
 NODE_PARAMETERS = [
     Parameter("learning", True, "learn from each sample (false: frozen weights, the paper's test)", live=True),
     Parameter("follow_test_start", True, "freeze learning from the index on the test_start topic", live=True),
     Parameter("weights_in", "", "weights file (.npz) to start from ('' = fresh weights)"),
-    Parameter(
-        "weights_out", "", "weights file written on shutdown and every autosave_period s ('' = none)", live=True
-    ),  # fmt: skip
+    Parameter("weights_out", "", "weights file written on shutdown and every autosave_period s ('' = none)", live=True),
     Parameter(
         "autosave_period", 0.0, "seconds between atomic weight saves (0 = only on shutdown)", 0.0, 86400.0, live=True
-    ),  # fmt: skip
+    ),
     Parameter("u_limit", 1.0e3, "|u| above this is an absurd value", 0.0, 1e300, live=True),
     Parameter("y_limit", 1.0e3, "|y_p| above this is an absurd value", 0.0, 1e300, live=True),
     Parameter("out_of_range", "reject", "what to do with an absurd value", choices=("reject", "clip"), live=True),
@@ -75,13 +73,21 @@ class IdentifierNode(Node):
 
     def __init__(self) -> None:
         super().__init__("identifier")
-        self.declare_parameter("example", 1, ParameterDescriptor(
-            description="paper example whose structure and parameters are the defaults (0 = none)", read_only=True,
-            integer_range=[IntegerRange(from_value=0, to_value=4, step=1)]))  # fmt: skip
-        self.declare_parameter("network", "lenn", ParameterDescriptor(
-            description="lenn or mlp", read_only=True))  # fmt: skip
-        self.declare_parameter("parameters", "calibrated", ParameterDescriptor(
-            description="alpha/beta preset: calibrated or paper", read_only=True))  # fmt: skip
+        self.declare_parameter(
+            "example",
+            1,
+            ParameterDescriptor(
+                description="paper example whose structure and parameters are the defaults (0 = none)",
+                read_only=True,
+                integer_range=[IntegerRange(from_value=0, to_value=4, step=1)],
+            ),
+        )
+        self.declare_parameter("network", "lenn", ParameterDescriptor(description="lenn or mlp", read_only=True))
+        self.declare_parameter(
+            "parameters",
+            "calibrated",
+            ParameterDescriptor(description="alpha/beta preset: calibrated or paper", read_only=True),
+        )
         example = self.get_parameter("example").value
         network = self.get_parameter("network").value
         preset = self.get_parameter("parameters").value

@@ -60,10 +60,14 @@ class PlantSimulator(Node):
         declare("noise_db", default_noise, _describe("plant-input noise power vs. U[-1,1] input power, dB", -300, 40))
         declare("test_noise", False, _describe("also add the noise during the test phase"))
         declare("seed", 0, _describe("seed of the input and noise streams", 0, 2**31 - 1))
-        declare("rate_hz", 100.0, _describe("plant steps per second; 0 = as fast as the identifier keeps up",
-                                            0.0, 1.0e6, read_only=False))  # fmt: skip
-        declare("window", 1000, _describe("rate 0: max steps ahead of the identifier's y_hat", 1,
-                                          topics.DATA_DEPTH // 2))  # fmt: skip
+        declare(
+            "rate_hz",
+            100.0,
+            _describe("plant steps per second; 0 = as fast as the identifier keeps up", 0.0, 1.0e6, read_only=False),
+        )
+        declare(
+            "window", 1000, _describe("rate 0: max steps ahead of the identifier's y_hat", 1, topics.DATA_DEPTH // 2)
+        )
         declare("wait_for_subscribers", 1, _describe("subscribers to u and y_p needed before stepping", 0, 100))
         declare("exit_when_done", False, _describe("exit after the last test sample"))
         self.add_on_set_parameters_callback(self._check_parameters)
@@ -72,9 +76,13 @@ class PlantSimulator(Node):
         self.plant = self._make_plant()
         p = self.get_parameter
         self.excitation = Excitation(
-            p("seed").value, p("signal").value, p("train_samples").value, p("test_samples").value,
-            p("noise_db").value, p("test_noise").value,
-        )  # fmt: skip
+            p("seed").value,
+            p("signal").value,
+            p("train_samples").value,
+            p("test_samples").value,
+            p("noise_db").value,
+            p("test_noise").value,
+        )
         self.k = 0
         self.acknowledged = 0
         self.u_publisher = self.create_publisher(Float64, topics.U, topics.data_qos())
@@ -98,9 +106,14 @@ class PlantSimulator(Node):
             return get_example(example).plant()
         try:
             return plant_from_expressions(
-                p("model").value, p("n").value, p("m").value, p("f").value or None, p("g").value or None,
-                [a for a in p("a").value], [b for b in p("b").value],
-            )  # fmt: skip
+                p("model").value,
+                p("n").value,
+                p("m").value,
+                p("f").value or None,
+                p("g").value or None,
+                [a for a in p("a").value],
+                [b for b in p("b").value],
+            )
         except (ExpressionError, ValueError) as error:
             raise SystemExit(f"plant_simulator: user-defined plant: {error}") from None
 

@@ -151,7 +151,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.handler(args) or 0)
     except KeyboardInterrupt:
         return 130
-    except (UserError, ValueError, OSError) as error:
+    except (UserError, ValueError, OSError, RuntimeError) as error:
         print(f"lenn-ros {args.command}: error: {error}", file=sys.stderr)
         return 2
 

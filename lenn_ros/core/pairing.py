@@ -63,3 +63,20 @@ class Pairer:
         self.counters["restarts"] += 1
         self._pending = {U: {}, Y: {}}
         self._last_released = 0
+
+
+def screen(value: float, limit: float, policy: str = "reject") -> tuple[float, str]:
+    """Vet one sample before it can reach a model: (value to use, verdict).
+
+    Verdicts: ``"ok"``; ``"nan"`` (NaN or inf: always rejected, value becomes NaN);
+    ``"out_of_range"`` (|value| > limit under policy "reject": value becomes NaN);
+    ``"clipped"`` (policy "clip": value clamped to +-limit). A NaN value marks the
+    whole pair for skipping, so a bad half never meets the learning rule.
+    """
+    if value != value or value in (float("inf"), float("-inf")):
+        return float("nan"), "nan"
+    if abs(value) > limit:
+        if policy == "clip":
+            return (limit if value > 0 else -limit), "clipped"
+        return float("nan"), "out_of_range"
+    return value, "ok"

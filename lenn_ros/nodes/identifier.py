@@ -33,7 +33,7 @@ from lenn_ros import topics
 from lenn_ros.config import Parameter, build_identifier, check_value, identifier_parameters
 from lenn_ros.core.metrics import RunningNMSE
 from lenn_ros.core.networks import ModelFileError
-from lenn_ros.core.pairing import Pairer, U, Y
+from lenn_ros.core.pairing import Pairer, U, Y, screen
 
 NODE_PARAMETERS = [
     Parameter("learning", True, "learn from each sample (false: frozen weights, the paper's test)", live=True),
@@ -173,18 +173,13 @@ class IdentifierNode(Node):
         self.test_start = int(message.data)
 
     def _on_half(self, topic: str, message: Float64, info: dict) -> None:
-        value = float(message.data)
-        limit = self._value("u_limit" if topic == U else "y_limit")
         index = int(info["publication_sequence_number"])
-        if not math.isfinite(value) or abs(value) > limit:
-            kind = "nan" if not math.isfinite(value) else "out_of_range"
-            if kind == "nan" or self._value("out_of_range") == "reject":
-                self.bad_samples[kind] += 1
-                self._warn(f"rejected {topic}[{index}] = {value!r} ({kind}); the sample is skipped, not learnt")
-                value = math.nan  # the pair is still formed, then skipped as a whole
-            else:
-                self.bad_samples["clipped"] += 1
-                value = math.copysign(limit, value)
+        limit = self._value("u_limit" if topic == U else "y_limit")
+        value, verdict = screen(float(message.data), limit, self._value("out_of_range"))
+        if verdict != "ok":
+            self.bad_samples[verdict] += 1
+            consequence = "clipped to the limit" if verdict == "clipped" else "the pair is skipped, never learnt from"
+            self._warn(f"{topic}[{index}] = {message.data!r}: {verdict}; {consequence}")
         restarts = self.pairer.counters["restarts"]
         pairs = self.pairer.add(topic, index, value)
         if self.pairer.counters["restarts"] != restarts:

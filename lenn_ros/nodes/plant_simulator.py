@@ -179,6 +179,17 @@ class PlantSimulator(Node):
         self.done = True
         self.get_logger().info(f"done: published {self.k} samples of u and y_p")
         if self.get_parameter("exit_when_done").value:
+            # Leave once the identifier has gone quiet (its last y_hat is in), so that
+            # whoever waits for this process knows the run's data has been consumed.
+            self._quiet_since = (time.monotonic(), self.acknowledged)
+            self.create_timer(0.1, self._exit_when_quiet)
+
+    def _exit_when_quiet(self) -> None:
+        since, count = self._quiet_since
+        now = time.monotonic()
+        if self.acknowledged != count:
+            self._quiet_since = (now, self.acknowledged)
+        elif now - since >= 0.5:
             raise SystemExit(0)
 
 

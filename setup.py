@@ -19,7 +19,7 @@ setup(
     install_requires=[
         "numpy>=1.26",
         "numba>=0.59",
-        "rosbags>=0.11",
+        "rosbags>=0.11,<0.12",  # BagWriter flushes chunks through rosbags internals (see bag.py)
         "matplotlib>=3.8",
         "tqdm>=4.66",
         "pyyaml>=6",

@@ -66,7 +66,7 @@ def evaluate_bag(bag: str, params: str | None = None, test_from: int | None = No
     rejected = 0
     for series, limit in ((u, node_values["u_limit"]), (y, node_values["y_limit"])):
         for k, value in enumerate(series):
-            series[k], verdict = screen(float(value), float(limit), node_values["out_of_range"])
+            series[k], _ = screen(float(value), float(limit), node_values["out_of_range"])
     bad = np.isnan(u) | np.isnan(y)
     rejected = int(bad.sum())
     if rejected:

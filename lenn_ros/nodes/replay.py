@@ -1,0 +1,229 @@
+"""Publish a recorded run (``u``, ``y_p`` and the latched ``test_start``) back into the graph.
+
+Why a node and not ``ros2 bag play``: rosbag2 is not pip-installable, and the identifier
+pairs u(k) with y_p(k) by *publication sequence number*, which only holds if one node
+publishes u(k) then y_p(k), once each, for every k. ``ros2 bag play`` (where installed)
+keeps them aligned too when it plays both topics from the start, but cannot pace by the
+identifier's progress.
+
+Pacing (``rate``):
+
+* ``rate > 0``: the recorded log-time spacing of ``u``, divided by ``rate``.
+* ``rate == 0``: as fast as possible *without loss*. Replay first waits for subscribers,
+  publishes RELIABLE (``topics.data_qos``), and keeps every subscriber's queue of
+  ``topics.DATA_DEPTH`` samples from overflowing in one of two ways:
+
+  - once an identifier is seen (a publisher on ``y_hat``; looked up every 128 samples)
+    and ``max_in_flight > 0``: back-pressure. At most ``max_in_flight`` (default
+    DATA_DEPTH / 2) samples are published ahead of the ``y_hat`` messages received.
+    If no ``y_hat`` arrives for ``wait_timeout`` seconds, replay falls back to:
+  - a fixed cap of ``max_rate_hz`` samples per second (default 1000, the rate for which
+    DATA_DEPTH gives a stalled subscriber 10 s before it loses anything).
+
+Before exiting, replay waits until every subscriber has acknowledged every sample.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+import threading
+import time
+from typing import Any
+
+import numpy as np
+import rclpy
+from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.duration import Duration
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+
+from lenn_ros import topics
+from lenn_ros.bag import BagError, read_run
+
+
+class Replay(Node):
+    """Publishes one bag's samples; :meth:`run` does the publishing so main() controls the loop."""
+
+    def __init__(self, stop: threading.Event | None = None, **kwargs: Any) -> None:
+        super().__init__("replay", **kwargs)
+        self._declare("bag", "", "Bag directory (or .mcap) to replay; needs u and y_p topics.")
+        self._declare(
+            "rate",
+            1.0,
+            "Speed: 1.0 = recorded timing, 2.0 = twice as fast, 0 = as fast as possible without loss.",
+            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1000.0)],
+        )
+        self._declare("loop", False, "Start again from the first sample when done (until SIGINT).")
+        self._declare(
+            "wait_for_subscribers",
+            1,
+            "Subscribers that u and y_p must each have before the first sample is sent.",
+            integer_range=[IntegerRange(from_value=0, to_value=100)],
+        )
+        self._declare(
+            "wait_timeout",
+            30.0,
+            "Seconds to wait for subscribers (and, with rate 0, for y_hat progress); 0 = forever.",
+            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=3600.0)],
+        )
+        self._declare(
+            "max_rate_hz",
+            1000.0,
+            "With rate 0 and no y_hat feedback: samples per second cap (0 = no cap).",
+            floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1.0e6)],
+        )
+        self._declare(
+            "max_in_flight",
+            topics.DATA_DEPTH // 2,
+            "With rate 0: samples published ahead of the y_hat messages received (0 = ignore y_hat).",
+            integer_range=[IntegerRange(from_value=0, to_value=topics.DATA_DEPTH)],
+        )
+        self.stop = stop or threading.Event()
+        bag = self.get_parameter("bag").value
+        if not bag:
+            raise BagError("parameter 'bag' is empty; run with --ros-args -p bag:=PATH")
+        run = read_run(bag)
+        n = min(len(run.u), len(run.y_p))
+        if len(run.u) != len(run.y_p):
+            self.get_logger().warning(f"u has {len(run.u)} samples, y_p {len(run.y_p)}: replaying the first {n}")
+        self.bag = bag
+        self.u, self.y_p = run.u[:n], run.y_p[:n]
+        self.offsets = (run.u_t[:n] - run.u_t[0]) / 1e9 if n else np.empty(0)
+        self.test_start = run.test_start
+        self.published = 0
+        self.y_hat_count = 0
+        self._feedback_allowed = False
+        self._identifier_seen = False
+        self._next_slot = 0.0
+        self._msg = topics.message_class(topics.FLOAT64)
+        self.pub_u = self.create_publisher(self._msg, topics.U, topics.data_qos())
+        self.pub_y = self.create_publisher(self._msg, topics.Y_P, topics.data_qos())
+        self.pub_start = None
+        if self.test_start is not None:
+            int_msg = topics.message_class(topics.INT64)
+            self.pub_start = self.create_publisher(int_msg, topics.TEST_START, topics.latched_qos())
+        self.create_subscription(self._msg, topics.Y_HAT, self._on_y_hat, topics.data_qos())
+
+    def _declare(self, name: str, default: Any, description: str, **ranges: Any) -> None:
+        self.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=True, **ranges))
+
+    def _on_y_hat(self, _msg: Any) -> None:
+        self.y_hat_count += 1
+
+    def _param(self, name: str) -> Any:
+        return self.get_parameter(name).value
+
+    def _spin_until(self, executor: SingleThreadedExecutor, deadline: float) -> None:
+        while not self.stop.is_set() and (left := deadline - time.monotonic()) > 0:
+            executor.spin_once(timeout_sec=min(left, 0.05))
+
+    def _wait_for_subscribers(self, executor: SingleThreadedExecutor) -> None:
+        wanted = int(self._param("wait_for_subscribers"))
+        timeout = float(self._param("wait_timeout")) or float("inf")
+        deadline = time.monotonic() + timeout
+        while min(self.pub_u.get_subscription_count(), self.pub_y.get_subscription_count()) < wanted:
+            if self.stop.is_set():
+                return
+            if time.monotonic() > deadline:
+                raise TimeoutError(f"no {wanted} subscriber(s) on u and y_p after {timeout:.0f} s; start them first")
+            executor.spin_once(timeout_sec=0.05)
+
+    def run(self, executor: SingleThreadedExecutor) -> int:
+        """Publish every sample (repeatedly with ``loop``); returns how many were published."""
+        self._wait_for_subscribers(executor)
+        if self.pub_start is not None:
+            self.pub_start.publish(topics.message_class(topics.INT64)(data=int(self.test_start)))
+        rate = float(self._param("rate"))
+        # Back-pressure is allowed with rate 0; it starts once a y_hat publisher is seen
+        # (looked up every 128 samples, so an identifier started late still counts).
+        self._feedback_allowed = rate == 0 and int(self._param("max_in_flight")) > 0
+        self._identifier_seen = False
+        self._next_slot = time.monotonic()
+        while not self.stop.is_set():
+            self._play_once(executor, rate)
+            if not self._param("loop") or not len(self.u):
+                break
+        return self.published
+
+    def _paced_by_y_hat(self) -> bool:
+        if self._feedback_allowed and not self._identifier_seen and self.published % 128 == 0:
+            self._identifier_seen = self.count_publishers(topics.Y_HAT) > 0
+            if self._identifier_seen:
+                self.get_logger().info("y_hat publisher found: pacing by the identifier's progress")
+        return self._feedback_allowed and self._identifier_seen
+
+    def _play_once(self, executor: SingleThreadedExecutor, rate: float) -> None:
+        max_rate = float(self._param("max_rate_hz"))
+        window = int(self._param("max_in_flight"))
+        timeout = float(self._param("wait_timeout")) or float("inf")
+        start = time.monotonic()
+        for k in range(len(self.u)):
+            if self.stop.is_set():
+                break
+            if rate > 0:
+                self._spin_until(executor, start + self.offsets[k] / rate)
+            elif self._paced_by_y_hat():
+                self._feedback_allowed = self._wait_for_progress(executor, window, timeout)
+            elif max_rate > 0:
+                self._next_slot = max(self._next_slot + 1.0 / max_rate, time.monotonic() - 0.01)
+                self._spin_until(executor, self._next_slot)
+            self.pub_u.publish(self._msg(data=float(self.u[k])))
+            self.pub_y.publish(self._msg(data=float(self.y_p[k])))
+            self.published += 1
+
+    def _wait_for_progress(self, executor: SingleThreadedExecutor, window: int, timeout: float) -> bool:
+        """Block while ``window`` samples are unanswered; False (give up feedback) after ``timeout``."""
+        last_count, last_change = self.y_hat_count, time.monotonic()
+        while self.published - self.y_hat_count >= window and not self.stop.is_set():
+            executor.spin_once(timeout_sec=0.05)
+            if self.y_hat_count != last_count:
+                last_count, last_change = self.y_hat_count, time.monotonic()
+            elif time.monotonic() - last_change > timeout:
+                self.get_logger().warning(f"no y_hat for {timeout:.0f} s: pacing by max_rate_hz instead")
+                return False
+        return True
+
+    def wait_acked(self, timeout: float = 10.0) -> bool:
+        """True when every subscriber has every sample, so exiting now loses nothing."""
+        limit = Duration(seconds=timeout)
+        return all(pub.wait_for_all_acked(limit) for pub in (self.pub_u, self.pub_y))
+
+
+def main(args: list[str] | None = None) -> int:
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = threading.Event()
+
+    def request_stop(signum: int, frame: object) -> None:
+        stop.set()
+
+    signal.signal(signal.SIGINT, request_stop)
+    signal.signal(signal.SIGTERM, request_stop)
+    node = None
+    status = 0
+    executor = SingleThreadedExecutor()
+    try:
+        node = Replay(stop=stop)
+        executor.add_node(node)
+        count = node.run(executor)
+        acked = node.wait_acked()
+        note = "" if acked else " (not all acknowledged by subscribers)"
+        print(f"replay: published {count} samples of {node.bag}{note}", flush=True)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except (BagError, TimeoutError, ValueError, ParameterException) as err:
+        print(f"replay: {err}", file=sys.stderr)
+        status = 1
+    finally:
+        if node is not None:
+            executor.remove_node(node)
+            node.destroy_node()
+        executor.shutdown()
+        rclpy.try_shutdown()
+    return status
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,256 @@
+"""The recorder and replay nodes as real processes, talking over DDS to an in-test rclpy node."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from collections import Counter
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from lenn_ros import topics
+from lenn_ros.bag import BagWriter, read_run, recover
+
+pytestmark = [pytest.mark.ros, pytest.mark.timeout(60)]
+
+rclpy = pytest.importorskip("rclpy")
+domain_coordinator = pytest.importorskip("domain_coordinator")
+
+from rclpy.context import Context  # noqa: E402
+from rclpy.duration import Duration  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from test_bag import complete_chunk_counts, independent_read  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture
+def domain(monkeypatch: pytest.MonkeyPatch) -> Iterator[int]:
+    """A ROS domain no concurrent test uses, discovery kept on this machine."""
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    with domain_coordinator.domain_id() as domain_id:
+        monkeypatch.setenv("ROS_DOMAIN_ID", str(domain_id))
+        yield domain_id
+
+
+def start_node(module: str, *params: str) -> subprocess.Popen[str]:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    env["PYTHONUNBUFFERED"] = "1"
+    args = [sys.executable, "-m", f"lenn_ros.nodes.{module}", "--ros-args"]
+    for param in params:
+        args += ["-p", param]
+    return subprocess.Popen(args, env=env, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def stop(proc: subprocess.Popen[str], sig: int = signal.SIGINT, timeout: float = 20) -> tuple[str, str]:
+    proc.send_signal(sig)
+    try:
+        return proc.communicate(timeout=timeout)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+
+
+class Talker:
+    """Publishes u(k) = k and y_p(k) = -k like the plant simulator (one node, u then y_p)."""
+
+    def __init__(self, domain_id: int) -> None:
+        self.ctx = Context()
+        rclpy.init(context=self.ctx, domain_id=domain_id)
+        self.node = rclpy.create_node("test_talker", context=self.ctx)
+        msg = topics.message_class(topics.FLOAT64)
+        self.msg = msg
+        self.pubs = [self.node.create_publisher(msg, name, topics.data_qos()) for name in (topics.U, topics.Y_P)]
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+        self.sent = 0
+
+    def wait_matched(self, timeout: float = 15) -> bool:
+        deadline = time.monotonic() + timeout
+        tick = threading.Event()
+        while min(p.get_subscription_count() for p in self.pubs) < 1:
+            if time.monotonic() > deadline:
+                return False
+            tick.wait(0.05)
+        return True
+
+    def publish(self, n: int) -> None:
+        for _ in range(n):
+            k = self.sent
+            self.pubs[0].publish(self.msg(data=float(k)))
+            self.pubs[1].publish(self.msg(data=-float(k)))
+            self.sent += 1
+
+    def acked(self, timeout: float = 10) -> bool:
+        return all(p.wait_for_all_acked(Duration(seconds=timeout)) for p in self.pubs)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.ctx.try_shutdown()
+
+
+@pytest.fixture
+def talker(domain: int) -> Iterator[Talker]:
+    t = Talker(domain)
+    yield t
+    t.close()
+
+
+def check_bag(path: Path, n: int) -> None:
+    run = read_run(path)
+    assert run.u.tolist() == [float(k) for k in range(n)]
+    assert run.y_p.tolist() == [-float(k) for k in range(n)]
+    theirs = independent_read(path / f"{path.name}.mcap")
+    assert [v for _, v in theirs["/u"]] == run.u.tolist()
+    assert [v for _, v in theirs["/y_p"]] == run.y_p.tolist()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_signal_closes_bag_with_every_message(tmp_path: Path, talker: Talker, sig: int) -> None:
+    out = tmp_path / "run"
+    proc = start_node("recorder", f"output:={out}")
+    try:
+        assert talker.wait_matched(), "recorder did not subscribe"
+        talker.publish(500)
+        assert talker.acked(), "recorder did not acknowledge every sample"
+    finally:
+        stdout, stderr = stop(proc, sig)
+    assert proc.returncode == 0, stderr
+    assert f"recorder: wrote {out} (u: 500, y_p: 500," in stdout
+    assert "lost" not in stdout
+    assert (out / "metadata.yaml").exists()
+    check_bag(out, 500)
+
+
+def test_sigkill_loses_at_most_the_unflushed_tail(tmp_path: Path, talker: Talker) -> None:
+    out = tmp_path / "run"
+    proc = start_node("recorder", f"output:={out}", "flush_period:=0.2")
+    try:
+        assert talker.wait_matched(), "recorder did not subscribe"
+        talker.publish(300)
+        assert talker.acked()
+        deadline = time.monotonic() + 10  # a flush is due within 1.25 * flush_period
+        done = threading.Event()
+        counts: Counter[str] = Counter()
+        while not done.wait(0.05) and time.monotonic() < deadline:
+            counts = complete_chunk_counts(out / "run.mcap")
+            if min(counts["/u"], counts["/y_p"]) >= 300:
+                done.set()
+        assert done.is_set(), f"first 300 samples not flushed to disk: {counts}"
+        talker.publish(300)
+    finally:
+        proc.kill()
+        proc.communicate(timeout=10)
+    assert not (out / "metadata.yaml").exists()
+    report = recover(out)
+    assert report.messages["/u"] >= 300 and report.messages["/y_p"] >= 300, str(report)
+    run = read_run(out)
+    assert run.u.tolist() == [float(k) for k in range(run.u.size)]  # a prefix, in order
+    assert run.y_p.tolist() == [-float(k) for k in range(run.y_p.size)]
+    theirs = independent_read(out / "run.mcap")
+    assert len(theirs["/u"]) == report.messages["/u"]
+
+
+def test_replay_into_recorder(tmp_path: Path, domain: int) -> None:
+    source = tmp_path / "source"
+    n = 400
+    with BagWriter(source) as bag:
+        for name in ("/u", "/y_p", "/test_start"):
+            bag.add_topic(name)
+        bag.write_value("/test_start", 250, 0)
+        for k in range(n):
+            bag.write_value("/u", float(k), k * 1_000_000)
+            bag.write_value("/y_p", -float(k), k * 1_000_000)
+    out = tmp_path / "copy"
+    recorder = start_node("recorder", f"output:={out}")
+    try:
+        replay = start_node("replay", f"bag:={source}", "rate:=0.0", "max_rate_hz:=2000.0")
+        stdout, stderr = replay.communicate(timeout=40)
+        assert replay.returncode == 0, stderr
+        assert f"replay: published {n} samples" in stdout and "not all acknowledged" not in stdout
+    finally:
+        rec_out, rec_err = stop(recorder)
+    assert recorder.returncode == 0, rec_err
+    assert "lost" not in rec_out  # sequence numbers of u and y_p had no gaps
+    check_bag(out, n)
+    assert read_run(out).test_start == 250
+
+
+def test_replay_back_pressure_from_y_hat(tmp_path: Path, domain: int) -> None:
+    """With rate 0, replay stays at most max_in_flight samples ahead of a slow identifier's y_hat."""
+    source, n, window = tmp_path / "source", 300, 20
+    with BagWriter(source) as bag:
+        bag.add_topic("/u")
+        bag.add_topic("/y_p")
+        for k in range(n):
+            bag.write_value("/u", float(k), k)
+            bag.write_value("/y_p", -float(k), k)
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    node = rclpy.create_node("slow_identifier", context=ctx)
+    msg_type = topics.message_class(topics.FLOAT64)
+    y_hat = node.create_publisher(msg_type, topics.Y_HAT, topics.data_qos())
+    # Back-pressure means sample P cannot be published before y_hat number P - window was sent.
+    published_at: list[int] = []  # source timestamp of y_p sample P (index P - 1)
+    answered_at: list[int] = []  # when y_hat number j (index j - 1) was about to be sent
+    done = threading.Event()
+    slow = threading.Event()
+
+    def on_y_p(msg: object, info: dict[str, int]) -> None:
+        published_at.append(info["source_timestamp"])
+        slow.wait(0.002)  # a slow identifier: about 2 ms per sample
+        answered_at.append(time.time_ns())
+        y_hat.publish(msg_type(data=0.0))
+        if len(published_at) == n:
+            done.set()
+
+    node.create_subscription(msg_type, topics.U, lambda _msg: None, topics.data_qos())
+    node.create_subscription(msg_type, topics.Y_P, on_y_p, topics.data_qos())
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    try:
+        replay = start_node("replay", f"bag:={source}", "rate:=0.0", f"max_in_flight:={window}", "max_rate_hz:=0.0")
+        _stdout, stderr = replay.communicate(timeout=40)
+        assert replay.returncode == 0, stderr
+        assert done.wait(10), f"identifier got {len(published_at)} of {n} samples"
+    finally:
+        executor.shutdown()
+        node.destroy_node()
+        ctx.try_shutdown()
+    early = [p for p in range(window + 1, n + 1) if published_at[p - 1] < answered_at[p - window - 1]]
+    assert not early, f"{len(early)} samples published more than {window} ahead of y_hat, first: {early[0]}"
+
+
+def test_recorder_counts_sequence_gaps(tmp_path: Path, domain: int) -> None:
+    """Lost samples show up as gaps in u/y_p publication sequence numbers; a restart is not a gap."""
+    from rclpy.parameter import Parameter
+    from rclpy.serialization import serialize_message
+
+    from lenn_ros.nodes.recorder import Recorder
+
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    try:
+        node = Recorder(context=ctx, parameter_overrides=[Parameter("output", value=str(tmp_path / "gaps"))])
+        raw = serialize_message(topics.message_class(topics.FLOAT64)(data=1.0))
+        for seq in (1, 2, 5, 6, 1, 2):
+            node._on_message(topics.U, raw, {"publication_sequence_number": seq, "received_timestamp": seq})
+        node._on_message(topics.Y_P, raw, {"publication_sequence_number": 1, "received_timestamp": 1})
+        summary = node.close()
+        node.destroy_node()
+    finally:
+        ctx.try_shutdown()
+    assert node.gaps == {topics.U: 2}
+    assert summary.endswith("2 samples lost ({'u': 2})")
+    assert read_run(tmp_path / "gaps").u.size == 6

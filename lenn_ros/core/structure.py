@@ -113,9 +113,10 @@ class Identifier:
 
     Divergence guard: learning proceeds in blocks of ``health_interval`` learnt
     samples. After each block the mean squared a-priori error is compared with the
-    variance of y_p over the block; above ``divergence_ratio`` times it (or if an
-    update would make a weight non-finite) the model goes back to the state it had
-    after the last healthy block, learning stops and ``diverged`` is set. Predictions
+    variance of the network's target (y_p minus the known linear part) over the
+    block, i.e. with what predicting its mean would cost; above ``divergence_ratio`` times it (or if an
+    update would make a weight non-finite) the model goes back to the state at the
+    start of the last block that passed, learning stops and ``diverged`` is set. Predictions
     go on from the healthy model.
     """
 
@@ -135,7 +136,7 @@ class Identifier:
         self._last_index: int | None = None
         self._pending: tuple[np.ndarray, float] | None = None  # x(k-1), lin(k-1)
         self._block_errors: list[float] = []
-        self._block_outputs: list[float] = []
+        self._block_targets: list[float] = []
         self.mark_healthy()
 
     # -- one sample ------------------------------------------------------------------
@@ -170,7 +171,7 @@ class Identifier:
             if learn:
                 self.counters["learned"] += 1
                 self._block_errors.append(result.error)
-                self._block_outputs.append(y)
+                self._block_targets.append(y - linear_previous)
                 if len(self._block_errors) == self.health_interval and not self._check_block():
                     result.event = "diverged"
         self._push(u, y)
@@ -210,14 +211,17 @@ class Identifier:
     def _check_block(self) -> bool:
         """End of a block of learnt samples: keep it (True) or roll back (False)."""
         errors = np.asarray(self._block_errors)
-        outputs = np.asarray(self._block_outputs)
+        targets = np.asarray(self._block_targets)
         self._block_errors.clear()
-        self._block_outputs.clear()
+        self._block_targets.clear()
         mse = float(np.mean(errors * errors))
-        if not np.isfinite(mse) or mse > self.divergence_ratio * float(np.var(outputs)) + 1e-12:
+        if not np.isfinite(mse) or mse > self.divergence_ratio * float(np.var(targets)) + 1e-12:
             self._on_divergence()
             return False
-        self.mark_healthy()
+        # The block's a-priori errors vouch for the weights it *started* from; the
+        # weights now (after its last update) are vouched for by the next block.
+        self._healthy_state = self._candidate_state
+        self._candidate_state = self.model.state()
         return True
 
     def _on_divergence(self) -> None:
@@ -225,7 +229,7 @@ class Identifier:
         self.diverged = True
         self.model.set_state(self._healthy_state)
         self._block_errors.clear()
-        self._block_outputs.clear()
+        self._block_targets.clear()
 
     def mark_healthy(self) -> None:
         """Take the current model state as the one to fall back to.
@@ -236,6 +240,7 @@ class Identifier:
         if not self.model.is_initialised:
             self.model._initialise()
         self._healthy_state = self.model.state()
+        self._candidate_state = self._healthy_state
         self.diverged = False
 
     # -- whole series (offline) --------------------------------------------------------------
@@ -253,7 +258,7 @@ class Identifier:
         x, linear = self.structure.regressors(u, y)
         first = self.structure.warm_up - 1
         targets = y[first + 1 :] - linear[:-1]
-        inputs, mask, outputs = x[:-1], learn_mask[first + 1 :], y[first + 1 :]
+        inputs, mask, outputs = x[:-1], learn_mask[first + 1 :], y[first + 1 :]  # outputs: y(k+1)
         y_hat = np.full(len(y), np.nan)
         start = 0
         while start < len(targets):
@@ -273,7 +278,7 @@ class Identifier:
             if learning:
                 self.counters["learned"] += stop - start
                 self._block_errors.extend((outputs[start:stop] - y_hat[first + 1 + start : first + 1 + stop]).tolist())
-                self._block_outputs.extend(outputs[start:stop].tolist())
+                self._block_targets.extend(targets[start:stop].tolist())
                 if len(self._block_errors) == self.health_interval:
                     self._check_block()
             start = stop

@@ -7,6 +7,10 @@ u(k) and y_p(k) once per step from one node, so both are k + 1). A pair is relea
 only when both halves with the same index are there, in increasing index order; a
 half that can no longer be paired (its partner's index was passed) is dropped and
 counted, as are repeats and stale indices. Memory is bounded by ``window``.
+
+Sequence numbers start again at 1 when the publisher restarts. Both halves of a new
+sample 1 arriving after later samples are taken as such a restart (a new stream);
+a lone repeated index 1, like any other old index, is counted as stale.
 """
 
 from __future__ import annotations
@@ -21,23 +25,31 @@ class Pairer:
     """Matches halves by index; see the module docstring for the rules."""
 
     window: int = 10_000
-    restart_gap: int = 1_000_000
     counters: dict[str, int] = field(
         default_factory=lambda: {"paired": 0, "duplicates": 0, "stale": 0, "unpaired": 0, "restarts": 0}
     )
 
     def __post_init__(self) -> None:
         self._pending: dict[str, dict[int, float]] = {U: {}, Y: {}}
+        self._restart_halves: dict[str, float] = {}
         self._last_released = 0
 
     def add(self, topic: str, index: int, value: float) -> list[tuple[int, float, float]]:
         """Offer one half; returns the pairs (index, u, y) completed by it."""
         if index <= self._last_released:
-            if (index == 1 and self._last_released > 1) or self._last_released - index > self.restart_gap:
-                self._restart()
-            else:
+            if index != 1:
                 self.counters["stale"] += 1
                 return []
+            # Index 1 again: a restarted publisher, or a second one. Only when *both*
+            # halves of sample 1 come back is it taken as a restart (a new stream).
+            self._restart_halves[topic] = value
+            if len(self._restart_halves) < 2:
+                self.counters["stale"] += 1  # unless its partner shows up
+                return []
+            self.counters["stale"] -= 1
+            halves = (self._restart_halves[U], self._restart_halves[Y])
+            self._restart()
+            return [self._release(1, halves)]
         pending, other = self._pending[topic], self._pending[U if topic == Y else Y]
         if index in pending:
             self.counters["duplicates"] += 1
@@ -49,18 +61,21 @@ class Pairer:
                 self.counters["unpaired"] += 1
             return []
         partner = other.pop(index)
-        u, y = (value, partner) if topic == U else (partner, value)
+        return [self._release(index, (value, partner) if topic == U else (partner, value))]
+
+    def _release(self, index: int, halves: tuple[float, float]) -> tuple[int, float, float]:
         self._last_released = index
-        for halves in self._pending.values():
-            for old in [i for i in halves if i < index]:
-                del halves[old]
+        for pending in self._pending.values():
+            for old in [i for i in pending if i < index]:
+                del pending[old]
                 self.counters["unpaired"] += 1
         self.counters["paired"] += 1
-        return [(index, u, y)]
+        return (index, halves[0], halves[1])
 
     def _restart(self) -> None:
         """The publisher restarted (its sequence numbers began again at 1)."""
         self.counters["restarts"] += 1
+        self._restart_halves = {}
         self._pending = {U: {}, Y: {}}
         self._last_released = 0
 

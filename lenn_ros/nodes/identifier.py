@@ -22,9 +22,7 @@ import sys
 import time
 from typing import Any
 
-import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter as RosParameter
 from std_msgs.msg import Float64, Int64, String
@@ -34,6 +32,7 @@ from lenn_ros.config import Parameter, build_identifier, check_value, identifier
 from lenn_ros.core.metrics import RunningNMSE
 from lenn_ros.core.networks import ModelFileError
 from lenn_ros.core.pairing import Pairer, U, Y, screen
+from lenn_ros.nodes import run_node
 
 NODE_PARAMETERS = [
     Parameter("learning", True, "learn from each sample (false: frozen weights, the paper's test)", live=True),
@@ -254,28 +253,7 @@ class IdentifierNode(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    try:
-        rclpy.init(args=args)
-    except Exception as error:  # rclpy raises its own error types for a bad --ros-args / params file
-        print(f"identifier: cannot start: {str(error).splitlines()[0]}", file=sys.stderr)
-        return 2
-    node = None
-    code = 0
-    try:
-        node = IdentifierNode()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except SystemExit as stop:
-        if isinstance(stop.code, str):
-            print(stop.code, file=sys.stderr)
-            code = 2
-    finally:
-        if node is not None:
-            node.shutdown()
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return run_node(IdentifierNode, "identifier", args)
 
 
 if __name__ == "__main__":

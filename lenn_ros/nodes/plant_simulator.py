@@ -16,9 +16,7 @@ from __future__ import annotations
 import sys
 import time
 
-import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
-from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from std_msgs.msg import Float64, Int64
 
@@ -27,6 +25,7 @@ from lenn_ros.core.examples import get_example
 from lenn_ros.core.expression import ExpressionError
 from lenn_ros.core.plants import Plant, plant_from_expressions
 from lenn_ros.core.signals import SIGNALS, Excitation
+from lenn_ros.nodes import run_node
 
 
 def _describe(text: str, low: float | None = None, high: float | None = None, read_only: bool = True):
@@ -194,23 +193,7 @@ class PlantSimulator(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args)
-    node = None
-    code = 0
-    try:
-        node = PlantSimulator()
-        rclpy.spin(node)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except SystemExit as stop:
-        if isinstance(stop.code, str):
-            print(stop.code, file=sys.stderr)
-            code = 2
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    return run_node(PlantSimulator, "plant_simulator", args)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,31 @@
+"""Fixtures shared by the tests that talk over DDS."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).parent))
+
+
+@pytest.fixture
+def domain(monkeypatch: pytest.MonkeyPatch) -> Iterator[int]:
+    """A ROS domain no concurrent test uses, discovery kept on this machine."""
+    monkeypatch.setenv("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    import domain_coordinator
+
+    with domain_coordinator.domain_id() as domain_id:
+        monkeypatch.setenv("ROS_DOMAIN_ID", str(domain_id))
+        yield domain_id
+
+
+@pytest.fixture
+def talker(domain: int):
+    from rosutil import Talker
+
+    t = Talker(domain)
+    yield t
+    t.close()

@@ -1,0 +1,80 @@
+"""Helpers for tests that start real nodes: subprocesses and an in-test publisher."""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import rclpy
+from rclpy.context import Context
+from rclpy.duration import Duration
+from rclpy.executors import SingleThreadedExecutor
+
+from lenn_ros import topics
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def start_node(module: str, *params: str) -> subprocess.Popen[str]:
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
+    env["PYTHONUNBUFFERED"] = "1"
+    args = [sys.executable, "-m", f"lenn_ros.nodes.{module}", "--ros-args"]
+    for param in params:
+        args += ["-p", param]
+    return subprocess.Popen(args, env=env, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+
+
+def stop(proc: subprocess.Popen[str], sig: int = signal.SIGINT, timeout: float = 20) -> tuple[str, str]:
+    proc.send_signal(sig)
+    try:
+        return proc.communicate(timeout=timeout)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+
+
+class Talker:
+    """Publishes u(k) = k and y_p(k) = -k like the plant simulator (one node, u then y_p)."""
+
+    def __init__(self, domain_id: int) -> None:
+        self.ctx = Context()
+        rclpy.init(context=self.ctx, domain_id=domain_id)
+        self.node = rclpy.create_node("test_talker", context=self.ctx)
+        msg = topics.message_class(topics.FLOAT64)
+        self.msg = msg
+        self.pubs = [self.node.create_publisher(msg, name, topics.data_qos()) for name in (topics.U, topics.Y_P)]
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+        self.sent = 0
+
+    def wait_matched(self, timeout: float = 15) -> bool:
+        deadline = time.monotonic() + timeout
+        tick = threading.Event()
+        while min(p.get_subscription_count() for p in self.pubs) < 1:
+            if time.monotonic() > deadline:
+                return False
+            tick.wait(0.05)
+        return True
+
+    def publish(self, n: int) -> None:
+        for _ in range(n):
+            k = self.sent
+            self.pubs[0].publish(self.msg(data=float(k)))
+            self.pubs[1].publish(self.msg(data=-float(k)))
+            self.sent += 1
+
+    def acked(self, timeout: float = 10) -> bool:
+        return all(p.wait_for_all_acked(Duration(seconds=timeout)) for p in self.pubs)
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.ctx.try_shutdown()

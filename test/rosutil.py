@@ -20,10 +20,12 @@ from lenn_ros import topics
 REPO = Path(__file__).resolve().parents[1]
 
 
-def start_node(module: str, *params: str) -> subprocess.Popen[str]:
+def start_node(module: str, *params: str, params_file: Path | None = None) -> subprocess.Popen[str]:
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
     env["PYTHONUNBUFFERED"] = "1"
     args = [sys.executable, "-m", f"lenn_ros.nodes.{module}", "--ros-args"]
+    if params_file is not None:
+        args += ["--params-file", str(params_file)]
     for param in params:
         args += ["-p", param]
     return subprocess.Popen(args, env=env, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -78,3 +80,57 @@ class Talker:
         self.executor.shutdown()
         self.node.destroy_node()
         self.ctx.try_shutdown()
+
+
+class Listener:
+    """Counts every message of a run's topics and keeps the identifier's last status."""
+
+    def __init__(self, domain_id: int) -> None:
+        import json
+
+        from std_msgs.msg import Float64, String
+
+        self.ctx = Context()
+        rclpy.init(context=self.ctx, domain_id=domain_id)
+        self.node = rclpy.create_node("test_listener", context=self.ctx)
+        self.values: dict[str, list[float]] = {name: [] for name in (topics.U, topics.Y_P, topics.Y_HAT, topics.ERROR)}
+        self.status: dict = {}
+        self.status_event = threading.Event()
+        for name in self.values:
+            self.node.create_subscription(Float64, name, lambda m, n=name: self.values[n].append(m.data),
+                                          topics.data_qos())  # fmt: skip
+
+        def on_status(message: String) -> None:
+            self.status = json.loads(message.data)
+            self.status_event.set()
+
+        self.node.create_subscription(String, topics.STATUS, on_status, topics.data_qos())
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    def wait_status(self, condition, timeout: float = 30.0) -> dict:
+        """The first status (JSON) for which condition(status) holds."""
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            self.status_event.clear()
+            if self.status and condition(self.status):
+                return self.status
+            self.status_event.wait(0.5)
+        raise AssertionError(f"status never satisfied the condition; last: {self.status}")
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.node.destroy_node()
+        self.ctx.try_shutdown()
+
+
+def final_status(stderr: str) -> dict:
+    """The JSON status line the identifier prints when it stops."""
+    import json
+
+    for line in reversed(stderr.splitlines()):
+        if line.startswith("identifier: {"):
+            return json.loads(line.split(": ", 1)[1])
+    raise AssertionError(f"no final status in the identifier's output:\n{stderr[-2000:]}")

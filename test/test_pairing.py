@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 
-from lenn_ros.core.pairing import U, Y, Pairer, screen
+from lenn_ros.core.pairing import Pairer, U, Y, screen
 
 
 def feed(pairer: Pairer, halves: list[tuple[str, int]]) -> list[tuple[int, float, float]]:

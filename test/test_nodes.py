@@ -1,0 +1,163 @@
+"""The real nodes as processes over DDS: pairing, recording, live vs offline, parameters."""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytestmark = [pytest.mark.ros, pytest.mark.timeout(180)]
+
+rclpy = pytest.importorskip("rclpy")
+
+from rosutil import Listener, final_status, start_node, stop  # noqa: E402
+from test_bag import independent_read  # noqa: E402
+
+from lenn_ros.bag import read_run  # noqa: E402
+from lenn_ros.core.examples import EXAMPLES  # noqa: E402
+from lenn_ros.evaluate import evaluate_bag  # noqa: E402
+
+
+def write_params(path: Path, **values) -> Path:
+    path.write_text(json.dumps({"identifier": {"ros__parameters": values}}))
+    return path
+
+
+@pytest.mark.parametrize(("example", "network"), [(3, "lenn"), (4, "mlp")])
+def test_online_run_is_paired_recorded_and_equals_offline(tmp_path: Path, domain: int, example: int, network: str):
+    train, test = 3000, 400
+    total = train + test
+    params = write_params(tmp_path / "identifier.yaml", example=example, network=network, seed=3)
+    bag = tmp_path / "bag"
+    listener = Listener(domain)
+    recorder = start_node("recorder", f"output:={bag}")
+    identifier = start_node("identifier", params_file=params)
+    simulator = start_node(
+        "plant_simulator", f"example:={example}", "seed:=3", f"train_samples:={train}", f"test_samples:={test}",
+        "rate_hz:=0.0", "wait_for_subscribers:=3", "exit_when_done:=true",
+    )  # fmt: skip
+    try:
+        _, sim_err = simulator.communicate(timeout=120)
+        assert simulator.returncode == 0, sim_err
+        listener.wait_status(lambda s: s["counters"]["paired"] == total, timeout=30)
+    finally:
+        _, id_err = stop(identifier)
+        _, rec_err = stop(recorder)
+        listener.close()
+    live = final_status(id_err)
+    counters = live["counters"]
+    assert counters["paired"] == total and counters["samples"] == total
+    assert counters["lost"] == counters["duplicates"] == counters["stale"] == counters["unpaired"] == 0
+    warm_up = EXAMPLES[example].structure.warm_up
+    got = {name: len(values) for name, values in listener.values.items()}
+    assert got == {"u": total, "y_p": total, "y_hat": total - warm_up + 1, "error": total - warm_up}
+    # the bag holds exactly what was published, read by two independent readers
+    run = read_run(bag)
+    assert np.array_equal(run.u, listener.values["u"]) and np.array_equal(run.y_p, listener.values["y_p"])
+    assert np.array_equal(run.y_hat, listener.values["y_hat"]) and np.array_equal(run.error, listener.values["error"])
+    theirs = independent_read(bag / "bag.mcap")
+    assert {t: len(v) for t, v in theirs.items() if t in ("/u", "/y_p", "/y_hat", "/error")} == {
+        "/" + name: count for name, count in got.items()
+    }
+    assert run.test_start == train + 1
+    # the same computation offline, from the recording
+    offline = evaluate_bag(str(bag), str(params))
+    assert live["phase_samples"] == offline.evaluation.samples == test
+    assert abs(live["phase_nmse_db"] - offline.evaluation.nmse_db) < 1e-9
+    assert "Traceback" not in rec_err and "[ERROR]" not in rec_err
+
+
+def test_live_parameters_are_validated_and_applied(tmp_path: Path, domain: int) -> None:
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.context import Context
+    from rclpy.parameter import Parameter
+
+    identifier = start_node("identifier", "example:=1")
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    node = rclpy.create_node("test_parameter_client", context=ctx)
+    from rclpy.executors import SingleThreadedExecutor
+
+    executor = SingleThreadedExecutor(context=ctx)
+    try:
+        client = node.create_client(SetParameters, "/identifier/set_parameters")
+        assert client.wait_for_service(timeout_sec=20)
+
+        def set_parameter(name: str, value):
+            future = client.call_async(
+                SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
+            )
+            rclpy.spin_until_future_complete(node, future, executor=executor, timeout_sec=10)
+            return future.result().results[0]
+
+        refused = set_parameter("alpha", -0.5)
+        assert not refused.successful and "alpha" in refused.reason
+        refused = set_parameter("network", "svm")
+        assert not refused.successful and "read-only" in refused.reason
+        refused = set_parameter("out_of_range", "ignore")
+        assert not refused.successful and "reject" in refused.reason
+        assert set_parameter("alpha", 0.02).successful
+        assert set_parameter("learning", False).successful
+    finally:
+        node.destroy_node()
+        ctx.try_shutdown()
+        _, err = stop(identifier)
+    assert identifier.returncode == 0, err
+
+
+def run_to_failure(*ros_args: str) -> tuple[int, str]:
+    import sys
+
+    from rosutil import REPO
+
+    process = subprocess.run(
+        [sys.executable, "-m", "lenn_ros.nodes.identifier", "--ros-args", *ros_args],
+        capture_output=True, text=True, timeout=60, cwd=REPO,
+    )  # fmt: skip
+    return process.returncode, process.stderr
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["-p", "example:=7"], "example out of range"),
+        (["-p", "network:=svm"], "network must be 'lenn' or 'mlp'"),
+        (["-p", "weights_in:=/nonexistent/w.npz"], "no such weights file"),
+        (["-p", "y_lags:=0", "-p", "u_lags:=0"], "at least one input"),
+    ],
+)
+def test_startup_errors_are_one_clear_line(domain: int, arguments: list[str], message: str) -> None:
+    code, stderr = run_to_failure(*arguments)
+    assert code == 2
+    assert message in stderr
+    assert "Traceback" not in stderr
+
+
+def test_malformed_params_file_and_foreign_weights(tmp_path: Path, domain: int) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("identifier:\n  ros__parameters:\n    alpha: [1, 2\n")
+    code, stderr = run_to_failure("--params-file", str(bad))
+    assert code == 2 and "params file" in stderr and "Traceback" not in stderr
+    EXAMPLES[1].make_network("mlp").save(tmp_path / "mlp.npz")
+    code, stderr = run_to_failure("-p", "network:=lenn", "-p", f"weights_in:={tmp_path / 'mlp.npz'}")
+    assert code == 2 and "different network" in stderr and "Traceback" not in stderr
+
+
+def test_sigterm_saves_weights_atomically(tmp_path: Path, domain: int) -> None:
+    weights = tmp_path / "weights.npz"
+    identifier = start_node("identifier", f"weights_out:={weights}")
+    listener = Listener(domain)
+    try:
+        listener.wait_status(lambda s: True, timeout=30)
+    finally:
+        listener.close()
+        _, err = stop(identifier, signal.SIGTERM)
+    assert identifier.returncode == 0, err
+    from lenn_ros.core.networks import OnlineRegressor
+
+    assert OnlineRegressor.load(weights).n_weights == 15
+    assert not list(tmp_path.glob(".weights.npz.*"))  # no temporary left behind

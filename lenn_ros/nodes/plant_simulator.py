@@ -67,6 +67,15 @@ class PlantSimulator(Node):
         declare(
             "window", 1000, _describe("rate 0: max steps ahead of the identifier's y_hat", 1, topics.DATA_DEPTH // 2)
         )
+        declare(
+            "stall_timeout",
+            2.0,
+            _describe(
+                "rate 0: seconds without y_hat before the window is re-based (the identifier died or restarted)",
+                0.1,
+                3600.0,
+            ),
+        )
         declare("wait_for_subscribers", 1, _describe("subscribers to u and y_p needed before stepping", 0, 100))
         declare("exit_when_done", False, _describe("exit after the last test sample"))
         self.add_on_set_parameters_callback(self._check_parameters)
@@ -84,6 +93,8 @@ class PlantSimulator(Node):
         )
         self.k = 0
         self.acknowledged = 0
+        self._last_acknowledged = 0
+        self._stalled_since = time.monotonic()
         self.u_publisher = self.create_publisher(Float64, topics.U, topics.data_qos())
         self.y_publisher = self.create_publisher(Float64, topics.Y_P, topics.data_qos())
         self.test_start_publisher = self.create_publisher(Int64, topics.TEST_START, topics.latched_qos())
@@ -158,6 +169,15 @@ class PlantSimulator(Node):
             due = min(due, self.get_parameter("window").value)
         else:
             due = self.get_parameter("window").value - (self.k - self.acknowledged)
+            if due > 0 or self.acknowledged != self._last_acknowledged:
+                self._last_acknowledged, self._stalled_since = self.acknowledged, time.monotonic()
+            elif time.monotonic() - self._stalled_since > self.get_parameter("stall_timeout").value:
+                self.get_logger().warning(
+                    f"no y_hat for {self.get_parameter('stall_timeout').value} s at step {self.k}: "
+                    "the samples in flight are taken as lost and stepping resumes"
+                )
+                self.acknowledged = self.k
+                self._stalled_since = time.monotonic()
         for _ in range(max(due, 0)):
             if not self._step():
                 self._finish()

@@ -148,7 +148,7 @@ def main(args) -> int:
     print(f"  NMSE (test phase, one-step), from the bag:      {offline['nmse_db']:8.3f} dB")
     print(f"  NMSE (test phase, free run), from the bag:      {offline['nmse_free_run_db']:8.3f} dB")
     print(f"  NMSE reported in the paper:                     {result['paper_nmse_db']:8.3f} dB")
-    counts = {t["topic"] if isinstance(t, dict) else t: t for t in result["bag_info"].get("topics", [])}
-    print(f"  bag:  {result['bag']} ({len(counts)} topics)")
+    counts = ", ".join(f"{name} {topic['count']}" for name, topic in result["bag_info"]["topics"].items())
+    print(f"  bag:  {result['bag']} (messages: {counts})")
     print(f"  plot: {result['plot']}")
     return 0

@@ -96,6 +96,7 @@ class IdentifierNode(Node):
         for parameter in self.table.values():
             self.declare_parameter(parameter.name, parameter.default, _descriptor(parameter))
         values = {name: self.get_parameter(name).value for name in self.table}
+        self.values = values
         for name, value in values.items():
             problem = check_value(self.table[name], value)
             if problem:
@@ -154,6 +155,7 @@ class IdentifierNode(Node):
         model = self.identifier.model
         for parameter in parameters:
             name, value = parameter.name, parameter.value
+            self.values[name] = value
             if name in ("alpha", "beta", "forgetting", "nlms_step") and name in model.get_params():
                 model.set_params(**{name: value})
             elif name == "divergence_ratio":
@@ -165,7 +167,11 @@ class IdentifierNode(Node):
                 self._save(value)
 
     def _value(self, name: str) -> Any:
-        return self.get_parameter(name).value
+        """Current value of a parameter, from a cache the post-set callback refreshes.
+
+        rclpy's get_parameter costs microseconds; the per-sample path reads several.
+        """
+        return self.values[name]
 
     # -- data --------------------------------------------------------------------------
     def _on_test_start(self, message: Int64) -> None:

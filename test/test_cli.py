@@ -1,0 +1,133 @@
+"""The command line as a user runs it: real subprocesses, shipped configs and bags."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from lenn_ros.config import read_params_file, resolve
+from lenn_ros.core.examples import EXAMPLES
+
+REPO = Path(__file__).resolve().parents[1]
+
+
+def lenn_ros(*arguments: str, timeout: float = 300) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(
+        [sys.executable, "-m", "lenn_ros.cli", *arguments], capture_output=True, text=True, timeout=timeout, cwd=REPO
+    )
+
+
+@pytest.mark.parametrize("path", sorted((REPO / "config").glob("example*_*.yaml")), ids=lambda p: p.stem)
+def test_shipped_params_files_match_the_examples(path: Path) -> None:
+    values = read_params_file(path)
+    resolved, network = resolve(values)
+    example = EXAMPLES[values["example"]]
+    preset = example.network_params(network)
+    assert resolved["alpha"] == preset["alpha"] and resolved["beta"] == preset["beta"]
+    assert resolved["y_scale"] == example.structure.y_scale
+    assert read_params_file(path, "plant_simulator")["noise_db"] == example.noise_db
+
+
+@pytest.mark.parametrize("number", [1, 2, 3, 4])
+def test_shipped_bags_evaluate_with_their_params(number: int) -> None:
+    result = lenn_ros("evaluate", f"bags/example{number}", "--params", f"config/example{number}_lenn.yaml", "--json")
+    assert result.returncode == 0, result.stderr
+    report = json.loads(result.stdout)
+    assert report["samples"] == 600 and report["pairs"] == 3600
+    assert report["nmse_db"] < -5.0 and report["rmse"] > 0.0
+    assert set(report) >= {"nmse_db", "nmse_free_run_db", "rmse", "rmse_free_run", "samples"}
+
+
+def test_reproduce_json_has_the_promised_keys() -> None:
+    result = lenn_ros("reproduce", "--example", "4", "--seeds", "2", "--iterations", "3000", "--json")
+    assert result.returncode == 0, result.stderr
+    rows = json.loads(result.stdout)
+    assert [(r["example"], r["network"]) for r in rows] == [(4, "lenn"), (4, "mlp")]
+    for row in rows:
+        assert {
+            "example",
+            "network",
+            "seeds",
+            "nmse_db_mean",
+            "nmse_db_std",
+            "nmse_free_run_db_mean",
+            "paper_nmse_db",
+        } <= set(row)
+        assert row["seeds"] == [0, 1] and row["nmse_db_mean"] < 0
+
+
+def test_reproduce_plots(tmp_path: Path) -> None:
+    result = lenn_ros(
+        "reproduce",
+        "--example",
+        "1",
+        "--network",
+        "lenn",
+        "--seeds",
+        "1",
+        "--iterations",
+        "2000",
+        "--plots",
+        str(tmp_path),
+    )
+    assert result.returncode == 0, result.stderr
+    png = tmp_path / "example1_lenn.png"
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["evaluate", "/nonexistent/bag"], "no such file or directory"),
+        (["evaluate", "bags/example1", "--params", "/nonexistent.yaml"], "does not exist"),
+        (["evaluate", "bags/example1", "--test-from", "999999"], "outside the bag"),
+        (["import-csv", "/nonexistent.csv", "--u", "u", "--y", "y", "--dt", "0.01", "-o", "/tmp/x"], "nonexistent"),
+    ],
+)
+def test_user_errors_are_one_line(arguments: list[str], message: str) -> None:
+    result = lenn_ros(*arguments)
+    assert result.returncode == 2
+    assert message in result.stderr and "Traceback" not in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_import_csv_then_evaluate(tmp_path: Path) -> None:
+    from lenn_ros.core.evaluation import simulate
+
+    series = simulate(EXAMPLES[4].plant(), -20.0, seed=2, train_samples=3000, test_samples=600)
+    csv = tmp_path / "log.csv"
+    csv.write_text(
+        "time,command,position\n"
+        + "".join(
+            f"{k * 0.01:.2f},{float(u)!r},{float(y)!r}\n"
+            for k, (u, y) in enumerate(zip(series.u, series.y, strict=True))
+        )
+    )
+    bag = tmp_path / "bag"
+    result = lenn_ros(
+        "import-csv",
+        str(csv),
+        "--u",
+        "command",
+        "--y",
+        "position",
+        "--dt",
+        "0.01",
+        "-o",
+        str(bag),
+        "--test-from",
+        "3001",
+    )
+    assert result.returncode == 0, result.stderr
+    params = REPO / "config" / "example4_lenn.yaml"
+    result = lenn_ros("evaluate", str(bag), "--params", str(params), "--json")
+    assert result.returncode == 0, result.stderr
+    from lenn_ros.core.evaluation import train_and_test
+    from lenn_ros.evaluate import identifier_from_params
+
+    expected = train_and_test(identifier_from_params(str(params))[0], series)
+    assert json.loads(result.stdout)["nmse_db"] == pytest.approx(expected.nmse_db, abs=1e-9)

@@ -39,6 +39,7 @@ setup(
             "mcap>=1.2",
             "mcap-ros2-support>=0.5",
             "ruff>=0.6",
+            "colcon-common-extensions>=0.3",
         ],
     },
     zip_safe=True,

@@ -36,6 +36,17 @@ def _last_status(log: Path) -> dict | None:
     return None
 
 
+def _rss_kb(pid: int) -> int | None:
+    """Resident set size of a process (Linux), for the flat-memory check of long runs."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1])
+    except OSError:
+        return None
+    return None
+
+
 def _stop(process: subprocess.Popen, timeout: float = 15.0) -> int:
     if process.poll() is None:
         process.send_signal(signal.SIGINT)
@@ -65,7 +76,14 @@ def run_demo(
     env = dict(os.environ)
     env.setdefault("ROS_DOMAIN_ID", str(random.randint(30, 99)))
     env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    identifier_params = {"example": example, "network": network, "seed": seed}
+    # the identifier holds its first outputs until the recorder and the simulator have matched them
+    identifier_params = {
+        "example": example,
+        "network": network,
+        "seed": seed,
+        "wait_for_y_hat_subscribers": 2,  # the recorder and the simulator (lockstep)
+        "wait_for_error_subscribers": 1,  # the recorder
+    }
     params_file = run_dir / "identifier.yaml"
     params_file.write_text(json.dumps({"identifier": {"ros__parameters": identifier_params}}))
     total = train_samples + test_samples
@@ -89,7 +107,11 @@ def run_demo(
     try:
         budget = 120.0 + (total / rate if rate > 0 else total / 200.0)
         deadline = time.monotonic() + budget
+        rss: list[tuple[float, int]] = []
         while simulator.poll() is None:
+            kb = _rss_kb(identifier.pid)
+            if kb is not None:
+                rss.append((round(time.monotonic() - started, 1), kb))
             for name, process in (("identifier", identifier), ("recorder", recorder)):
                 if process.poll() is not None:
                     raise RuntimeError(f"the {name} stopped early; see {run_dir / (name + '.log')}")
@@ -128,6 +150,7 @@ def run_demo(
         "bag": str(bag),
         "bag_info": bag_info(bag),
         "plot": str(plot),
+        "identifier_rss_kb": rss,
     }
 
 

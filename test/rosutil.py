@@ -78,6 +78,7 @@ class Talker:
 
     def close(self) -> None:
         self.executor.shutdown()
+        self.thread.join(timeout=5)  # the spin thread must be out before the node goes
         self.node.destroy_node()
         self.ctx.try_shutdown()
 
@@ -122,6 +123,7 @@ class Listener:
 
     def close(self) -> None:
         self.executor.shutdown()
+        self.thread.join(timeout=5)  # the spin thread must be out before the node goes
         self.node.destroy_node()
         self.ctx.try_shutdown()
 

@@ -31,15 +31,28 @@ def write_params(path: Path, **values) -> Path:
 def test_online_run_is_paired_recorded_and_equals_offline(tmp_path: Path, domain: int, example: int, network: str):
     train, test = 3000, 400
     total = train + test
-    params = write_params(tmp_path / "identifier.yaml", example=example, network=network, seed=3)
+    params = write_params(
+        tmp_path / "identifier.yaml",
+        example=example,
+        network=network,
+        seed=3,
+        wait_for_y_hat_subscribers=3,
+        wait_for_error_subscribers=2,  # simulator, recorder, listener
+    )
     bag = tmp_path / "bag"
     listener = Listener(domain)
     recorder = start_node("recorder", f"output:={bag}")
     identifier = start_node("identifier", params_file=params)
     simulator = start_node(
-        "plant_simulator", f"example:={example}", "seed:=3", f"train_samples:={train}", f"test_samples:={test}",
-        "rate_hz:=0.0", "wait_for_subscribers:=3", "exit_when_done:=true",
-    )  # fmt: skip
+        "plant_simulator",
+        f"example:={example}",
+        "seed:=3",
+        f"train_samples:={train}",
+        f"test_samples:={test}",
+        "rate_hz:=0.0",
+        "wait_for_subscribers:=3",
+        "exit_when_done:=true",
+    )
     try:
         _, sim_err = simulator.communicate(timeout=120)
         assert simulator.returncode == 0, sim_err
@@ -116,8 +129,11 @@ def run_to_failure(*ros_args: str) -> tuple[int, str]:
 
     process = subprocess.run(
         [sys.executable, "-m", "lenn_ros.nodes.identifier", "--ros-args", *ros_args],
-        capture_output=True, text=True, timeout=60, cwd=REPO,
-    )  # fmt: skip
+        capture_output=True,
+        text=True,
+        timeout=60,
+        cwd=REPO,
+    )
     return process.returncode, process.stderr
 
 

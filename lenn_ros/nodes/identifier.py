@@ -45,6 +45,15 @@ NODE_PARAMETERS = [
     Parameter("u_limit", 1.0e3, "|u| above this is an absurd value", 0.0, 1e300, live=True),
     Parameter("y_limit", 1.0e3, "|y_p| above this is an absurd value", 0.0, 1e300, live=True),
     Parameter("out_of_range", "reject", "what to do with an absurd value", choices=("reject", "clip"), live=True),
+    Parameter(
+        "wait_for_y_hat_subscribers",
+        0,
+        "hold the first pairs until y_hat has this many matched "
+        "subscribers (e.g. 2: a recorder and a lockstep simulator), so none misses sample 1",
+        0,
+        100,
+    ),
+    Parameter("wait_for_error_subscribers", 0, "the same for error (e.g. 1: a recorder)", 0, 100),
     Parameter("report_every", 100, "publish the running NMSE every N errors", 1, 10**9, live=True),
     Parameter("status_period", 1.0, "seconds between status messages", 0.05, 3600.0),
     Parameter("health_interval", 1000, "samples per divergence check", 10, 10**7),
@@ -118,6 +127,8 @@ class IdentifierNode(Node):
         self.add_post_set_parameters_callback(self._apply_parameters)
 
         self.pairer = Pairer(window=topics.DATA_DEPTH)
+        waits = values["wait_for_y_hat_subscribers"] or values["wait_for_error_subscribers"]
+        self._held: list[tuple[int, float, float]] | None = [] if waits else None
         self.test_start: int | None = None
         self.phase_learning: bool | None = None
         self.phase_nmse = RunningNMSE()
@@ -190,8 +201,24 @@ class IdentifierNode(Node):
         if self.pairer.counters["restarts"] != restarts:
             self.identifier.restart_stream()
             self._warn("sample indices started over (publisher restart): history reset")
+        if self._held is not None:
+            self._held.extend(pairs)
+            pairs = self._release_held()
         for pair_index, u, y in pairs:
             self._on_pair(pair_index, u, y)
+
+    def _release_held(self) -> list[tuple[int, float, float]]:
+        """The pairs held back so far, once the output subscribers have matched."""
+        if self._held is None or not self._outputs_matched():
+            return []
+        pairs, self._held = self._held, None
+        return pairs
+
+    def _outputs_matched(self) -> bool:
+        """Our outputs are VOLATILE: what is published before a reader matched is lost to it."""
+        return self.y_hat_publisher.get_subscription_count() >= self._value(
+            "wait_for_y_hat_subscribers"
+        ) and self.error_publisher.get_subscription_count() >= self._value("wait_for_error_subscribers")
 
     def _on_pair(self, index: int, u: float, y: float) -> None:
         if math.isnan(u) or math.isnan(y):
@@ -239,6 +266,8 @@ class IdentifierNode(Node):
         }
 
     def _on_timer(self) -> None:
+        for pair_index, u, y in self._release_held():
+            self._on_pair(pair_index, u, y)
         self.status_publisher.publish(String(data=json.dumps(self.status())))
         period = self._value("autosave_period")
         if period > 0 and self._value("weights_out") and time.monotonic() - self._last_save >= period:

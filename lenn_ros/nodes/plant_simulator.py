@@ -7,7 +7,7 @@ noise to the plant. ``test_start`` (latched) tells listeners where training ends
 
 Stepping: ``rate_hz`` > 0 steps on a wall-clock schedule (catching up in bursts if a
 tick is late); ``rate_hz`` = 0 steps as fast as the identifier keeps up: it counts
-the identifier's ``y_hat`` messages and never runs more than ``window`` steps ahead,
+the identifier's ``y_hat`` messages (as replay does) and never runs more than ``window`` steps ahead,
 so the RELIABLE queues (depth topics.DATA_DEPTH) can never overflow.
 """
 
@@ -71,12 +71,14 @@ class PlantSimulator(Node):
             "stall_timeout",
             2.0,
             _describe(
-                "rate 0: seconds without y_hat before the window is re-based (the identifier died or restarted)",
+                "rate 0: seconds without y_hat before the window is re-based (identifier restarted)",
                 0.1,
                 3600.0,
             ),
         )
         declare("wait_for_subscribers", 1, _describe("subscribers to u and y_p needed before stepping", 0, 100))
+        declare("change_step", 0, _describe("tracking scenario: step at which the plant changes (0 = never)", 0, 10**9))
+        declare("change_gain", 1.0, _describe("gain of the unknown nonlinear part after change_step", -10.0, 10.0))
         declare("exit_when_done", False, _describe("exit after the last test sample"))
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -151,10 +153,9 @@ class PlantSimulator(Node):
         self.acknowledged += 1
 
     def _ready(self) -> bool:
+        """The data topics are VOLATILE: a reader that has not matched yet would miss sample 1."""
         needed = self.get_parameter("wait_for_subscribers").value
-        return (
-            self.u_publisher.get_subscription_count() >= needed and self.y_publisher.get_subscription_count() >= needed
-        )
+        return min(self.u_publisher.get_subscription_count(), self.y_publisher.get_subscription_count()) >= needed
 
     def _tick(self) -> None:
         if self.done:
@@ -187,12 +188,25 @@ class PlantSimulator(Node):
         length = self.excitation.length
         if length is not None and self.k >= length:
             return False
+        if self.k and self.k == self.get_parameter("change_step").value:
+            self._change_plant()
         u, noise = self.excitation.sample(self.k)
         self.u_publisher.publish(Float64(data=u))
         self.y_publisher.publish(Float64(data=self.plant.output))
         self.plant.step(u + noise)
         self.k += 1
         return True
+
+    def _change_plant(self) -> None:
+        """Tracking scenario: the unknown part's gain jumps; the plant's state carries over."""
+        example = self.get_parameter("example").value
+        if not example:
+            self.get_logger().warning("change_step applies to the paper's examples only; ignored")
+            return
+        changed = get_example(example).plant(gain=self.get_parameter("change_gain").value)
+        changed.y_past, changed.u_past = self.plant.y_past, self.plant.u_past
+        self.plant = changed
+        self.get_logger().info(f"step {self.k}: plant changed (gain {self.get_parameter('change_gain').value})")
 
     def _finish(self) -> None:
         self.done = True

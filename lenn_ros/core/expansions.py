@@ -21,6 +21,20 @@ import numpy as np
 BASES = ("legendre", "chebyshev", "trigonometric")
 
 
+def _three_term_recursion(x: np.ndarray, order: int, next_term) -> np.ndarray:
+    """P_1..P_order from P_0 = 1, P_1 = x and P_{n+1} = next_term(n, x, P_n, P_{n-1})."""
+    x = np.asarray(x, dtype=np.float64)
+    out = np.empty((*x.shape, order), dtype=np.float64)
+    if order == 0:
+        return out
+    previous, current = np.ones_like(x), x
+    out[..., 0] = current
+    for n in range(1, order):
+        previous, current = current, next_term(n, x, current, previous)
+        out[..., n] = current
+    return out
+
+
 def legendre_polynomials(x: np.ndarray, order: int) -> np.ndarray:
     """L_1..L_order of every element of ``x`` by Bonnet's recursion (paper eq. 4).
 
@@ -28,30 +42,12 @@ def legendre_polynomials(x: np.ndarray, order: int) -> np.ndarray:
     must be scaled into that interval before they get here.
     Returns shape ``x.shape + (order,)``.
     """
-    x = np.asarray(x, dtype=np.float64)
-    out = np.empty((*x.shape, order), dtype=np.float64)
-    if order == 0:
-        return out
-    previous, current = np.ones_like(x), x
-    out[..., 0] = current
-    for n in range(1, order):
-        previous, current = current, ((2 * n + 1) * x * current - n * previous) / (n + 1)
-        out[..., n] = current
-    return out
+    return _three_term_recursion(x, order, lambda n, x, p, q: ((2 * n + 1) * x * p - n * q) / (n + 1))
 
 
 def chebyshev_polynomials(x: np.ndarray, order: int) -> np.ndarray:
     """T_1..T_order by T_{n+1} = 2 x T_n - T_{n-1} (the ChNN the paper cites)."""
-    x = np.asarray(x, dtype=np.float64)
-    out = np.empty((*x.shape, order), dtype=np.float64)
-    if order == 0:
-        return out
-    previous, current = np.ones_like(x), x
-    out[..., 0] = current
-    for n in range(1, order):
-        previous, current = current, 2.0 * x * current - previous
-        out[..., n] = current
-    return out
+    return _three_term_recursion(x, order, lambda n, x, p, q: 2.0 * x * p - q)
 
 
 def trigonometric_terms(x: np.ndarray, order: int) -> np.ndarray:

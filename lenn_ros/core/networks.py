@@ -70,7 +70,14 @@ class OnlineRegressor:
         return self
 
     def _validate(self) -> None:
-        raise NotImplementedError
+        """Checks every model shares; subclasses add their own and call this."""
+        if self.output not in OUTPUTS:
+            raise ValueError(f"output must be 'tanh' or 'linear', not {self.output!r}")
+        if not self.alpha >= 0.0 or not 0.0 <= self.beta < 1.0:
+            raise ValueError("alpha must be >= 0 and beta in [0, 1)")
+        if self.out_of_range not in ("clip", "error"):
+            raise ValueError("out_of_range must be 'clip' or 'error'")
+        _as_branches(self.branches, self.n_inputs)
 
     @property
     def is_initialised(self) -> bool:
@@ -278,23 +285,17 @@ class FunctionalLinkNetwork(OnlineRegressor):
             raise ValueError(f"basis must be one of {', '.join(BASES)}, not {self.basis!r}")
         if self.solver not in SOLVERS:
             raise ValueError(f"solver must be one of {', '.join(SOLVERS)}, not {self.solver!r}")
-        if self.output not in OUTPUTS:
-            raise ValueError(f"output must be 'tanh' or 'linear', not {self.output!r}")
+        super()._validate()
         if self.solver != "sgd" and self.output != "linear":
             raise ValueError(f"solver {self.solver!r} needs output='linear' (it is linear least squares)")
         if self.solver != "sgd" and self.branches is not None and len(self.branches) > 1:
             raise ValueError("nlms/rls learn one linear combiner: use branches=None")
         if int(self.order) < 1 or int(self.n_inputs) < 1:
             raise ValueError("order and n_inputs must be >= 1")
-        if not self.alpha >= 0.0 or not 0.0 <= self.beta < 1.0:
-            raise ValueError("alpha must be >= 0 and beta in [0, 1)")
         if not 0.0 < self.forgetting <= 1.0:
             raise ValueError("forgetting factor lambda must lie in (0, 1]")
         if not 0.0 < self.nlms_step < 2.0:
             raise ValueError("nlms_step must lie in (0, 2) for NLMS to converge")
-        if self.out_of_range not in ("clip", "error"):
-            raise ValueError("out_of_range must be 'clip' or 'error'")
-        _as_branches(self.branches, self.n_inputs)
 
     @property
     def branch_inputs_(self) -> list[list[int]]:
@@ -412,15 +413,9 @@ class MLP(OnlineRegressor):
         self._validate()
 
     def _validate(self) -> None:
-        if self.output not in OUTPUTS:
-            raise ValueError(f"output must be 'tanh' or 'linear', not {self.output!r}")
         if any(int(h) < 1 for h in self.hidden):
             raise ValueError("hidden layer sizes must be >= 1")
-        if not self.alpha >= 0.0 or not 0.0 <= self.beta < 1.0:
-            raise ValueError("alpha must be >= 0 and beta in [0, 1)")
-        if self.out_of_range not in ("clip", "error"):
-            raise ValueError("out_of_range must be 'clip' or 'error'")
-        _as_branches(self.branches, self.n_inputs)
+        super()._validate()
 
     @property
     def branch_inputs_(self) -> list[list[int]]:

@@ -65,6 +65,9 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
         code = 2
     finally:
         if node is not None:
+            drain = getattr(node, "drain", None)  # e.g. the recorder takes what DDS still holds
+            if drain is not None and rclpy.ok():
+                drain(executor)
             shutdown = getattr(node, "shutdown", None)
             if shutdown is not None:
                 shutdown()

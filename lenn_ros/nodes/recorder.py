@@ -14,9 +14,7 @@ caught; the bound on what it loses is the writer's ``flush_period`` / ``max_chun
 
 from __future__ import annotations
 
-import signal
 import sys
-import threading
 import time
 from collections import Counter
 from collections.abc import Callable
@@ -24,15 +22,13 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
-from rclpy.exceptions import ParameterException
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
-from rclpy.signals import SignalHandlerOptions
 
 from lenn_ros import topics
-from lenn_ros.bag import ROSBAGS_CHUNK_LIMIT, BagError, BagWriter
+from lenn_ros.bag import ROSBAGS_CHUNK_LIMIT, BagWriter
+from lenn_ros.nodes import run_node
 
 #: rmw reports this (or 0) when the middleware has no publication sequence numbers.
 _SEQ_UNSUPPORTED = 2**64 - 1
@@ -147,6 +143,10 @@ class Recorder(Node):
             if self.counts.total() != before:
                 calm_until = time.monotonic() + quiet
 
+    def shutdown(self) -> None:
+        """On the way out (after :meth:`drain`): close the bag, say what is in it."""
+        print(self.close(), flush=True)
+
     def close(self) -> str:
         """Close the bag and return the one-line summary printed at exit."""
         self.bag.close()
@@ -157,36 +157,7 @@ class Recorder(Node):
 
 
 def main(args: list[str] | None = None) -> int:
-    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
-    stop = threading.Event()
-
-    def request_stop(signum: int, frame: object) -> None:
-        stop.set()
-
-    signal.signal(signal.SIGINT, request_stop)
-    signal.signal(signal.SIGTERM, request_stop)
-    node = None
-    status = 0
-    executor = SingleThreadedExecutor()
-    try:
-        node = Recorder()
-        executor.add_node(node)
-        while not stop.is_set():
-            executor.spin_once(timeout_sec=0.1)
-        node.drain(executor)
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except (BagError, ValueError, ParameterException) as err:
-        print(f"recorder: {err}", file=sys.stderr)
-        status = 1
-    finally:
-        if node is not None:
-            print(node.close(), flush=True)
-            executor.remove_node(node)
-            node.destroy_node()
-        executor.shutdown()
-        rclpy.try_shutdown()
-    return status
+    return run_node(Recorder, "recorder", args)
 
 
 if __name__ == "__main__":

@@ -4,10 +4,14 @@ Runs plant_simulator (lockstep) + identifier + recorder for N samples (default 1
 about 20 minutes on 2 cores), then checks and prints: every sample paired, none lost,
 duplicated or stale; the bag holds exactly N u and N y_p messages (read back by the
 independent `mcap` reader); the identifier's resident memory at 10 % of the run vs at
-the end (flat: no growth per sample).
+the end (flat: no growth per sample). The first 60 % of the run are left out of the
+memory figure: the RELIABLE queues keep the last topics.DATA_DEPTH (10 000) messages of
+each topic, and filling them is growth up to a ceiling, not a leak. The same ceiling
+lets memory move by a few MB later when a lagging recorder leaves messages
+unacknowledged; a leak shows as growth that goes on with the number of samples.
 
     python bench/soak.py                 # 10^6 samples
-    python bench/soak.py --samples 20000 # what CI runs (test/test_soak.py)
+    python bench/soak.py --samples 25000 # what CI runs (test/test_soak.py)
 """
 
 from __future__ import annotations
@@ -25,7 +29,7 @@ def soak(samples: int, output: str) -> dict:
     topics = result["bag_info"]["topics"]
     total = samples + 600
     rss = [kb for _, kb in result["identifier_rss_kb"]]
-    early = rss[len(rss) // 10] if rss else 0
+    early = rss[(len(rss) * 6) // 10] if rss else 0
     growth = (rss[-1] - early) if rss else 0
     report = {
         "samples": total,
@@ -39,9 +43,10 @@ def soak(samples: int, output: str) -> dict:
         "bag_u": topics["/u"]["count"],
         "bag_y_p": topics["/y_p"]["count"],
         "bag_y_hat": topics["/y_hat"]["count"],
-        "rss_kb_at_10_percent": early,
+        "rss_kb_at_60_percent": early,
         "rss_kb_at_end": rss[-1] if rss else 0,
-        "rss_growth_kb_per_100k_samples": round(growth / (0.9 * total) * 1e5, 1) if rss else None,
+        "rss_growth_kb_last_40_percent": growth,
+        "rss_growth_kb_per_100k_samples": round(growth / (0.4 * total) * 1e5, 1) if rss else None,
         "nmse_db": result["live"]["phase_nmse_db"],
         "bag": result["bag"],
     }

@@ -1,0 +1,76 @@
+"""bench_echo: the ceiling for the identifier, an rclpy node that does no work.
+
+It subscribes to ``u`` and ``y_p`` with the identifier's QoS (so the transport
+carries exactly what it carries to the identifier) and publishes every ``y_p``
+message back on ``y_hat``, unchanged.
+
+    python -m lenn_ros.benchmarks.echo_node            # rclpy.spin, like the identifier
+    python -m lenn_ros.benchmarks.echo_node --waitset  # no executor: own wait set, raw take/publish
+
+The first is the ceiling of an rclpy node spun the usual way (what the identifier
+can reach at best). The second shows what the executor itself costs: it waits on a
+wait set built once and takes / publishes serialised bytes, which is the least
+Python work per message rclpy allows.
+"""
+
+from __future__ import annotations
+
+import sys
+
+import rclpy
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from std_msgs.msg import Float64
+
+from lenn_ros import topics
+
+
+class EchoNode(Node):
+    def __init__(self, raw: bool = False) -> None:
+        super().__init__("bench_echo")
+        qos = topics.data_qos()
+        self.publisher = self.create_publisher(Float64, topics.Y_HAT, qos)
+        self.u_subscription = self.create_subscription(Float64, topics.U, lambda message: None, qos, raw=raw)
+        self.y_subscription = self.create_subscription(Float64, topics.Y_P, self.publisher.publish, qos, raw=raw)
+
+    def spin_waitset(self) -> None:
+        """Echo without an executor until the context shuts down (SIGINT)."""
+        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+
+        u, y, publish = self.u_subscription.handle, self.y_subscription.handle, self.publisher.handle.publish_raw
+        context = self.context
+        with u, y, context.handle:
+            wait_set = _rclpy.WaitSet(2, 0, 0, 0, 0, 0, context.handle)
+            while context.ok():
+                wait_set.clear_entities()
+                wait_set.add_subscription(u)
+                wait_set.add_subscription(y)
+                wait_set.wait(100_000_000)
+                while u.take_message(Float64, True) is not None:
+                    pass
+                while (taken := y.take_message(Float64, True)) is not None:
+                    publish(taken[0])
+
+
+def main(args: list[str] | None = None) -> int:
+    args = list(sys.argv if args is None else args)
+    waitset = "--waitset" in args
+    rclpy.init(args=[a for a in args if a != "--waitset"])
+    node = None
+    try:
+        node = EchoNode(raw=waitset)
+        if waitset:
+            node.spin_waitset()
+        else:
+            rclpy.spin(node)
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

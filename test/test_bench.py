@@ -1,0 +1,101 @@
+"""lenn-ros bench: compiled kernels equal their pure-Python versions; the quick offline run works."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+from lenn_ros import bench
+from lenn_ros.benchmarks import offline
+from lenn_ros.core import kernels
+
+#: The kernels the package ships, each with the network configuration that drives it.
+REQUIRED = ("lenn_sgd", "lenn_nlms", "lenn_rls", "mlp")
+BRANCHED = ("lenn_sgd_two_branches", "mlp_two_branches")
+
+
+@pytest.fixture(scope="module")
+def equality() -> dict[str, dict[str, float]]:
+    if not kernels.COMPILED:
+        pytest.skip("numba is not installed: the kernels run as Python, nothing to compare")
+    return offline.kernel_equality(2000)
+
+
+@pytest.mark.parametrize("name", REQUIRED + BRANCHED)
+def test_compiled_kernel_equals_py_func(equality: dict[str, dict[str, float]], name: str) -> None:
+    """2000 learning updates from the same state: weights, optimiser state and outputs agree to 1e-12."""
+    result = equality[name]
+    assert result["samples"] == 2000
+    assert result["max_abs_state_difference"] <= 1e-12
+    assert result["max_abs_output_difference"] <= 1e-12
+
+
+def test_equality_check_would_see_a_difference() -> None:
+    """The comparison is not vacuous: a different start state shows up in the difference."""
+    name, network, x, d = offline.equality_cases(200)[0]
+    twin = network.__class__(**network.get_params())
+    twin._initialise()
+    twin.weights_ = twin.weights_ + 1e-6
+    inputs = offline.kernel_inputs(network, x)
+    y_a = offline.run_kernel(network, inputs, d)
+    y_b = offline.run_kernel(twin, inputs, d, python=True)
+    assert name == "lenn_sgd"
+    assert np.max(np.abs(y_a - y_b)) > 1e-12
+
+
+def test_numpy_reference_loop_is_the_kernels_rule() -> None:
+    """The plain-numpy baseline of the benchmark learns exactly what the compiled kernel learns."""
+    example = offline.EXAMPLES[1]
+    x, d = offline.training_pairs(example, 500)
+    network = offline.fresh_network(example, "lenn", x, d)
+    start = network.weights_.copy()
+    w_numpy, y_numpy = offline.numpy_reference_loop(network.features(x), d, start, network.alpha, network.beta)
+    y_kernel = network.update(x, d)
+    assert np.max(np.abs(network.weights_ - w_numpy)) < 1e-12
+    assert np.max(np.abs(y_kernel - y_numpy)) < 1e-12
+
+
+def test_quick_offline_bench_runs_and_reports_every_figure() -> None:
+    """`lenn-ros bench --quick --skip-online` end to end (smaller sizes still, to stay fast)."""
+    sizes = dataclasses.replace(
+        offline.QUICK,
+        repeats=1,
+        fit_samples=1000,
+        single_calls=20,
+        train_samples=5000,
+        numpy_samples=300,
+        run_samples=5000,
+        bag_samples=1000,
+        equality_samples=50,
+    )
+    report = bench.run(quick=True, skip_online=True, sizes=sizes)
+    assert {
+        "cost_per_update",
+        "offline_throughput",
+        "kernel_equality",
+        "online",
+        "targets",
+        "machine_at_start",
+        "offline_clock",
+    } <= set(report)
+    assert [row["example"] for row in report["cost_per_update"]] == [1, 2, 3, 4]
+    for row in report["cost_per_update"]:
+        for kind in ("lenn", "mlp"):
+            costs = row[kind]
+            assert costs["partial_fit_us"] > 0 and costs["single_call_us"] > 0 and costs["predict_us"] > 0
+            assert costs["multiplications"] == offline.EXAMPLES[row["example"]].complexity(kind).multiplications
+        assert row["table1_mult_ratio"] > 1 and row["explanation"]
+    throughput = report["offline_throughput"]
+    assert set(throughput) == {"lenn_ex1", "mlp_ex1", "identifier_run_ex4", "evaluate_bag"}
+    assert throughput["lenn_ex1"]["speedup_vs_numpy"] > 0
+    assert throughput["identifier_run_ex4"]["samples"] == 5000
+    assert throughput["evaluate_bag"].get("samples") == 1000 or "skipped" in throughput["evaluate_bag"]
+    assert set(report["kernel_equality"]) == set(REQUIRED + BRANCHED)
+    assert report["online"] == {"skipped": "--skip-online"}
+    assert len(report["targets"]) == 5 and report["targets"][-1]["met"] is None
+    # both outputs render; the JSON is strict (no NaN)
+    assert "### Targets" in bench.markdown(report)
+    json.loads(json.dumps(bench._finite_only(report), allow_nan=False))

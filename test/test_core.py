@@ -343,3 +343,11 @@ def test_structure_validation() -> None:
         ModelStructure(y_lags=0, u_lags=0)
     with pytest.raises(ValueError):
         ModelStructure(y_lags=0, u_lags=1, separate=True)
+
+
+@pytest.mark.parametrize(("basis", "cross"), [("legendre", 0), ("legendre", 3), ("chebyshev", 2), ("trigonometric", 2)])
+def test_one_sample_expansion_is_bitwise_the_batch_expansion(basis: str, cross: int) -> None:
+    """The live node expands one sample at a time through a faster scalar path."""
+    x = np.random.default_rng(0).uniform(-1, 1, (200, 3))
+    one_by_one = np.vstack([expand(x[i : i + 1], 5, basis, cross) for i in range(200)])
+    assert np.array_equal(one_by_one, expand(x, 5, basis, cross))

@@ -14,6 +14,7 @@ bias separately as N0 = n0 + 1), and so does :func:`feature_count`.
 
 from __future__ import annotations
 
+from functools import lru_cache
 from itertools import combinations_with_replacement
 
 import numpy as np
@@ -35,6 +36,16 @@ def _three_term_recursion(x: np.ndarray, order: int, next_term) -> np.ndarray:
     return out
 
 
+def _legendre_next(n, x, p, q):
+    """Bonnet: L_{n+1} = ((2n + 1) x L_n - n L_{n-1}) / (n + 1)."""
+    return ((2 * n + 1) * x * p - n * q) / (n + 1)
+
+
+def _chebyshev_next(n, x, p, q):
+    """T_{n+1} = 2 x T_n - T_{n-1}."""
+    return 2.0 * x * p - q
+
+
 def legendre_polynomials(x: np.ndarray, order: int) -> np.ndarray:
     """L_1..L_order of every element of ``x`` by Bonnet's recursion (paper eq. 4).
 
@@ -42,12 +53,31 @@ def legendre_polynomials(x: np.ndarray, order: int) -> np.ndarray:
     must be scaled into that interval before they get here.
     Returns shape ``x.shape + (order,)``.
     """
-    return _three_term_recursion(x, order, lambda n, x, p, q: ((2 * n + 1) * x * p - n * q) / (n + 1))
+    return _three_term_recursion(x, order, _legendre_next)
 
 
 def chebyshev_polynomials(x: np.ndarray, order: int) -> np.ndarray:
     """T_1..T_order by T_{n+1} = 2 x T_n - T_{n-1} (the ChNN the paper cites)."""
-    return _three_term_recursion(x, order, lambda n, x, p, q: 2.0 * x * p - q)
+    return _three_term_recursion(x, order, _chebyshev_next)
+
+
+#: The recursions again, for one sample in plain floats: the live identifier expands
+#: one sample per message, where a numpy call per order costs more than the learning.
+#: The same IEEE operations in the same order give the same bits as the array path
+#: (test_core checks step-by-step == batch), so live and offline results still agree.
+_SCALAR_RECURSIONS = {"legendre": _legendre_next, "chebyshev": _chebyshev_next}
+
+
+def _one_sample_univariate(row: list[float], order: int, next_term) -> list[list[float]]:
+    terms = []
+    for x in row:
+        values = [x]
+        previous, current = 1.0, x
+        for n in range(1, order):
+            previous, current = current, next_term(n, x, current, previous)
+            values.append(current)
+        terms.append(values[:order])
+    return terms
 
 
 def trigonometric_terms(x: np.ndarray, order: int) -> np.ndarray:
@@ -74,7 +104,8 @@ _UNIVARIATE = {
 }
 
 
-def cross_term_exponents(n_inputs: int, degree: int) -> list[tuple[int, ...]]:
+@lru_cache(maxsize=64)
+def cross_term_exponents(n_inputs: int, degree: int) -> tuple[tuple[int, ...], ...]:
     """Multi-indices of the tensor-product terms of total degree 2..degree.
 
     Only mixed terms (two or more inputs involved) are listed: the pure powers are
@@ -86,7 +117,7 @@ def cross_term_exponents(n_inputs: int, degree: int) -> list[tuple[int, ...]]:
             exponents = tuple(combo.count(i) for i in range(n_inputs))
             if sum(1 for e in exponents if e) >= 2:
                 terms.append(exponents)
-    return terms
+    return tuple(terms)
 
 
 def feature_count(n_inputs: int, order: int, cross_degree: int = 0) -> int:
@@ -113,7 +144,10 @@ def expand(
     x = np.atleast_2d(np.asarray(x, dtype=np.float64))
     n_samples, n_inputs = x.shape
     needed = max(order, cross_degree - 1 if cross_degree else 0)
-    univariate = _UNIVARIATE[basis](x, needed)  # (n_samples, n_inputs, needed)
+    if n_samples == 1 and basis in _SCALAR_RECURSIONS and needed:
+        univariate = np.array([_one_sample_univariate(x[0].tolist(), needed, _SCALAR_RECURSIONS[basis])])
+    else:
+        univariate = _UNIVARIATE[basis](x, needed)  # (n_samples, n_inputs, needed)
     crosses = cross_term_exponents(n_inputs, cross_degree)
     features = np.empty((n_samples, 1 + n_inputs * order + len(crosses)))
     features[:, 0] = 1.0

@@ -215,7 +215,7 @@ def markdown(report: dict[str, Any]) -> str:
                 _num(row["ratio_partial_fit"], 1),
                 _num(row["ratio_predict"], 1),
                 _num(row["ratio_single_call"], 2),
-                row["explanation"],
+                offline.explain(row),  # from the row's figures (same text as row["explanation"] of this version)
             ]
             for row in report["cost_per_update"]
         ],
@@ -372,16 +372,28 @@ def _online_markdown(online: dict[str, Any]) -> list[str]:
     )
     fraction = online.get("identifier_fraction_of_echo")
     profile = online["callback_profile"]
+
+    def cpu_at(name: str, rate: float) -> float | None:
+        values = [t.get("node_cpu_us_per_sample") for t in online[name]["trials"] if t["rate_hz"] == rate]
+        return values[0] if values and values[0] is not None and math.isfinite(values[0]) else None
+
+    echo_cpu, identifier_cpu = cpu_at("echo", 500), cpu_at("identifier", 500)
+    cpu_note = ""
+    if echo_cpu and identifier_cpu:
+        cpu_note = (
+            f" At 500 Hz the identifier process spends {identifier_cpu:.0f} us of CPU per sample (all threads), "
+            f"the echo {echo_cpu:.0f} us: {identifier_cpu - echo_cpu:.0f} us more, of which its callbacks' own "
+            f"work is {profile['us_per_pair']:.0f} us; the rest is rclpy/DDS work the echo does not have (the executor "
+            "rebuilds a bigger wait set for every message: more publishers and subscriptions, a timer; two more "
+            "publications per pair). With transport as cheap as the echo's, the callbacks would allow "
+            f"~{_num(online.get('predicted_identifier_max_hz'))} Hz."
+        )
     out += [
         "",
         f"Identifier / echo loss-free rate: **{_num(fraction * 100 if fraction is not None else None, 0)} %**. "
         f"The identifier's own work per pair (its callbacks called in-process, no transport) is "
-        f"{profile['us_per_pair']:.0f} us, i.e. at most {_num(profile['max_rate_hz'])} pairs/s even with free transport"
-        + (
-            f"; with the echo's transport cost added: ~{_num(online['predicted_identifier_max_hz'])} Hz predicted."
-            if online.get("predicted_identifier_max_hz")
-            else "."
-        ),
+        f"{profile['us_per_pair']:.0f} us of CPU, i.e. at most {_num(profile['max_rate_hz'])} pairs/s with free "
+        f"transport.{cpu_note}",
         "",
         "All trials:",
         "",

@@ -1,7 +1,8 @@
 """Offline speed: cost per update, training throughput, compiled-vs-Python agreement.
 
 Every figure is the median over ``Sizes.repeats`` runs, each on a fresh model (same
-seed, same data), with the garbage collector off (as ``timeit`` does). Times are the
+seed, same data), with the garbage collector off (as ``timeit`` does); the variants
+compared with each other take turns within every repeat (:func:`interleaved_medians`). Times are the
 process's CPU time (``time.process_time``: user + system, CLOCK_PROCESS_CPUTIME_ID),
 not wall-clock time: on a shared machine another process's share of the core is then
 not counted against the code measured. Everything measured here runs on one thread
@@ -101,16 +102,23 @@ def timed(function: Callable[[], Any]) -> float:
             gc.enable()
 
 
-def median_time(function: Callable[[], Any], repeats: int, setup: Callable[[], Any] | None = None) -> float:
-    """Median seconds of ``function(setup())`` (or ``function()``) over ``repeats`` runs."""
-    times = []
+Case = tuple[Callable[[Any], Any], Callable[[], Any] | None]  # (function(state), setup() -> state)
+
+
+def interleaved_medians(cases: dict[str, Case], repeats: int) -> dict[str, float]:
+    """Median CPU seconds of each case, the cases taking turns within every repeat.
+
+    Taking turns puts every case into the same stretches of time: on a shared machine
+    a busy spell (a neighbour on the other hyper-thread, a cache-hungry process) then
+    slows all of them, not only the one that happened to run, and the ratios formed
+    from them stay fair. Each case gets a fresh ``setup()`` state every time.
+    """
+    times: dict[str, list[float]] = {name: [] for name in cases}
     for _ in range(repeats):
-        if setup is None:
-            times.append(timed(function))
-        else:
-            state = setup()
-            times.append(timed(lambda state=state: function(state)))
-    return float(statistics.median(times))
+        for name, (function, setup) in cases.items():
+            state = setup() if setup is not None else None
+            times[name].append(timed(lambda function=function, state=state: function(state)))
+    return {name: float(statistics.median(values)) for name, values in times.items()}
 
 
 @lru_cache(maxsize=8)
@@ -248,14 +256,20 @@ def _update_costs(example: PaperExample, kind: str, x: np.ndarray, d: np.ndarray
         for k in range(calls):
             network.features(x[k : k + 1])
 
-    fit = median_time(lambda network: network.partial_fit(x, d), repeats, setup)
-    kernel = median_time(lambda state: run_kernel(state[0], state[1], d), repeats, kernel_setup)
     trained = setup()
     trained.partial_fit(x, d)
-    predict = median_time(lambda: trained.predict(x), repeats)
-    expansion = median_time(lambda: trained.features(x), repeats) if kind == "lenn" else 0.0
-    one = median_time(single, repeats, setup)
-    one_expansion = median_time(single_expansion, repeats, setup) if kind == "lenn" else 0.0
+    cases: dict[str, Case] = {
+        "fit": (lambda network: network.partial_fit(x, d), setup),
+        "kernel": (lambda state: run_kernel(state[0], state[1], d), kernel_setup),
+        "predict": (lambda _: trained.predict(x), None),
+        "single": (single, setup),
+    }
+    if kind == "lenn":
+        cases["expansion"] = (lambda _: trained.features(x), None)
+        cases["single_expansion"] = (single_expansion, setup)
+    medians = interleaved_medians(cases, repeats)
+    fit, kernel, predict, one = medians["fit"], medians["kernel"], medians["predict"], medians["single"]
+    expansion, one_expansion = medians.get("expansion", 0.0), medians.get("single_expansion", 0.0)
     counts = example.complexity(kind)
     return {
         "partial_fit_us": fit / n * 1e6,
@@ -292,17 +306,16 @@ def explain(row: dict[str, Any]) -> str:
             f"output store, finite-step check pass, loop set-up) is not in Table I and weighs more on "
             f"{lenn['weights']} weights"
         )
-    share = lenn["expansion_us"] / lenn["partial_fit_us"] if lenn["partial_fit_us"] else 0.0
     fit = (
         f"partial_fit {row['ratio_partial_fit']:.1f}x: the LeNN also pays its Legendre expansion, not counted in "
-        f"Table I and {share:.0%} of its time (vectorised over the batch it streams order + 1 columns of 8 B per "
-        "sample through memory)"
+        f"Table I: alone it measures {lenn['expansion_us']:.2f} of the LeNN's {lenn['partial_fit_us']:.2f} us per "
+        "sample (vectorised over the batch, it streams order + 1 columns of 8 B per sample through memory)"
     )
     single = (
         f"1-sample call {row['ratio_single_call']:.2f}x: fixed per-call overhead swamps the arithmetic: "
-        f"{lenn['single_call_us']:.0f} us per LeNN call, whose Legendre expansion of the one sample alone "
-        f"measures {lenn['single_call_expansion_us']:.0f} us (a recursion of numpy calls on 1-element arrays, "
-        f"a few per order); the MLP ({mlp['single_call_us']:.0f} us: input checks, kernel dispatch) has none"
+        f"{lenn['single_call_us']:.0f} us per LeNN call (its one-sample expansion alone: "
+        f"{lenn['single_call_expansion_us']:.0f} us), {mlp['single_call_us']:.0f} us per MLP call: Python and "
+        "numpy work per call (input checks, array wrapping, kernel dispatch) that does not grow with the network"
     )
     return "; ".join((head, fit, single))
 
@@ -339,20 +352,39 @@ def offline_throughput(sizes: Sizes) -> dict[str, Any]:
     def setup_lenn():
         return fresh_network(ex1, "lenn", x, d)
 
-    compiled = median_time(lambda net: net.partial_fit(x, d), sizes.repeats, setup_lenn)
-    # the learning rule alone, on features expanded beforehand: compiled kernel vs numpy loop
+    def setup_mlp():
+        return fresh_network(ex1, "mlp", x, d)
+
+    # the learning rule alone runs on features expanded beforehand: compiled kernel vs numpy loop
     reference_net = setup_lenn()
     phi = reference_net.features(x)
-    expansion = median_time(lambda: reference_net.features(x), sizes.repeats)
-    kernel = median_time(lambda net: run_kernel(net, phi, d), sizes.repeats, setup_lenn)
     n_np = sizes.numpy_samples
 
     def numpy_run(net):
         return numpy_reference_loop(phi[:n_np], d[:n_np], net.weights_, float(net.alpha), float(net.beta))
 
-    loop = median_time(numpy_run, sizes.repeats, setup_lenn)
+    ex4 = EXAMPLES[4]
+    u, y = example_series(4, sizes.run_samples)
+    warm = Identifier(ex4.structure, ex4.make_network("lenn", 0))
+    warm.run(u[:2000], y[:2000])  # load the compiled kernel once
+
+    def run_setup():
+        return Identifier(ex4.structure, ex4.make_network("lenn", 0))
+
+    medians = interleaved_medians(
+        {
+            "compiled": (lambda net: net.partial_fit(x, d), setup_lenn),
+            "expansion": (lambda _: reference_net.features(x), None),
+            "kernel": (lambda net: run_kernel(net, phi, d), setup_lenn),
+            "numpy": (numpy_run, setup_lenn),
+            "mlp": (lambda net: net.partial_fit(x, d), setup_mlp),
+            "run": (lambda identifier: identifier.run(u, y), run_setup),
+        },
+        sizes.repeats,
+    )
     n = sizes.train_samples
-    compiled_rate, kernel_rate, loop_rate = n / compiled, n / kernel, n_np / loop
+    compiled_rate, kernel_rate = n / medians["compiled"], n / medians["kernel"]
+    loop_rate, expansion = n_np / medians["numpy"], medians["expansion"]
     # the numpy loop fed by the same vectorised expansion partial_fit uses
     numpy_rate = 1.0 / (1.0 / loop_rate + expansion / n)
     # both implement the same rule: weights after the same samples agree to rounding
@@ -371,26 +403,8 @@ def offline_throughput(sizes: Sizes) -> dict[str, Any]:
         "kernel_speedup_vs_numpy_rule": kernel_rate / loop_rate,
         "numpy_loop_max_abs_weight_difference": float(np.max(np.abs(a.weights_ - w_numpy))),
     }
-
-    def setup_mlp():
-        return fresh_network(ex1, "mlp", x, d)
-
-    mlp = median_time(lambda net: net.partial_fit(x, d), sizes.repeats, setup_mlp)
-    result["mlp_ex1"] = {
-        "layers": "1-20-10-1",
-        "samples": sizes.train_samples,
-        "samples_per_s": sizes.train_samples / mlp,
-    }
-
-    ex4 = EXAMPLES[4]
-    u, y = example_series(4, sizes.run_samples)
-    warm = Identifier(ex4.structure, ex4.make_network("lenn", 0))
-    warm.run(u[:2000], y[:2000])  # load the compiled kernel once
-
-    def run_setup():
-        return Identifier(ex4.structure, ex4.make_network("lenn", 0))
-
-    run = median_time(lambda identifier: identifier.run(u, y), sizes.repeats, run_setup)
+    result["mlp_ex1"] = {"layers": "1-20-10-1", "samples": n, "samples_per_s": n / medians["mlp"]}
+    run = medians["run"]
     result["identifier_run_ex4"] = {"samples": sizes.run_samples, "samples_per_s": sizes.run_samples / run}
     result["evaluate_bag"] = evaluate_throughput(sizes)
     return result
@@ -429,8 +443,10 @@ def evaluate_throughput(sizes: Sizes) -> dict[str, Any]:
                 raise RuntimeError(f"lenn-ros evaluate failed with status {code}")
 
         evaluate()  # warm-up (imports, compiled kernel)
-        total = median_time(evaluate, sizes.repeats)
-        read = median_time(lambda: read_run(bag), sizes.repeats)
+        medians = interleaved_medians(
+            {"evaluate": (lambda _: evaluate(), None), "read": (lambda _: read_run(bag), None)}, sizes.repeats
+        )
+        total, read = medians["evaluate"], medians["read"]
     return {
         "samples": n,
         "samples_per_s": n / total,

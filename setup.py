@@ -30,6 +30,9 @@ setup(
         "ros": [
             "ros-jazzy-rclpy",
             "ros-jazzy-std-msgs",
+            "ros-jazzy-sensor-msgs",
+            "ros-jazzy-geometry-msgs",
+            "ros-jazzy-diagnostic-msgs",
             "ros-jazzy-rmw-fastrtps-cpp",
             "ros-jazzy-domain-coordinator",
         ],

@@ -22,10 +22,25 @@ ERROR = "error"
 NMSE = "nmse"
 TEST_START = "test_start"
 STATUS = "status"
+#: The pairs the identifier formed and learnt from, one message per sample:
+#: Float64MultiArray ``[index, time_s, u, y_p]`` (labels in ``SAMPLE_LABELS``). A bag
+#: that holds it is evaluated from exactly these pairs, so offline equals live.
+SAMPLES = "samples"
+#: y^(k) and e(k) stamped with the time of sample k (JointState, one named channel),
+#: so Foxglove / PlotJuggler overlay them on y_p without a one-sample shift.
+Y_HAT_STAMPED = "y_hat_stamped"
+ERROR_STAMPED = "error_stamped"
+#: The identifier's resolved configuration (JSON, latched): ``evaluate`` reads it from a bag.
+IDENTIFIER_CONFIG = "identifier_config"
+#: Standard ROS diagnostics (absolute name: rqt_robot_monitor and friends listen there).
+DIAGNOSTICS = "/diagnostics"
 
 FLOAT64 = "std_msgs/msg/Float64"
+FLOAT64_ARRAY = "std_msgs/msg/Float64MultiArray"
 INT64 = "std_msgs/msg/Int64"
 STRING = "std_msgs/msg/String"
+JOINT_STATE = "sensor_msgs/msg/JointState"
+SAMPLE_LABELS = ("index", "time", "u", "y_p")
 
 #: Depth of the RELIABLE data queues: 10 s at 1 kHz, so a subscriber that stalls
 #: for a garbage-collection pause or a disk flush loses nothing.
@@ -48,14 +63,34 @@ RUN_TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec(NMSE, FLOAT64),
     TopicSpec(TEST_START, INT64, latched=True),
     TopicSpec(STATUS, STRING),
+    TopicSpec(SAMPLES, FLOAT64_ARRAY),
+    TopicSpec(Y_HAT_STAMPED, JOINT_STATE),
+    TopicSpec(ERROR_STAMPED, JOINT_STATE),
+    TopicSpec(IDENTIFIER_CONFIG, STRING, latched=True),
 )
 
 
 def message_class(type_name: str):
-    """The rclpy message class for a ROS type string (imports std_msgs lazily)."""
-    from std_msgs.msg import Float64, Int64, String
+    """The rclpy message class for a ROS type string such as ``sensor_msgs/msg/JointState``.
 
-    return {FLOAT64: Float64, INT64: Int64, STRING: String}[type_name]
+    Imported lazily (no rclpy needed to import this module); raises ``ValueError`` with
+    a one-line reason for a malformed name or a package that is not installed.
+    """
+    import importlib
+
+    parts = type_name.split("/")
+    if len(parts) == 2:
+        parts = [parts[0], "msg", parts[1]]
+    if len(parts) != 3 or parts[1] != "msg" or not all(parts):
+        raise ValueError(f"{type_name!r} is not a message type name like 'std_msgs/msg/Float64'")
+    try:
+        module = importlib.import_module(f"{parts[0]}.msg")
+    except ImportError:
+        raise ValueError(f"message package {parts[0]!r} is not installed (type {type_name!r})") from None
+    cls = getattr(module, parts[2], None)
+    if cls is None:
+        raise ValueError(f"{parts[0]} has no message {parts[2]!r} (type {type_name!r})")
+    return cls
 
 
 def data_qos():

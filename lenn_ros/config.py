@@ -35,6 +35,35 @@ class Parameter:
     live: bool = False  # may change while the node runs (others are read-only)
 
 
+#: The identifier node's own parameters (topics, pairing, files, limits, reporting):
+#: not the model's business, but known names, so a typo in a params file is caught.
+NODE_PARAMETERS = [
+    Parameter("learning", True, "learn from each sample (false: frozen weights, the paper's test)", live=True),
+    Parameter("follow_test_start", True, "freeze learning from the index on the test_start topic", live=True),
+    Parameter("weights_in", "", "weights file (.npz) to start from ('' = fresh weights)"),
+    Parameter("weights_out", "", "weights file written on shutdown and every autosave_period s ('' = none)", live=True),
+    Parameter(
+        "autosave_period", 0.0, "seconds between atomic weight saves (0 = only on shutdown)", 0.0, 86400.0, live=True
+    ),
+    Parameter("u_limit", 1.0e3, "|u| above this is an absurd value", 0.0, 1e300, live=True),
+    Parameter("y_limit", 1.0e3, "|y_p| above this is an absurd value", 0.0, 1e300, live=True),
+    Parameter("out_of_range", "reject", "what to do with an absurd value", choices=("reject", "clip"), live=True),
+    Parameter(
+        "wait_for_y_hat_subscribers",
+        0,
+        "hold the first pairs until y_hat has this many matched "
+        "subscribers (e.g. 2: a recorder and a lockstep simulator), so none misses sample 1",
+        0,
+        100,
+    ),
+    Parameter("wait_for_error_subscribers", 0, "the same for error (e.g. 1: a recorder)", 0, 100),
+    Parameter("report_every", 100, "publish the running NMSE every N errors", 1, 10**9, live=True),
+    Parameter("status_period", 1.0, "seconds between status messages", 0.05, 3600.0),
+    Parameter("health_interval", 1000, "samples per divergence check", 10, 10**7),
+    Parameter("divergence_ratio", 100.0, "roll back if block MSE > ratio x var(y_p)", 1.0, 1e12, live=True),
+]
+
+
 def identifier_parameters(example: int, network: str, parameters: str = "calibrated") -> list[Parameter]:
     """The identifier's parameters with defaults from the example preset."""
     if example:

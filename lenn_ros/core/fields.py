@@ -1,0 +1,170 @@
+"""One scalar out of any message: field paths as ``ros2 topic echo --field`` writes them.
+
+A robot's command and measurement rarely come as ``std_msgs/Float64``: a driver
+publishes ``sensor_msgs/JointState``, ros2_control's forward command controller a
+``Float64MultiArray``, a force sensor a ``WrenchStamped``. The identifier takes one
+scalar from each through a path such as ``data``, ``data[0]``, ``position[2]``,
+``twist.linear.x`` or, for JointState-like messages, a joint *name* in the brackets
+(``position[elbow]``: the index of ``elbow`` in the message's ``name`` list, looked up
+on every message because drivers may reorder joints).
+
+This module knows nothing of ROS: it walks attributes, so it serves rclpy messages
+live and the messages rosbags deserialises from a recording alike. :func:`check_path`
+validates a path against a message class before any data arrives, so a typo is a
+one-line error at start rather than silence later.
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
+
+_STEP = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)((?:\[[^\[\]]+\])*)")
+_INDEX = re.compile(r"\[([^\[\]]+)\]")
+
+
+class FieldError(ValueError):
+    """A field path that does not fit the message, with the reason in one line."""
+
+
+@dataclass(frozen=True)
+class _Step:
+    attribute: str
+    index: int | str | None = None  # int: position; str: a name looked up in the sibling ``name`` list
+
+
+def parse_path(path: str) -> tuple[_Step, ...]:
+    """``twist.linear.x`` -> steps; ``position[elbow]`` -> (position, 'elbow')."""
+    text = path.strip()
+    if not text:
+        raise FieldError("empty field path (e.g. 'data', 'data[0]', 'position[elbow]', 'twist.linear.x')")
+    steps: list[_Step] = []
+    for part in text.split("."):
+        match = _STEP.fullmatch(part)
+        if match is None:
+            raise FieldError(f"field path {path!r}: cannot read {part!r} (expected name or name[index])")
+        indices = _INDEX.findall(match.group(2))
+        if len(indices) > 1:
+            raise FieldError(f"field path {path!r}: one index per field at most")
+        index: int | str | None = None
+        if indices:
+            token = indices[0].strip()
+            index = int(token) if re.fullmatch(r"-?\d+", token) else token
+        steps.append(_Step(match.group(1), index))
+    return tuple(steps)
+
+
+def _fields_of(message_class: Any) -> dict[str, str] | None:
+    getter = getattr(message_class, "get_fields_and_field_types", None)
+    return dict(getter()) if getter is not None else None
+
+
+def _element_type(type_text: str) -> str | None:
+    """'sequence<double>' / 'double[3]' / 'sequence<geometry_msgs/Point, 5>' -> element type."""
+    match = re.fullmatch(r"sequence<([^,>]+)(?:,\s*\d+)?>", type_text)
+    if match:
+        return match.group(1)
+    match = re.fullmatch(r"(.+)\[\d*\]", type_text)
+    return match.group(1) if match else None
+
+
+_NUMERIC = {
+    "double", "float", "int8", "uint8", "int16", "uint16", "int32", "uint32",
+    "int64", "uint64", "octet", "boolean", "byte", "char",
+}  # fmt: skip
+
+
+def _nested_class(message_class: Any, type_text: str) -> Any:
+    """The class of a nested message field ('geometry_msgs/Vector3')."""
+    import importlib
+
+    package, _, name = type_text.partition("/")
+    return getattr(importlib.import_module(f"{package}.msg"), name)
+
+
+def check_path(message_class: Any, path: str, type_name: str = "") -> None:
+    """Raise :class:`FieldError` unless ``path`` leads to a number in ``message_class``.
+
+    Uses the rosidl field table of rclpy message classes; what only the data can tell
+    (an index past the end, a joint name absent) is reported per message instead.
+    """
+    shown = type_name or getattr(message_class, "__name__", "message")
+    current: Any = message_class
+    type_text = ""
+    for depth, step in enumerate(parse_path(path)):
+        fields = _fields_of(current)
+        if fields is None:
+            return  # not a rosidl class: the data will tell
+        if step.attribute not in fields:
+            options = ", ".join(sorted(fields)) or "none"
+            raise FieldError(f"{shown} has no field {step.attribute!r} in {path!r} (fields: {options})")
+        type_text = fields[step.attribute]
+        if step.index is not None:
+            element = _element_type(type_text)
+            if element is None:
+                raise FieldError(f"{shown}: {step.attribute} is {type_text}, not an array: drop [index] in {path!r}")
+            if isinstance(step.index, str) and "name" not in fields:
+                raise FieldError(
+                    f"{shown} has no 'name' list to look {step.index!r} up in; use a number in {path!r}"
+                )
+            type_text = element
+        if "/" in type_text:
+            current = _nested_class(current, type_text)
+        elif depth < len(path.split(".")) - 1:
+            raise FieldError(f"{shown}: {step.attribute} is a {type_text}, it has no fields ({path!r})")
+    if type_text not in _NUMERIC:
+        hint = " (give an [index])" if _element_type(type_text) else ""
+        raise FieldError(f"{shown}: {path!r} is a {type_text or 'message'}, not a number{hint}")
+
+
+def compile_path(path: str) -> Callable[[Any], float]:
+    """A function message -> float for ``path``; raises FieldError on a message that lacks it."""
+    steps = parse_path(path)
+
+    def extract(message: Any) -> float:
+        current = message
+        for step in steps:
+            parent = current
+            try:
+                current = getattr(current, step.attribute)
+            except AttributeError:
+                raise FieldError(f"message has no field {step.attribute!r} ({path!r})") from None
+            if step.index is None:
+                continue
+            index = step.index
+            if isinstance(index, str):
+                names = list(getattr(parent, "name", ()))
+                if index not in names:
+                    raise FieldError(f"no joint {index!r} in name {names} ({path!r})")
+                index = names.index(index)
+            try:
+                current = current[index]
+            except IndexError:
+                raise FieldError(f"{step.attribute} has {len(current)} elements, no [{index}] ({path!r})") from None
+        if isinstance(current, bool | int | float):
+            return float(current)
+        try:
+            return float(current)  # numpy scalars
+        except (TypeError, ValueError):
+            raise FieldError(f"{path!r} is not a number: {type(current).__name__}") from None
+
+    return extract
+
+
+def stamp_seconds(message: Any) -> float | None:
+    """``header.stamp`` in seconds, or None for a message without a header."""
+    header = getattr(message, "header", None)
+    stamp = getattr(header, "stamp", None)
+    if stamp is None:
+        return None
+    return float(stamp.sec) + float(stamp.nanosec) * 1e-9
+
+
+def has_header(message_class: Any) -> bool:
+    """Whether messages of this class carry a ``std_msgs/Header`` (so a stamp)."""
+    fields = _fields_of(message_class)
+    if fields is None:
+        return hasattr(message_class, "header")
+    return fields.get("header") == "std_msgs/Header"

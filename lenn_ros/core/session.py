@@ -1,0 +1,333 @@
+"""One identification session: screen, pair/align, step, phase and NMSE.
+
+The identifier node, ``lenn-ros evaluate`` and replay all feed raw halves (a value of
+u or y_p with its time, sequence number and source timestamp) into a :class:`Session`
+and get back the samples it formed and what the model made of them. Offline equals
+live by construction: the same object decides what is paired, what is refused, what
+is learnt from and how the phase NMSE is kept.
+
+Nothing here knows ROS. The session *says* what goes wrong as :class:`Notice`
+(kind + one line); the node logs them (throttled per kind), ``evaluate`` prints a
+summary; every notice kind also has a counter in :meth:`Session.status`.
+
+Pairing modes (``SessionConfig.pairing``):
+- ``sequence``: u(k) and y_p(k) carry the same DDS publication sequence number
+  because one node publishes both in lockstep (our simulator, replay). Refused, with
+  the fix named, when the middleware gives no sequence numbers or the two halves of a
+  pair were published more than ``max_skew`` seconds apart (not one lockstep
+  publisher): garbage is never paired.
+- ``stamp``: header stamps within ``slop`` (:class:`~lenn_ros.core.alignment.StampAligner`).
+- ``sample``: a grid of ``sample_period`` with zero-order hold
+  (:class:`~lenn_ros.core.alignment.GridSampler`).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+from lenn_ros.core.alignment import GridSampler, Pair, StampAligner
+from lenn_ros.core.metrics import RunningNMSE
+from lenn_ros.core.pairing import Pairer, U, Y, screen
+from lenn_ros.core.structure import Identifier, StepResult
+
+PAIRING_MODES = ("sequence", "stamp", "sample")
+SESSION_COUNTERS = (
+    "u_messages", "y_messages", "nan", "out_of_range", "clipped",
+    "no_sequence", "misaligned", "refused", "lone_u", "lone_y",
+)  # fmt: skip
+#: What rmw reports when it has no publication sequence numbers (rmw_cyclonedds: 2**64-1).
+SEQUENCE_UNSUPPORTED = (0, 2**64 - 1)
+
+
+@dataclass
+class SessionConfig:
+    """How halves become samples and samples become learning; see the module docstring."""
+
+    pairing: str = "sequence"
+    slop: float = 0.0
+    sample_period: float = 0.0
+    max_delay: float = 0.0  # stamp/sample: wait this long (receive time) for a late partner; 0 = auto
+    y_max_age: float = 0.0  # sample: reuse an old y_p this long (0 = never: a lost y_p is a gap)
+    max_skew: float = 1.0  # sequence: the two halves of a pair published further apart are refused
+    lone_timeout: float = 3.0  # say so when one input arrives alone this long
+    u_limit: float = 1.0e3
+    y_limit: float = 1.0e3
+    out_of_range: str = "reject"
+    learning: bool = True
+    follow_test_start: bool = True
+    u_name: str = "u"  # topic names, for the messages a user reads
+    y_name: str = "y_p"
+
+    def __post_init__(self) -> None:
+        if self.pairing not in PAIRING_MODES:
+            raise ValueError(f"pairing must be one of {', '.join(PAIRING_MODES)}, not {self.pairing!r}")
+        if self.pairing == "sample" and not self.sample_period > 0:
+            raise ValueError("pairing 'sample' needs sample_period > 0 (seconds between samples)")
+
+
+@dataclass(frozen=True)
+class Notice:
+    """Something the user must hear about, in one line; ``kind`` selects its throttle."""
+
+    kind: str
+    text: str
+
+
+@dataclass
+class Sample:
+    """A paired sample and what the model did with it (``result`` None: refused/skipped)."""
+
+    index: int
+    time: float
+    u: float
+    y: float
+    result: StepResult | None
+
+
+@dataclass
+class Session:
+    """Raw halves in, samples and model results out; see the module docstring."""
+
+    identifier: Identifier
+    config: SessionConfig = field(default_factory=SessionConfig)
+
+    def __post_init__(self) -> None:
+        config = self.config
+        self.counters: dict[str, int] = dict.fromkeys(SESSION_COUNTERS, 0)
+        self.pairer = Pairer(window=10_000) if config.pairing == "sequence" else None
+        delay = config.max_delay or (max(2 * config.sample_period, 0.05) if config.sample_period else 0.5)
+        self.aligner: StampAligner | GridSampler | None = None
+        if config.pairing == "stamp":
+            self.aligner = StampAligner(slop=config.slop, max_delay=delay)
+        elif config.pairing == "sample":
+            self.aligner = GridSampler(config.sample_period, max_delay=delay, y_max_age=config.y_max_age)
+        self.test_start: int | None = None
+        self.phase_learning: bool | None = None
+        self.phase_nmse = RunningNMSE()
+        self.refusal: str | None = None  # set by the caller when it knows pairing cannot work
+        self.holding = False  # hold formed samples (unprocessed) until release()
+        self._held: list[Pair] = []
+        self._notices: list[Notice] = []
+        self._last_seen: dict[str, float] = {}
+        self._first_seen: dict[str, float] = {}
+        self._seen_dropped = 0
+
+    # -- input -------------------------------------------------------------------------------
+    def offer(
+        self,
+        channel: str,
+        value: float,
+        time: float,
+        received: float | None = None,
+        sequence: int | None = None,
+        source_time: float | None = None,
+    ) -> list[Sample]:
+        """One half: ``channel`` U or Y, its value and time (stamp or receive time, s).
+
+        ``received`` is the receive time (defaults to ``time``), ``sequence`` the DDS
+        publication sequence number, ``source_time`` the publisher's timestamp (s).
+        """
+        config = self.config
+        received = time if received is None else received
+        self.counters["u_messages" if channel == U else "y_messages"] += 1
+        self._first_seen.setdefault(channel, received)
+        self._last_seen[channel] = received
+        if self._alone_for(channel, received) > 0.0:
+            self.counters[f"lone_{channel}"] += 1
+        name = config.u_name if channel == U else config.y_name
+        limit = config.u_limit if channel == U else config.y_limit
+        value, verdict = screen(float(value), limit, config.out_of_range)
+        if verdict != "ok":
+            self.counters[verdict] += 1
+            consequence = "clipped to the limit" if verdict == "clipped" else "its sample is skipped, never learnt"
+            self._say(verdict, f"{name} = {value!r} at t={time:.6f}: {verdict.replace('_', ' ')}; {consequence}")
+        if self.refusal is not None:
+            self.counters["refused"] += 1
+            self._say("refused", self.refusal)
+            return []
+        if self.pairer is not None:
+            pairs = self._pair_by_sequence(channel, value, time, sequence, source_time)
+        else:
+            assert self.aligner is not None
+            pairs = self.aligner.add(channel, value, time, received)
+            self._after_alignment()
+        return self._process(pairs)
+
+    def poll(self, now: float) -> list[Sample]:
+        """Time passes (receive clock, s): settle waiting samples, watch for a lone input."""
+        self._check_lone(now)
+        if self.aligner is None:
+            return []
+        pairs = self.aligner.poll(now)
+        self._after_alignment()
+        return self._process(pairs)
+
+    def flush(self) -> list[Sample]:
+        """End of a recording: settle what can still be settled."""
+        if isinstance(self.aligner, GridSampler):
+            return self._process(self.aligner.flush())
+        if isinstance(self.aligner, StampAligner):
+            return self._process(self.aligner.poll(math.inf))
+        return []
+
+    def set_test_start(self, index: int) -> None:
+        """Sequence index of the first test sample (from the simulator's latched topic)."""
+        self.test_start = int(index)
+
+    def release(self) -> list[Sample]:
+        """Stop holding: process the samples formed meanwhile (outputs now have readers)."""
+        self.holding = False
+        held, self._held = self._held, []
+        return self._process(held)
+
+    # -- pairing -------------------------------------------------------------------------------
+    def _pair_by_sequence(
+        self, channel: str, value: float, time: float, sequence: int | None, source_time: float | None
+    ) -> list[Pair]:
+        assert self.pairer is not None
+        if sequence is None or sequence in SEQUENCE_UNSUPPORTED:
+            self.counters["no_sequence"] += 1
+            self._say(
+                "no_sequence",
+                "pairing 'sequence' needs DDS publication sequence numbers and this middleware gives none "
+                "(e.g. rmw_cyclonedds): nothing is paired; use pairing:=sample sample_period:=T (or pairing:=stamp)",
+            )
+            return []
+        restarts = self.pairer.counters["restarts"]
+        released = self.pairer.add(channel, int(sequence), (value, time, source_time))
+        if self.pairer.counters["restarts"] != restarts:
+            self.identifier.restart_stream()
+            self._say("restart", "sample indices started over (publisher restart): history reset")
+        if self.pairer.counters["unpaired"] > self._seen_dropped:
+            dropped = self.pairer.counters["unpaired"] - self._seen_dropped
+            self._seen_dropped = self.pairer.counters["unpaired"]
+            self._say("dropped", f"{dropped} half(s) found no partner with the same index and were dropped")
+        pairs = []
+        for index, (u, _u_time, u_source), (y, y_time, y_source) in released:
+            skew = abs(u_source - y_source) if u_source is not None and y_source is not None else 0.0
+            if skew > self.config.max_skew:
+                self.counters["misaligned"] += 1
+                self._say(
+                    "misaligned",
+                    f"{self.config.u_name}[{index}] and {self.config.y_name}[{index}] were published {skew:.3f} s "
+                    "apart: not one lockstep publisher, so equal indices are not one sample; refused, never learnt. "
+                    "Use pairing:=sample sample_period:=T (or pairing:=stamp)",
+                )
+                pairs.append(Pair(index, y_time, math.nan, math.nan))
+                continue
+            pairs.append(Pair(index, y_time, u, y))
+        return pairs
+
+    def _after_alignment(self) -> None:
+        aligner = self.aligner
+        assert aligner is not None
+        if aligner.restarted:
+            aligner.restarted = False
+            self.identifier.restart_stream()
+            self._say("clock_jump", "time went backwards (clock reset, bag looped): history reset")
+        dropped = sum(v for k, v in aligner.counters.items() if k.startswith("dropped") or k == "grid_gaps")
+        if dropped > self._seen_dropped:
+            what = "grid points without a new y_p (gaps)" if isinstance(aligner, GridSampler) else "unpaired halves"
+            self._say("dropped", f"{dropped - self._seen_dropped} {what}: {dict(aligner.counters)}")
+            self._seen_dropped = dropped
+
+    def _alone_for(self, channel: str, now: float) -> float:
+        """How long ``channel`` has been arriving while the other input is silent (0: not alone)."""
+        seen = self._last_seen.get(channel)
+        if seen is None or now - seen > self.config.lone_timeout:
+            return 0.0
+        other_seen = self._last_seen.get(Y if channel == U else U)
+        if other_seen is not None and now - other_seen <= self.config.lone_timeout:
+            return 0.0
+        return now - max(self._first_seen[channel], other_seen if other_seen is not None else -math.inf)
+
+    def _check_lone(self, now: float) -> None:
+        for channel in (U, Y):
+            alone = self._alone_for(channel, now)
+            if alone >= self.config.lone_timeout:
+                topic, missing = (self.config.u_name, self.config.y_name)[:: 1 if channel == U else -1]
+                self._say(
+                    f"lone_{channel}",
+                    f"{topic} has been arriving alone for {alone:.1f} s ({self.counters[f'lone_{channel}']} "
+                    f"messages): nothing on {missing}, so no pairs form (check {missing}'s topic name/remap, "
+                    "type and QoS)",
+                )
+
+    # -- learning ------------------------------------------------------------------------------
+    def _process(self, pairs: list[Pair]) -> list[Sample]:
+        if self.holding:
+            self._held.extend(pairs)
+            return []
+        return [self._step(pair) for pair in pairs]
+
+    def _learns(self, index: int) -> bool:
+        if not self.config.learning:
+            return False
+        following = self.config.follow_test_start and self.config.pairing == "sequence"
+        return not (following and self.test_start is not None and index >= self.test_start)
+
+    def _step(self, pair: Pair) -> Sample:
+        if math.isnan(pair.u) or math.isnan(pair.y):
+            self.identifier.skip(pair.index)
+            return Sample(pair.index, pair.time, pair.u, pair.y, None)
+        learn = self._learns(pair.index)
+        if learn != self.phase_learning:
+            self.phase_learning = learn
+            self.phase_nmse.reset()
+            self._say("phase", f"sample {pair.index}: {'training' if learn else 'frozen (test)'} phase")
+        result = self.identifier.step(pair.index, pair.u, pair.y, learn)
+        if result.event in ("gap", "diverged"):
+            self._say(result.event, f"sample {pair.index}: {result.event}; counters {self.identifier.counters}")
+        if result.error is not None and result.y_hat is not None:
+            self.phase_nmse.add(pair.y, result.y_hat)
+        return Sample(pair.index, pair.time, pair.u, pair.y, result)
+
+    # -- reporting -----------------------------------------------------------------------------
+    def _say(self, kind: str, text: str) -> None:
+        self._notices.append(Notice(kind, text))
+        if len(self._notices) > 1000:  # nobody is reading: keep the newest
+            del self._notices[:500]
+
+    def take_notices(self) -> list[Notice]:
+        notices, self._notices = self._notices, []
+        return notices
+
+    def all_counters(self) -> dict[str, int]:
+        """Every counter of the session, its pairing and the model, in one flat dict."""
+        counters = dict(self.counters)
+        source = self.pairer.counters if self.pairer is not None else self.aligner.counters  # type: ignore[union-attr]
+        for name, value in source.items():
+            counters[f"pairing_{name}" if name in counters else name] = value
+        for name, value in self.identifier.counters.items():
+            counters[name if name not in counters else f"model_{name}"] = value
+        return counters
+
+    def status(self) -> dict[str, Any]:
+        """Everything a user or a test needs to know about the session so far (JSON-safe)."""
+        return json_safe(
+            {
+                "pairing": self.config.pairing,
+                "learning": bool(self.phase_learning) if self.phase_learning is not None else self.config.learning,
+                "diverged": self.identifier.diverged,
+                "test_start": self.test_start,
+                "refused": self.refusal,
+                "phase_samples": self.phase_nmse.count,
+                "phase_nmse_db": self.phase_nmse.nmse_db,
+                "phase_rmse": self.phase_nmse.rmse,
+                "counters": self.all_counters(),
+                "samples_seen": int(getattr(self.identifier.model, "n_samples_seen_", 0)),
+            }
+        )
+
+
+def json_safe(value: Any) -> Any:
+    """NaN and infinities become None (JSON has no NaN: strict parsers reject it)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {key: json_safe(item) for key, item in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(item) for item in value]
+    return value

@@ -61,6 +61,32 @@ NODE_PARAMETERS = [
     Parameter("status_period", 1.0, "seconds between status messages", 0.05, 3600.0),
     Parameter("health_interval", 1000, "samples per divergence check", 10, 10**7),
     Parameter("divergence_ratio", 100.0, "roll back if block MSE > ratio x var(y_p)", 1.0, 1e12, live=True),
+    # -- where u and y_p come from (issue 9: a real robot's topics) --
+    Parameter("u_type", "std_msgs/msg/Float64", "message type on u (e.g. std_msgs/msg/Float64MultiArray)"),
+    Parameter("y_type", "std_msgs/msg/Float64", "message type on y_p (e.g. sensor_msgs/msg/JointState)"),
+    Parameter("u_field", "data", "path to the scalar in a u message, as ros2 topic echo --field writes it: data[0]"),
+    Parameter("y_field", "data", "path to the scalar in a y_p message: position[2], position[elbow], twist.linear.x"),
+    Parameter(
+        "pairing",
+        "sequence",
+        "how u and y_p become samples: sequence (one lockstep publisher of both), stamp (header stamps "
+        "within slop), sample (fixed sample_period, zero-order hold)",
+        choices=("sequence", "stamp", "sample"),
+    ),
+    Parameter("slop", 0.0, "stamp pairing: largest |t_u - t_y| of a pair, seconds (0 = exact)", 0.0, 3600.0),
+    Parameter("sample_period", 0.0, "sample pairing: seconds between samples (1 / rate)", 0.0, 3600.0),
+    Parameter(
+        "max_delay", 0.0, "stamp/sample: seconds to wait for a late message (0 = 2 periods, >= 0.05 s)", 0.0, 3600.0
+    ),
+    Parameter(
+        "y_max_age", 0.0, "sample: reuse a y_p this old when no new one came (0 = never: a gap)", 0.0, 3600.0
+    ),
+    Parameter(
+        "max_skew", 1.0, "sequence: refuse a pair whose halves were published further apart (s)", 0.0, 3600.0
+    ),
+    Parameter("use_header_stamp", True, "time a message by its header stamp when it has one (else receive time)"),
+    Parameter("lone_timeout", 3.0, "warn when one input arrives alone this many seconds", 0.1, 3600.0),
+    Parameter("warn_period", 5.0, "seconds between repeats of one kind of warning", 0.0, 3600.0, live=True),
 ]
 
 

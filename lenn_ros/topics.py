@@ -22,9 +22,10 @@ ERROR = "error"
 NMSE = "nmse"
 TEST_START = "test_start"
 STATUS = "status"
-#: The pairs the identifier formed and learnt from, one message per sample:
-#: Float64MultiArray ``[index, time_s, u, y_p]`` (labels in ``SAMPLE_LABELS``). A bag
-#: that holds it is evaluated from exactly these pairs, so offline equals live.
+#: The pairs the identifier formed, one message per sample: Float64MultiArray
+#: ``[index, time_s, u, y_p, learn]`` (labels in ``SAMPLE_LABELS``; u, y_p NaN for a
+#: refused sample; learn 1.0 if learnt from). A bag that holds it is evaluated from
+#: exactly these samples, so offline equals live.
 SAMPLES = "samples"
 #: y^(k) and e(k) stamped with the time of sample k (JointState, one named channel),
 #: so Foxglove / PlotJuggler overlay them on y_p without a one-sample shift.
@@ -40,7 +41,7 @@ FLOAT64_ARRAY = "std_msgs/msg/Float64MultiArray"
 INT64 = "std_msgs/msg/Int64"
 STRING = "std_msgs/msg/String"
 JOINT_STATE = "sensor_msgs/msg/JointState"
-SAMPLE_LABELS = ("index", "time", "u", "y_p")
+SAMPLE_LABELS = ("index", "time", "u", "y_p", "learn")
 
 #: Depth of the RELIABLE data queues: 10 s at 1 kHz, so a subscriber that stalls
 #: for a garbage-collection pause or a disk flush loses nothing.

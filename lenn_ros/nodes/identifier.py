@@ -1,43 +1,68 @@
 """identifier: online series-parallel identification of the plant behind u and y_p.
 
-A thin adapter: parameters in (declared from :mod:`lenn_ros.config`), u / y_p in,
-paired by publication sequence number (:class:`~lenn_ros.core.pairing.Pairer`), one
-:meth:`Identifier.step <lenn_ros.core.structure.Identifier.step>` per pair, and out:
+A thin adapter around :class:`lenn_ros.core.session.Session`: parameters in (declared
+from :mod:`lenn_ros.config`), u / y_p in (any message type, one scalar each through a
+field path), samples formed by the chosen pairing mode, one model step per sample,
+and out:
 
-- ``y_hat``: the prediction of y_p(k+1), published as soon as y_p(k) and u(k) are in;
-- ``error``: e(k) = y_p(k) - y^(k), once y_p(k) arrives for a predicted step;
-- ``nmse``: running NMSE (dB) of the current phase, every ``report_every`` errors;
-- ``status``: JSON with counters, phase, NMSE, divergence flag (every ``status_period`` s).
+- ``y_hat``: the prediction of y_p(k+1), as soon as sample k is complete (Float64);
+- ``error``: e(k) = y_p(k) - y^(k) (Float64);
+- ``y_hat_stamped`` / ``error_stamped``: y^(k) and e(k) as JointState stamped with the
+  time of sample k, to overlay on y_p in Foxglove / PlotJuggler without a shift;
+- ``samples``: each sample as learnt ([index, time, u, y_p, learn]), so a recording
+  evaluates offline to exactly the live figure;
+- ``nmse`` every ``report_every`` errors; ``status`` (JSON) and ``/diagnostics``
+  (DiagnosticArray) every ``status_period`` s; ``identifier_config`` (latched JSON).
 
-Bad samples (NaN, inf, |value| above ``u_limit`` / ``y_limit``) never reach the
-learning rule: rejected (default) or clipped, counted, logged at most once a second.
+Whatever keeps the node from doing what it was asked (no pairs, a wrong type, a QoS
+that cannot match, refused pairs, clipped inputs, an unknown parameter, divergence)
+is said in one line, throttled per kind, and counted in ``status``.
 """
 
 from __future__ import annotations
 
+import difflib
 import json
-import math
 import os
 import sys
-import time
 from typing import Any
 
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.parameter import Parameter as RosParameter
-from std_msgs.msg import Float64, Int64, String
+from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.time import Time
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64, Float64MultiArray, Int64, MultiArrayDimension, String
 
 from lenn_ros import topics
 from lenn_ros.config import NODE_PARAMETERS, Parameter, build_identifier, check_value, identifier_parameters
-from lenn_ros.core.metrics import RunningNMSE
+from lenn_ros.core.fields import FieldError, check_path, compile_path, has_header, stamp_seconds
 from lenn_ros.core.networks import ModelFileError
-from lenn_ros.core.pairing import Pairer, U, Y, screen
+from lenn_ros.core.pairing import U, Y
+from lenn_ros.core.session import Notice, Sample, Session, SessionConfig, json_safe
 from lenn_ros.nodes import run_node
+
+#: Parameters set by rclpy itself or by the QoS override mechanism: not unknown.
+_FOREIGN_PARAMETERS = ("use_sim_time", "start_type_description_service", "qos_overrides.")
+#: Notice kinds that are news, not trouble.
+_INFO_KINDS = ("phase",)
+_SESSION_KEYS = (
+    "pairing", "slop", "sample_period", "max_delay", "y_max_age", "max_skew", "lone_timeout",
+    "u_limit", "y_limit", "out_of_range", "learning", "follow_test_start",
+)  # fmt: skip
 
 
 def _descriptor(parameter: Parameter) -> ParameterDescriptor:
+    """Description and range; doubles take integers too (``ros2 param set ... alpha 1``)."""
     text = parameter.description + (f" (one of: {', '.join(parameter.choices)})" if parameter.choices else "")
     descriptor = ParameterDescriptor(description=text, read_only=not parameter.live)
+    is_float = isinstance(parameter.default, float)
+    if is_float:
+        descriptor.dynamic_typing = True  # the on-set callback checks the number and its range
     if parameter.low is not None and not isinstance(parameter.default, bool):
         if isinstance(parameter.default, int):
             descriptor.integer_range = [
@@ -50,88 +75,182 @@ def _descriptor(parameter: Parameter) -> ParameterDescriptor:
     return descriptor
 
 
+def _normalise(parameter: Parameter, value: Any) -> Any:
+    """An integer given for a double parameter is that double."""
+    if isinstance(parameter.default, float) and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    return value
+
+
+def _stamp(seconds: float) -> Any:
+    return Time(nanoseconds=round(seconds * 1e9)).to_msg()
+
+
 class IdentifierNode(Node):
     """Learns a LeNN or MLP model of the plant online, sample by sample."""
 
     def __init__(self) -> None:
-        super().__init__("identifier")
-        self.declare_parameter(
-            "example",
-            1,
-            ParameterDescriptor(
-                description="paper example whose structure and parameters are the defaults (0 = none)",
-                read_only=True,
-                integer_range=[IntegerRange(from_value=0, to_value=4, step=1)],
-            ),
+        super().__init__("identifier", automatically_declare_parameters_from_overrides=False)
+        self.values = self._declare_all()
+        self.u_name = self.resolve_topic_name(topics.U)
+        self.y_name = self.resolve_topic_name(topics.Y_P)
+        self._loggers: dict[str, Any] = {}
+        self.node_counters = {"type_mismatch": 0, "qos_incompatible": 0, "field_errors": 0, "unknown_parameters": 0}
+        self._warn_unknown_parameters()
+        message_types = {channel: self._message_class(channel) for channel in (U, Y)}
+        self.identifier = self._build_model()
+        self.session = Session(self.identifier, self._session_config())
+        self._extract = {U: compile_path(self.values["u_field"]), Y: compile_path(self.values["y_field"])}
+        self._stamped = {
+            channel: has_header(cls) and self.values["use_header_stamp"] for channel, cls in message_types.items()
+        }
+        if self.values["pairing"] == "stamp" and not all(self._stamped.values()):
+            raise SystemExit(
+                "identifier: pairing 'stamp' needs header stamps on both inputs, and "
+                + " and ".join(
+                    f"{name} ({self.values[key]})"
+                    for channel, name, key in ((U, self.u_name, "u_type"), (Y, self.y_name, "y_type"))
+                    if not self._stamped[channel]
+                )
+                + " has none: use pairing:=sample sample_period:=T"
+            )
+        self.session.holding = bool(
+            self.values["wait_for_y_hat_subscribers"] or self.values["wait_for_error_subscribers"]
         )
-        self.declare_parameter("network", "lenn", ParameterDescriptor(description="lenn or mlp", read_only=True))
-        self.declare_parameter(
-            "parameters",
-            "calibrated",
-            ParameterDescriptor(description="alpha/beta preset: calibrated or paper", read_only=True),
-        )
-        example = self.get_parameter("example").value
-        network = self.get_parameter("network").value
-        preset = self.get_parameter("parameters").value
-        if network not in ("lenn", "mlp"):
-            raise SystemExit(f"identifier: network must be 'lenn' or 'mlp', not {network!r}")
-        self.table = {p.name: p for p in identifier_parameters(example, network, preset) + NODE_PARAMETERS}
-        for parameter in self.table.values():
-            self.declare_parameter(parameter.name, parameter.default, _descriptor(parameter))
-        values = {name: self.get_parameter(name).value for name in self.table}
-        self.values = values
-        for name, value in values.items():
-            problem = check_value(self.table[name], value)
-            if problem:
-                raise SystemExit(f"identifier: {problem}")
-        try:
-            self.identifier = build_identifier(values, network)
-        except ValueError as error:
-            raise SystemExit(f"identifier: {error}") from None
-        self.identifier.health_interval = values["health_interval"]
-        self.identifier.divergence_ratio = values["divergence_ratio"]
-        if values["weights_in"]:
-            try:
-                self.identifier.model.load_state(values["weights_in"])
-            except ModelFileError as error:
-                raise SystemExit(f"identifier: {error}") from None
-            self.identifier.mark_healthy()
-        self.network = network
+        self._check_graph(at_start=True)
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
-        self.pairer = Pairer(window=topics.DATA_DEPTH)
-        waits = values["wait_for_y_hat_subscribers"] or values["wait_for_error_subscribers"]
-        self._held: list[tuple[int, float, float]] | None = [] if waits else None
-        self.test_start: int | None = None
-        self.phase_learning: bool | None = None
-        self.phase_nmse = RunningNMSE()
-        self.errors_since_report = 0
-        self.bad_samples = {"nan": 0, "out_of_range": 0, "clipped": 0}
-        self._last_warning = 0.0
-        self._last_save = time.monotonic()
         qos = topics.data_qos()
         self.y_hat_publisher = self.create_publisher(Float64, topics.Y_HAT, qos)
         self.error_publisher = self.create_publisher(Float64, topics.ERROR, qos)
+        self.y_hat_stamped_publisher = self.create_publisher(JointState, topics.Y_HAT_STAMPED, qos)
+        self.error_stamped_publisher = self.create_publisher(JointState, topics.ERROR_STAMPED, qos)
+        self.samples_publisher = self.create_publisher(Float64MultiArray, topics.SAMPLES, qos)
+        self._sample_layout = Float64MultiArray().layout
+        labels = topics.SAMPLE_LABELS
+        self._sample_layout.dim = [MultiArrayDimension(label=",".join(labels), size=len(labels), stride=len(labels))]
         self.nmse_publisher = self.create_publisher(Float64, topics.NMSE, qos)
         self.status_publisher = self.create_publisher(String, topics.STATUS, qos)
-        self.create_subscription(Float64, topics.U, lambda m, i: self._on_half(U, m, i), qos)
-        self.create_subscription(Float64, topics.Y_P, lambda m, i: self._on_half(Y, m, i), qos)
+        self.diagnostics_publisher = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
+        config_publisher = self.create_publisher(String, topics.IDENTIFIER_CONFIG, topics.latched_qos())
+        config_publisher.publish(String(data=json.dumps(json_safe({**self.values, "network": self.network}))))
+        self._subscribe(message_types)
         self.create_subscription(Int64, topics.TEST_START, self._on_test_start, topics.latched_qos())
-        self.create_timer(values["status_period"], self._on_timer)
+        self.create_timer(self.values["status_period"], self._on_status_timer)
+        if self.values["pairing"] != "sequence":
+            self.create_timer(min(0.05, self.values["sample_period"] or 0.05), self._on_poll_timer)
+        self._autosave_timer = None
+        self._schedule_autosave()
+        self.errors_since_report = 0
+        self._warned_kinds: set[str] = set()
         model = self.identifier.model
         self.get_logger().info(
-            f"{network} with {model.n_weights} weights, example preset {example or 'none'}, "
-            f"learning {'on' if values['learning'] else 'off'}"
+            f"{self.network} with {model.n_weights} weights, example preset {self.example or 'none'}, "
+            f"{self.u_name} ({self.values['u_type']} {self.values['u_field']}) and {self.y_name} "
+            f"({self.values['y_type']} {self.values['y_field']}) paired by {self.values['pairing']}, "
+            f"learning {'on' if self.values['learning'] else 'off'}"
         )
 
-    # -- parameters --------------------------------------------------------------------
+    # -- set-up ----------------------------------------------------------------------------
+    def _declare_all(self) -> dict[str, Any]:
+        presets = (
+            ("example", 1, "paper example whose structure and parameters are the defaults (0 = none)"),
+            ("network", "lenn", "lenn or mlp"),
+            ("parameters", "calibrated", "alpha/beta preset: calibrated or paper"),
+        )
+        for name, default, text in presets:
+            descriptor = ParameterDescriptor(description=text, read_only=True)
+            if name == "example":
+                descriptor.integer_range = [IntegerRange(from_value=0, to_value=4, step=1)]
+            self.declare_parameter(name, default, descriptor)
+        self.example = self.get_parameter("example").value
+        self.network = self.get_parameter("network").value
+        if self.network not in ("lenn", "mlp"):
+            raise SystemExit(f"identifier: network must be 'lenn' or 'mlp', not {self.network!r}")
+        preset = self.get_parameter("parameters").value
+        self.table = {p.name: p for p in identifier_parameters(self.example, self.network, preset) + NODE_PARAMETERS}
+        for parameter in self.table.values():
+            self.declare_parameter(parameter.name, parameter.default, _descriptor(parameter))
+        values = {}
+        for name, parameter in self.table.items():
+            value = _normalise(parameter, self.get_parameter(name).value)
+            problem = check_value(parameter, value)
+            if problem:
+                raise SystemExit(f"identifier: {problem}")
+            values[name] = value
+        return values
+
+    def _warn_unknown_parameters(self) -> None:
+        """rclpy drops ``-p name:=value`` for a name never declared: say so."""
+        known = set(self.table) | {"example", "network", "parameters"}
+        for name in self._parameter_overrides:
+            if name in known or name.startswith(_FOREIGN_PARAMETERS):
+                continue
+            self.node_counters["unknown_parameters"] += 1
+            close = difflib.get_close_matches(name, sorted(known), n=1)
+            hint = f"; did you mean {close[0]!r}?" if close else ""
+            self.get_logger().error(f"unknown parameter {name!r} is ignored{hint}")
+
+    def _message_class(self, channel: str) -> Any:
+        type_key, field_key = ("u_type", "u_field") if channel == U else ("y_type", "y_field")
+        try:
+            cls = topics.message_class(self.values[type_key])
+            check_path(cls, self.values[field_key], self.values[type_key])
+        except (ValueError, FieldError) as error:
+            raise SystemExit(f"identifier: {type_key}/{field_key}: {error}") from None
+        return cls
+
+    def _build_model(self) -> Any:
+        try:
+            identifier = build_identifier(self.values, self.network)
+        except ValueError as error:
+            raise SystemExit(f"identifier: {error}") from None
+        identifier.health_interval = self.values["health_interval"]
+        identifier.divergence_ratio = self.values["divergence_ratio"]
+        if self.values["weights_in"]:
+            try:
+                identifier.model.load_state(os.path.expanduser(self.values["weights_in"]))
+            except ModelFileError as error:
+                raise SystemExit(f"identifier: {error}") from None
+            identifier.mark_healthy()
+        return identifier
+
+    def _session_config(self) -> SessionConfig:
+        settings = {key: self.values[key] for key in _SESSION_KEYS}
+        try:
+            return SessionConfig(**settings, u_name=self.u_name, y_name=self.y_name)
+        except ValueError as error:
+            raise SystemExit(f"identifier: {error}") from None
+
+    def _subscribe(self, message_types: dict[str, Any]) -> None:
+        """u and y_p with QoS settable by parameters (``qos_overrides./u.subscription.*``).
+
+        Default: RELIABLE for sequence pairing (a lockstep simulator must lose
+        nothing), BEST_EFFORT otherwise, which matches every publisher, RELIABLE or not.
+        """
+        reliability = (
+            ReliabilityPolicy.RELIABLE if self.values["pairing"] == "sequence" else ReliabilityPolicy.BEST_EFFORT
+        )
+        profile = QoSProfile(depth=topics.DATA_DEPTH, reliability=reliability)
+        for channel, name in ((U, topics.U), (Y, topics.Y_P)):
+            events = SubscriptionEventCallbacks(incompatible_qos=lambda event, c=channel: self._on_incompatible_qos(c))
+            self.create_subscription(
+                message_types[channel],
+                name,
+                lambda message, info, c=channel: self._on_message(c, message, info),
+                profile,
+                event_callbacks=events,
+                qos_overriding_options=QoSOverridingOptions.with_default_policies(),
+            )
+
+    # -- parameters ----------------------------------------------------------------------------
     def _check_parameters(self, parameters: list[RosParameter]) -> SetParametersResult:
         for parameter in parameters:
             spec = self.table.get(parameter.name)
             if spec is None:
                 continue
-            problem = check_value(spec, parameter.value)
+            problem = check_value(spec, _normalise(spec, parameter.value))
             if problem:
                 return SetParametersResult(successful=False, reason=problem)
         return SetParametersResult(successful=True)
@@ -139,125 +258,219 @@ class IdentifierNode(Node):
     def _apply_parameters(self, parameters: list[RosParameter]) -> None:
         model = self.identifier.model
         for parameter in parameters:
-            name, value = parameter.name, parameter.value
+            name = parameter.name
+            if name not in self.table:
+                continue
+            value = _normalise(self.table[name], parameter.value)
             self.values[name] = value
             if name in ("alpha", "beta", "forgetting", "nlms_step") and name in model.get_params():
                 model.set_params(**{name: value})
             elif name == "divergence_ratio":
                 self.identifier.divergence_ratio = value
-            elif name == "learning" and value and self.identifier.diverged:
-                self.identifier.mark_healthy()  # the user re-enables learning after a divergence
-                self.get_logger().info("learning re-enabled after divergence")
+            elif name in _SESSION_KEYS:
+                setattr(self.session.config, name, value)
+                if name == "learning" and value and self.identifier.diverged:
+                    self.identifier.mark_healthy()  # the user re-enables learning after a divergence
+                    self.get_logger().info("learning re-enabled after divergence")
             elif name == "weights_out" and value:
                 self._save(value)
+            elif name == "autosave_period":
+                self._schedule_autosave()
 
-    def _value(self, name: str) -> Any:
-        """Current value of a parameter, from a cache the post-set callback refreshes.
-
-        rclpy's get_parameter costs microseconds; the per-sample path reads several.
-        """
-        return self.values[name]
-
-    # -- data --------------------------------------------------------------------------
+    # -- data ----------------------------------------------------------------------------------
     def _on_test_start(self, message: Int64) -> None:
-        self.test_start = int(message.data)
+        self.session.set_test_start(int(message.data))
 
-    def _on_half(self, topic: str, message: Float64, info: dict) -> None:
-        index = int(info["publication_sequence_number"])
-        limit = self._value("u_limit" if topic == U else "y_limit")
-        value, verdict = screen(float(message.data), limit, self._value("out_of_range"))
-        if verdict != "ok":
-            self.bad_samples[verdict] += 1
-            consequence = "clipped to the limit" if verdict == "clipped" else "the pair is skipped, never learnt from"
-            self._warn(f"{topic}[{index}] = {message.data!r}: {verdict}; {consequence}")
-        restarts = self.pairer.counters["restarts"]
-        pairs = self.pairer.add(topic, index, value)
-        if self.pairer.counters["restarts"] != restarts:
-            self.identifier.restart_stream()
-            self._warn("sample indices started over (publisher restart): history reset")
-        if self._held is not None:
-            self._held.extend(pairs)
-            pairs = self._release_held()
-        for pair_index, u, y in pairs:
-            self._on_pair(pair_index, u, y)
+    def _now(self) -> float:
+        return self.get_clock().now().nanoseconds * 1e-9
 
-    def _release_held(self) -> list[tuple[int, float, float]]:
-        """The pairs held back so far, once the output subscribers have matched."""
-        if self._held is None or not self._outputs_matched():
-            return []
-        pairs, self._held = self._held, None
-        return pairs
+    def _on_message(self, channel: str, message: Any, info: dict) -> None:
+        try:
+            value = self._extract[channel](message)
+        except FieldError as error:
+            self.node_counters["field_errors"] += 1
+            self._log(Notice("field", f"{self.u_name if channel == U else self.y_name}: {error}; message skipped"))
+            return
+        received = self._now()
+        stamp = stamp_seconds(message) if self._stamped[channel] else None
+        source = info.get("source_timestamp")
+        if not self._graph_checked:
+            self._check_graph()
+        samples = self.session.offer(
+            channel,
+            value,
+            stamp if stamp is not None else received,
+            received=received,
+            sequence=info.get("publication_sequence_number"),
+            source_time=source * 1e-9 if source else None,
+        )
+        self._publish(samples)
+        self._emit_notices()
+
+    def _on_poll_timer(self) -> None:
+        self._publish(self.session.poll(self._now()))
+        self._emit_notices()
+
+    def _publish(self, samples: list[Sample]) -> None:
+        if self.session.holding and self._outputs_matched():
+            samples = self.session.release() + samples
+        for sample in samples:
+            result = sample.result
+            learn = float(result.learned) if result is not None else 0.0
+            self.samples_publisher.publish(
+                Float64MultiArray(
+                    layout=self._sample_layout, data=[float(sample.index), sample.time, sample.u, sample.y, learn]
+                )
+            )
+            if result is None:
+                continue
+            if result.error is not None and result.y_hat is not None:
+                self.error_publisher.publish(Float64(data=result.error))
+                stamp = _stamp(sample.time)
+                self.y_hat_stamped_publisher.publish(self._joint(stamp, result.y_hat))
+                self.error_stamped_publisher.publish(self._joint(stamp, result.error))
+                self.errors_since_report += 1
+                if self.errors_since_report >= self.values["report_every"]:
+                    self.errors_since_report = 0
+                    self.nmse_publisher.publish(Float64(data=self.session.phase_nmse.nmse_db))
+            if result.y_hat_next is not None:
+                self.y_hat_publisher.publish(Float64(data=result.y_hat_next))
+
+    def _joint(self, stamp: Any, value: float) -> JointState:
+        message = JointState(name=[self.y_name], position=[value])
+        message.header.stamp = stamp
+        return message
 
     def _outputs_matched(self) -> bool:
         """Our outputs are VOLATILE: what is published before a reader matched is lost to it."""
-        return self.y_hat_publisher.get_subscription_count() >= self._value(
-            "wait_for_y_hat_subscribers"
-        ) and self.error_publisher.get_subscription_count() >= self._value("wait_for_error_subscribers")
-
-    def _on_pair(self, index: int, u: float, y: float) -> None:
-        if math.isnan(u) or math.isnan(y):
-            self.identifier.skip(index)
-            return
-        learn = self._value("learning") and not (
-            self._value("follow_test_start") and self.test_start is not None and index >= self.test_start
+        return (
+            self.y_hat_publisher.get_subscription_count() >= self.values["wait_for_y_hat_subscribers"]
+            and self.error_publisher.get_subscription_count() >= self.values["wait_for_error_subscribers"]
         )
-        if learn != self.phase_learning:
-            self.phase_learning = learn
-            self.phase_nmse.reset()
-            self.get_logger().info(f"sample {index}: {'training' if learn else 'frozen (test)'} phase")
-        result = self.identifier.step(index, u, y, learn)
-        if result.event in ("gap", "diverged"):
-            self._warn(f"sample {index}: {result.event}; counters {self.identifier.counters}")
-        if result.error is not None:
-            self.error_publisher.publish(Float64(data=result.error))
-            self.phase_nmse.add(y, result.y_hat)
-            self.errors_since_report += 1
-            if self.errors_since_report >= self._value("report_every"):
-                self.errors_since_report = 0
-                self.nmse_publisher.publish(Float64(data=self.phase_nmse.nmse_db))
-        if result.y_hat_next is not None:
-            self.y_hat_publisher.publish(Float64(data=result.y_hat_next))
 
-    def _warn(self, text: str) -> None:
-        now = time.monotonic()
-        if now - self._last_warning >= 1.0:
-            self._last_warning = now
-            self.get_logger().warning(text)
+    # -- the graph: types, publishers, QoS --------------------------------------------------------
+    _graph_checked = False
 
-    # -- reporting and persistence --------------------------------------------------------
+    def _check_graph(self, at_start: bool = False) -> None:
+        """Compare what the graph offers on u / y_p with what we were told to expect."""
+        publishers = {}
+        for channel, name, key in ((U, self.u_name, "u_type"), (Y, self.y_name, "y_type")):
+            infos = self.get_publishers_info_by_topic(name)
+            publishers[channel] = {(info.node_namespace, info.node_name) for info in infos}
+            wrong = sorted({info.topic_type for info in infos if info.topic_type != self.values[key]})
+            if wrong:
+                text = (
+                    f"{name} is published as {', '.join(wrong)}, not {key} {self.values[key]}: "
+                    f"pass -p {key}:={wrong[0]} and a matching -p {key[0]}_field:=..."
+                )
+                if at_start:
+                    raise SystemExit(f"identifier: {text}")
+                self.node_counters["type_mismatch"] += 1
+                self._log(Notice("type", text))
+        if publishers[U] and publishers[Y]:
+            self._graph_checked = True
+        if self.values["pairing"] != "sequence" or not (publishers[U] and publishers[Y]):
+            return
+        if publishers[U].isdisjoint(publishers[Y]):
+
+            def names(nodes: set) -> str:
+                return ", ".join(f"{ns.rstrip('/')}/{node}" for ns, node in sorted(nodes))
+
+            self.session.refusal = (
+                f"{self.u_name} (from {names(publishers[U])}) and {self.y_name} (from {names(publishers[Y])}) "
+                "come from different nodes: pairing 'sequence' needs one lockstep publisher of both, nothing is "
+                "paired; use pairing:=sample sample_period:=T (or pairing:=stamp)"
+            )
+        else:
+            self.session.refusal = None
+
+    def _on_incompatible_qos(self, channel: str) -> None:
+        name = self.u_name if channel == U else self.y_name
+        self.node_counters["qos_incompatible"] += 1
+        self._log(
+            Notice(
+                "qos",
+                f"a publisher on {name} offers a QoS this subscription cannot match (e.g. BEST_EFFORT against "
+                f"RELIABLE), so nothing arrives: add -p qos_overrides.{name}.subscription.reliability:=best_effort",
+            )
+        )
+
+    # -- reporting and persistence ---------------------------------------------------------------
+    def _emit_notices(self) -> None:
+        for notice in self.session.take_notices():
+            self._log(notice)
+
+    def _log(self, notice: Notice) -> None:
+        """One line per notice, throttled per kind so one warning never hides another."""
+        if notice.kind in _INFO_KINDS:
+            self.get_logger().info(notice.text)
+            return
+        logger = self._loggers.get(notice.kind)
+        if logger is None:
+            logger = self._loggers[notice.kind] = self.get_logger().get_child(notice.kind)
+        self._warned_kinds.add(notice.kind)
+        logger.warning(notice.text, throttle_duration_sec=self.values["warn_period"] or None)
+
     def status(self) -> dict[str, Any]:
-        """Everything a user or a test needs to know about the run so far."""
-        return {
-            "network": self.network,
-            "learning": bool(self.phase_learning) if self.phase_learning is not None else self._value("learning"),
-            "diverged": self.identifier.diverged,
-            "test_start": self.test_start,
-            "phase_samples": self.phase_nmse.count,
-            "phase_nmse_db": self.phase_nmse.nmse_db,
-            "phase_rmse": self.phase_nmse.rmse,
-            "counters": {**self.identifier.counters, **self.pairer.counters, **self.bad_samples},
-            "samples_seen": int(getattr(self.identifier.model, "n_samples_seen_", 0)),
-        }
+        """Everything a user or a test needs to know about the run so far (JSON-safe)."""
+        status = self.session.status()
+        status["network"] = self.network
+        status["counters"].update(self.node_counters)
+        status["topics"] = {"u": self.u_name, "y_p": self.y_name}
+        return status
 
-    def _on_timer(self) -> None:
-        for pair_index, u, y in self._release_held():
-            self._on_pair(pair_index, u, y)
-        self.status_publisher.publish(String(data=json.dumps(self.status())))
-        period = self._value("autosave_period")
-        if period > 0 and self._value("weights_out") and time.monotonic() - self._last_save >= period:
-            self._save(self._value("weights_out"))
+    def _on_status_timer(self) -> None:
+        self._check_graph()
+        self._publish(self.session.poll(self._now()))
+        self._emit_notices()
+        status = self.status()
+        self.status_publisher.publish(String(data=json.dumps(status)))
+        self.diagnostics_publisher.publish(self._diagnostics(status))
+        self._warned_kinds.clear()
+
+    def _diagnostics(self, status: dict[str, Any]) -> DiagnosticArray:
+        """OK / WARN / ERROR with every counter, for rqt_robot_monitor and friends."""
+        counters = status["counters"]
+        if status["diverged"] or status["refused"] or counters["type_mismatch"] or counters["qos_incompatible"]:
+            level, text = DiagnosticStatus.ERROR, status["refused"] or "diverged, type or QoS mismatch"
+        elif self._warned_kinds:
+            level, text = DiagnosticStatus.WARN, "warnings: " + ", ".join(sorted(self._warned_kinds))
+        else:
+            level, text = DiagnosticStatus.OK, "identifying" if counters.get("learned") else "waiting for data"
+        values = [KeyValue(key=key, value=str(value)) for key, value in counters.items()]
+        for key in ("pairing", "learning", "phase_samples", "phase_nmse_db", "phase_rmse", "samples_seen"):
+            values.append(KeyValue(key=key, value=str(status[key])))
+        entry = DiagnosticStatus(
+            level=level, name=f"lenn_ros identifier: {self.get_fully_qualified_name()}", message=text, values=values
+        )
+        entry.hardware_id = self.get_fully_qualified_name()
+        array = DiagnosticArray(status=[entry])
+        array.header.stamp = self.get_clock().now().to_msg()
+        return array
+
+    def _schedule_autosave(self) -> None:
+        """Autosave on its own timer, so it runs as often as autosave_period says."""
+        if self._autosave_timer is not None:
+            self.destroy_timer(self._autosave_timer)
+            self._autosave_timer = None
+        period = self.values["autosave_period"]
+        if period > 0:
+            self._autosave_timer = self.create_timer(period, self._autosave)
+
+    def _autosave(self) -> None:
+        if self.values["weights_out"]:
+            self._save(self.values["weights_out"])
 
     def _save(self, path: str) -> None:
         try:
             self.identifier.model.save(os.path.expanduser(path))
-            self._last_save = time.monotonic()
         except OSError as error:
             self.get_logger().error(f"could not save weights to {path}: {error}")
 
     def shutdown(self) -> None:
         """Final status line and weights on the way out (SIGINT, SIGTERM or end)."""
-        if self._value("weights_out"):
-            self._save(self._value("weights_out"))
+        if self.values["weights_out"]:
+            self._save(self.values["weights_out"])
         print(f"identifier: {json.dumps(self.status())}", file=sys.stderr, flush=True)
 
 

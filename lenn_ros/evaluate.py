@@ -1,26 +1,46 @@
 """``lenn-ros evaluate BAG``: the identifier's own computation over a recording.
 
-No ROS graph: the bag's u and y_p are paired by message order (the order the
-recorder received them, which is publication order for one RELIABLE publisher),
-screened like the live node screens them, and run through the same
-:class:`~lenn_ros.core.structure.Identifier` the node uses, configured from the same
-params file. So the test-phase NMSE of a bag recorded online equals the one the
-identifier reported live, to rounding.
+No ROS graph, the same :class:`~lenn_ros.core.session.Session` as the node:
+
+- a bag recorded with the identifier running holds its ``samples`` topic (each
+  sample's index, time, u, y_p and learn flag, as the node formed them): those
+  samples are learnt again in one batched pass, so the figure equals the live one
+  by construction, whatever the recorder lost of the raw u / y_p topics;
+- otherwise the raw u and y_p messages are paired by the session exactly as the node
+  would pair them (its pairing mode, message types and field paths, from the params
+  file): by the recorded sequence number, header stamp or sample grid. A bag without
+  sequence numbers (an import, an old recorder) is paired by order only when both
+  topics have the same count, and says so.
+
+The configuration is the params file given, else the one the identifier recorded in
+the bag (``identifier_config``); without either, evaluate stops and says what to pass.
+Every gap, refused or clipped sample and an unstable free run are reported.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
-from lenn_ros.bag import read_run
-from lenn_ros.config import build_identifier, read_params_file, resolve
-from lenn_ros.core.evaluation import Evaluation, Series, train_and_test
-from lenn_ros.core.pairing import screen
+from lenn_ros import bag as bags
+from lenn_ros import topics
+from lenn_ros.config import NODE_PARAMETERS, build_identifier, read_params_file, resolve
+from lenn_ros.core.evaluation import Evaluation
+from lenn_ros.core.fields import compile_path, stamp_seconds
+from lenn_ros.core.metrics import nmse_db, rmse
+from lenn_ros.core.pairing import U, Y
+from lenn_ros.core.session import Session, SessionConfig
 from lenn_ros.core.structure import Identifier
+
+_NODE_DEFAULTS = {parameter.name: parameter.default for parameter in NODE_PARAMETERS}
+
+
+class EvaluateError(ValueError):
+    """A recording or configuration evaluate cannot use, with the fix in one line."""
 
 
 @dataclass
@@ -29,9 +49,13 @@ class BagEvaluation:
     pairs: int
     unpaired: int
     rejected: int
-    test_start: int  # 1-based sample index
+    test_start: int  # sample index of the first test sample
+    source: str = "samples"  # what was paired: "samples", or "u/y_p by <mode>"
+    missing: int = 0  # sample indices absent from the recording
+    counters: dict[str, int] = field(default_factory=dict)
+    notices: list[str] = field(default_factory=list)
 
-    def as_dict(self) -> dict:
+    def as_dict(self) -> dict[str, Any]:
         return {
             **self.evaluation.as_dict(),
             "pairs": self.pairs,
@@ -39,43 +63,153 @@ class BagEvaluation:
             "rejected": self.rejected,
             "test_start": self.test_start,
             "skipped": self.evaluation.skipped + self.unpaired + self.rejected,
+            "source": self.source,
+            "missing": self.missing,
+            "free_run_unstable": not math.isfinite(self.evaluation.nmse_free_run_db)
+            or self.evaluation.nmse_free_run_db > 0.0,
+            "counters": self.counters,
+            "notices": self.notices,
         }
 
 
 def identifier_from_params(path: str | None) -> tuple[Identifier, dict]:
-    """The identifier a params file describes (the node's defaults without one)."""
+    """The identifier a params file describes, and every node value (defaults filled in)."""
     values = read_params_file(path) if path else {}
     resolved, network = resolve(values)
-    identifier = build_identifier(resolved, network)
-    node_values = {"u_limit": 1.0e3, "y_limit": 1.0e3, "out_of_range": "reject", **values}
-    return identifier, node_values
+    return build_identifier(resolved, network), {**_NODE_DEFAULTS, **values}
 
 
-def evaluate_bag(bag: str, params: str | None = None, test_from: int | None = None) -> BagEvaluation:
-    """Train on the bag's training phase, score the frozen model on its test phase."""
-    run = read_run(bag)
-    identifier, node_values = identifier_from_params(params)
-    test_start = test_from if test_from is not None else run.test_start
-    if test_start is None:
-        raise ValueError(f"{bag}: no test_start topic in the bag; pass --test-from K (1-based sample index)")
-    pairs = min(len(run.u), len(run.y_p))
-    if test_start < 2 or test_start > pairs:
-        raise ValueError(f"test start {test_start} outside the bag's samples 2..{pairs}")
-    u = run.u[:pairs].copy()
-    y = run.y_p[:pairs].copy()
-    rejected = 0
-    for series, limit in ((u, node_values["u_limit"]), (y, node_values["y_limit"])):
-        for k, value in enumerate(series):
-            series[k], _ = screen(float(value), float(limit), node_values["out_of_range"])
-    bad = np.isnan(u) | np.isnan(y)
-    rejected = int(bad.sum())
-    if rejected:
-        raise ValueError(
-            f"{bag}: {rejected} samples are NaN/inf or beyond the limits; "
-            "evaluate a clean segment (--test-from) or raise u_limit/y_limit in the params file"
+def _configuration(path: str, params: str | None) -> tuple[Identifier, dict[str, Any]]:
+    if params:
+        return identifier_from_params(params)
+    recorded = [message for message in bags.iter_messages(path, [topics.IDENTIFIER_CONFIG])]
+    if not recorded:
+        raise EvaluateError(
+            f"{path}: the bag holds no identifier configuration (identifier_config); pass --params FILE, the "
+            "params file the identifier ran with (e.g. config/example1_lenn.yaml)"
         )
-    evaluation = train_and_test(identifier, Series(u=u, y=y, test_start=test_start - 1))
-    return BagEvaluation(evaluation, pairs, abs(len(run.u) - len(run.y_p)), rejected, test_start)
+    values = json.loads(recorded[-1].message.data)
+    network = values.pop("network", "lenn")
+    model_values, _ = resolve({**{k: v for k, v in values.items() if k not in _NODE_DEFAULTS}, "network": network})
+    return build_identifier(model_values, network), {**_NODE_DEFAULTS, **values}
+
+
+def _session(identifier: Identifier, values: dict[str, Any]) -> Session:
+    return Session(identifier, SessionConfig.from_values(values, follow_test_start=False, learning=True))
+
+
+def _recorded_samples(path: str) -> tuple[np.ndarray, ...] | None:
+    rows = [message.message.data for message in bags.iter_messages(path, [topics.SAMPLES])]
+    if not rows:
+        return None
+    table = np.array([list(row)[: len(topics.SAMPLE_LABELS)] for row in rows], dtype=np.float64)
+    order = np.argsort(table[:, 0], kind="stable")
+    table = table[order]
+    keep = np.r_[True, np.diff(table[:, 0]) > 0]  # a repeated index: the first one, as live
+    table = table[keep]
+    return table[:, 0].astype(np.int64), table[:, 2], table[:, 3], table[:, 4] > 0.5
+
+
+def _pair_raw(path: str, session: Session, values: dict[str, Any]) -> tuple[np.ndarray, ...]:
+    """Pair the recorded u / y_p messages the way the node would have."""
+    types = bags.topic_types(path)
+    names = {}
+    for channel, name in ((U, topics.U), (Y, topics.Y_P)):
+        found = [topic for topic in types if topic.rstrip("/").rsplit("/", 1)[-1] == name]
+        if not found:
+            raise EvaluateError(f"{path}: no {name} topic in the bag (topics: {', '.join(sorted(types)) or 'none'})")
+        names[found[0]] = channel
+    extract = {U: compile_path(values["u_field"]), Y: compile_path(values["y_field"])}
+    messages = list(bags.iter_messages(path, list(names)))
+    by_order = values["pairing"] == "sequence" and not any(message.sequence for message in messages)
+    if by_order:
+        counts = [sum(1 for m in messages if names[m.topic] == channel) for channel in (U, Y)]
+        if counts[0] != counts[1]:
+            raise EvaluateError(
+                f"{path}: no sequence numbers recorded and u has {counts[0]} messages, y_p {counts[1]}: pairing "
+                "by order would shift every later pair; record with lenn_ros's recorder (it stores indices)"
+            )
+    session.holding = True  # collect the pairs; they are learnt in one batch below
+    seen = {U: 0, Y: 0}
+    for message in messages:
+        channel = names[message.topic]
+        seen[channel] += 1
+        stamp = stamp_seconds(message.message) if values["use_header_stamp"] else None
+        received = message.log_time_ns * 1e-9
+        session.offer(
+            channel,
+            extract[channel](message.message),
+            stamp if stamp is not None else received,
+            received=received,
+            sequence=seen[channel] if by_order else message.sequence,
+            source_time=None if by_order else (message.publish_time_ns * 1e-9 or None),
+        )
+    session.flush()
+    pairs = session.release_pairs()
+    index = np.array([pair.index for pair in pairs], dtype=np.int64)
+    return index, np.array([p.u for p in pairs]), np.array([p.y for p in pairs]), by_order
+
+
+def evaluate_bag(path: str, params: str | None = None, test_from: int | None = None) -> BagEvaluation:
+    """Train on the bag's training phase, score the frozen model on its test phase."""
+    identifier, values = _configuration(path, params)
+    session = _session(identifier, values)
+    recorded = _recorded_samples(path)
+    if recorded is not None:
+        index, u, y, learn = recorded
+        source = "samples"
+        start = test_from if test_from is not None else _last_phase_start(index, learn)
+        if test_from is not None:
+            learn = learn & (index < test_from)
+    else:
+        index, u, y, by_order = _pair_raw(path, session, values)
+        source = f"u/y_p by {'order (no sequence numbers recorded)' if by_order else values['pairing']}"
+        start = test_from if test_from is not None else bags.read_run(path).test_start
+        if start is None:
+            raise EvaluateError(f"{path}: no test_start topic in the bag; pass --test-from K (1-based sample index)")
+        learn = index < start
+    if len(index) == 0:
+        raise EvaluateError(f"{path}: no samples could be paired ({source}); see the notices above")
+    if start is None or start < index[0] + 1 or start > index[-1]:
+        raise EvaluateError(f"test start {start} outside the bag's samples {index[0] + 1}..{index[-1]}")
+    y_hat = session.run_samples(index, u, y, learn)
+    evaluation = _score(identifier, index, u, y, y_hat, start)
+    counters = session.all_counters()
+    notices = sorted({f"{n.kind}: {n.text}" for n in session.take_notices() if n.kind != "phase"})
+    missing = int(np.sum(np.clip(np.diff(index) - 1, 0, None))) + int(index[0] - 1)
+    rejected = int(np.count_nonzero(~(np.isfinite(u) & np.isfinite(y))))
+    unpaired = sum(counters.get(name, 0) for name in ("unpaired", "dropped_u", "dropped_y"))
+    return BagEvaluation(evaluation, len(index), unpaired, rejected, int(start), source, missing, counters, notices)
+
+
+def _last_phase_start(index: np.ndarray, learn: np.ndarray) -> int | None:
+    """First index of the final frozen phase (None if the run never froze)."""
+    if learn[-1]:
+        return None
+    changes = np.flatnonzero(learn[:-1] & ~learn[1:])
+    return int(index[changes[-1] + 1]) if changes.size else int(index[0])
+
+
+def _score(identifier: Identifier, index: np.ndarray, u: np.ndarray, y: np.ndarray, y_hat: np.ndarray, start: int):
+    test = index >= start
+    scored = test & np.isfinite(y_hat)
+    first = int(np.argmax(test))
+    y_free = identifier.free_run(u, y, first) if first >= identifier.structure.warm_up else np.full(test.sum(), np.nan)
+    y_test = y[test]
+    train = ~test & np.isfinite(y_hat)
+    return Evaluation(
+        nmse_db=nmse_db(y[scored], y_hat[scored]) if scored.any() else math.nan,
+        nmse_free_run_db=nmse_db(y_test, y_free) if np.all(np.isfinite(y_free)) else math.nan,
+        rmse=rmse(y[scored], y_hat[scored]) if scored.any() else math.nan,
+        rmse_free_run=rmse(y_test, y_free) if np.all(np.isfinite(y_free)) else math.nan,
+        samples=int(scored.sum()),
+        trained=int(train.sum()),
+        skipped=int((~np.isfinite(y_hat[~test])).sum()),
+        y_test=y_test,
+        y_hat_test=y_hat[test],
+        y_free_test=y_free,
+        train_errors=(y - y_hat)[train],
+    )
 
 
 def main(args) -> int:
@@ -86,14 +220,20 @@ def main(args) -> int:
         e = result.evaluation
         title = f"{args.bag}: NMSE {e.nmse_db:.2f} dB one-step, {e.nmse_free_run_db:.2f} dB free run"
         plot_identification(args.plot, e.y_test, e.y_hat_test, title, e.y_free_test)
-    if args.json:
-        print(json.dumps(result.as_dict(), indent=1))
-        return 0
     d = result.as_dict()
-    print(f"bag {args.bag}: {d['pairs']} pairs, test from sample {d['test_start']}")
+    if args.json:
+        print(json.dumps(d, indent=1, default=lambda value: None))
+        return 0
+    print(f"bag {args.bag}: {d['pairs']} samples from {d['source']}, test from sample {d['test_start']}")
+    if d["missing"]:
+        print(f"  {d['missing']} sample indices are missing from the recording (lost before recording or dropped)")
     print(f"  trained on {d['trained']} samples, scored {d['samples']} test samples, skipped {d['skipped']}")
-    for label, key, rmse in (("one-step", "nmse_db", "rmse"), ("free-run", "nmse_free_run_db", "rmse_free_run")):
+    for label, key, rmse_key in (("one-step", "nmse_db", "rmse"), ("free-run", "nmse_free_run_db", "rmse_free_run")):
         value = d[key]
-        shown = f"{value:8.3f} dB" if math.isfinite(value) else str(value)
-        print(f"  NMSE {label}: {shown}   RMSE {d[rmse]:.5g}")
+        shown = f"{value:8.3f} dB" if value is not None and math.isfinite(value) else str(value)
+        print(f"  NMSE {label}: {shown}   RMSE {d[rmse_key]}")
+    if d["free_run_unstable"]:
+        print("  warning: the free run is unstable (NMSE above 0 dB or not finite): the model does not simulate")
+    for notice in d["notices"]:
+        print(f"  note: {notice}")
     return 0

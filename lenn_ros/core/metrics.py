@@ -58,6 +58,21 @@ class RunningNMSE:
         self.m2 += delta * (y - self.mean)
         self.squared_error += (y - y_hat) ** 2
 
+    def extend(self, y: np.ndarray, y_hat: np.ndarray) -> None:
+        """Many samples at once (Chan's merge): the same state as :meth:`add` per sample, to rounding."""
+        y = np.asarray(y, dtype=np.float64)
+        if y.size == 0:
+            return
+        count = y.size
+        mean = float(np.mean(y))
+        m2 = float(np.sum((y - mean) ** 2))
+        total = self.count + count
+        delta = mean - self.mean
+        self.m2 += m2 + delta * delta * self.count * count / total
+        self.mean += delta * count / total
+        self.count = total
+        self.squared_error += float(np.sum((y - np.asarray(y_hat, dtype=np.float64)) ** 2))
+
     @property
     def nmse_db(self) -> float:
         if self.count == 0 or self.m2 == 0.0:

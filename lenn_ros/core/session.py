@@ -27,6 +27,8 @@ import math
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 from lenn_ros.core.alignment import GridSampler, Pair, StampAligner
 from lenn_ros.core.metrics import RunningNMSE
 from lenn_ros.core.pairing import Pairer, U, Y, screen
@@ -59,6 +61,12 @@ class SessionConfig:
     follow_test_start: bool = True
     u_name: str = "u"  # topic names, for the messages a user reads
     y_name: str = "y_p"
+
+    @classmethod
+    def from_values(cls, values: dict[str, Any], **overrides: Any) -> SessionConfig:
+        """The config from parameter values (a node's, or a params file's), ignoring the rest."""
+        names = set(cls.__dataclass_fields__)
+        return cls(**{**{key: value for key, value in values.items() if key in names}, **overrides})
 
     def __post_init__(self) -> None:
         if self.pairing not in PAIRING_MODES:
@@ -182,6 +190,12 @@ class Session:
         held, self._held = self._held, []
         return self._process(held)
 
+    def release_pairs(self) -> list[Pair]:
+        """Stop holding and hand the formed pairs over unprocessed (offline: learnt in one batch)."""
+        self.holding = False
+        held, self._held = self._held, []
+        return held
+
     # -- pairing -------------------------------------------------------------------------------
     def _pair_by_sequence(
         self, channel: str, value: float, time: float, sequence: int | None, source_time: float | None
@@ -283,6 +297,42 @@ class Session:
         if result.error is not None and result.y_hat is not None:
             self.phase_nmse.add(pair.y, result.y_hat)
         return Sample(pair.index, pair.time, pair.u, pair.y, result)
+
+    # -- whole series (offline) --------------------------------------------------------------------
+    def run_samples(self, index: np.ndarray, u: np.ndarray, y: np.ndarray, learn: np.ndarray) -> np.ndarray:
+        """The samples a live session formed, learnt again in one pass; returns y^(k) (nan: none).
+
+        Equal to stepping them one by one (the node's path): runs of consecutive valid
+        indices go to :meth:`Identifier.run <lenn_ros.core.structure.Identifier.run>`,
+        which batches the compiled kernel at the same boundaries as ``step``; a
+        missing index or a refused sample (NaN) restarts the history there, as live.
+        The phase NMSE follows the learn flags as live (a new phase starts where the
+        flag changes).
+        """
+        index = np.asarray(index, dtype=np.int64)
+        u = np.asarray(u, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        learn = np.asarray(learn, dtype=bool)
+        y_hat = np.full(len(y), np.nan)
+        valid = np.isfinite(u) & np.isfinite(y)
+        breaks = np.flatnonzero((np.diff(index) != 1) | ~valid[1:] | ~valid[:-1]) + 1
+        counters = self.identifier.counters
+        counters["gaps"] += int(np.count_nonzero(np.diff(index) > 1))
+        counters["lost"] += int(np.sum(np.clip(np.diff(index) - 1, 0, None)))
+        counters["rejected"] += int(np.count_nonzero(~valid))
+        for start, stop in zip(np.r_[0, breaks], np.r_[breaks, len(y)], strict=True):
+            if stop > start and valid[start]:
+                y_hat[start:stop] = self.identifier.run(u[start:stop], y[start:stop], learn[start:stop])
+        phases = learn[valid]
+        if phases.size:
+            changes = np.flatnonzero(phases[1:] != phases[:-1]) + 1
+            if phases[0] != self.phase_learning or changes.size:
+                self.phase_nmse.reset()
+            self.phase_learning = bool(phases[-1])
+            last = np.flatnonzero(valid)[changes[-1]] if changes.size else 0
+            scored = valid & np.isfinite(y_hat) & (np.arange(len(y)) >= last)
+            self.phase_nmse.extend(y[scored], y_hat[scored])
+        return y_hat
 
     # -- reporting -----------------------------------------------------------------------------
     def _say(self, kind: str, text: str) -> None:

@@ -50,10 +50,6 @@ from lenn_ros.nodes import run_node
 _FOREIGN_PARAMETERS = ("use_sim_time", "start_type_description_service", "qos_overrides.")
 #: Notice kinds that are news, not trouble.
 _INFO_KINDS = ("phase",)
-_SESSION_KEYS = (
-    "pairing", "slop", "sample_period", "max_delay", "y_max_age", "max_skew", "lone_timeout",
-    "u_limit", "y_limit", "out_of_range", "learning", "follow_test_start",
-)  # fmt: skip
 
 
 def _descriptor(parameter: Parameter) -> ParameterDescriptor:
@@ -217,9 +213,8 @@ class IdentifierNode(Node):
         return identifier
 
     def _session_config(self) -> SessionConfig:
-        settings = {key: self.values[key] for key in _SESSION_KEYS}
         try:
-            return SessionConfig(**settings, u_name=self.u_name, y_name=self.y_name)
+            return SessionConfig.from_values(self.values, u_name=self.u_name, y_name=self.y_name)
         except ValueError as error:
             raise SystemExit(f"identifier: {error}") from None
 
@@ -267,7 +262,7 @@ class IdentifierNode(Node):
                 model.set_params(**{name: value})
             elif name == "divergence_ratio":
                 self.identifier.divergence_ratio = value
-            elif name in _SESSION_KEYS:
+            elif name in SessionConfig.__dataclass_fields__:
                 setattr(self.session.config, name, value)
                 if name == "learning" and value and self.identifier.diverged:
                     self.identifier.mark_healthy()  # the user re-enables learning after a divergence

@@ -1,0 +1,207 @@
+"""The session without ROS: field paths, the three pairing modes, refusals, batch == step."""
+
+from __future__ import annotations
+
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from lenn_ros.config import build_identifier, resolve
+from lenn_ros.core.alignment import GridSampler, StampAligner
+from lenn_ros.core.evaluation import simulate
+from lenn_ros.core.examples import get_example
+from lenn_ros.core.fields import FieldError, check_path, compile_path, stamp_seconds
+from lenn_ros.core.pairing import U, Y
+from lenn_ros.core.session import Session, SessionConfig
+
+# -- field paths ------------------------------------------------------------------------------
+
+
+def joint_state(names, positions, sec=3, nanosec=500_000_000):
+    stamp = SimpleNamespace(sec=sec, nanosec=nanosec)
+    return SimpleNamespace(header=SimpleNamespace(stamp=stamp), name=list(names), position=list(positions))
+
+
+def test_field_paths_reach_scalars_by_index_name_and_attribute() -> None:
+    message = joint_state(["shoulder", "elbow"], [0.25, -1.5])
+    assert compile_path("position[1]")(message) == -1.5
+    assert compile_path("position[elbow]")(message) == -1.5
+    twist = SimpleNamespace(twist=SimpleNamespace(linear=SimpleNamespace(x=2.0)))
+    assert compile_path("twist.linear.x")(twist) == 2.0
+    assert stamp_seconds(message) == 3.5 and stamp_seconds(twist) is None
+    reordered = joint_state(["elbow", "shoulder"], [-1.5, 0.25])
+    assert compile_path("position[elbow]")(reordered) == -1.5  # looked up per message
+
+
+@pytest.mark.parametrize(
+    ("path", "reason"),
+    [("position[wrist]", "no joint 'wrist'"), ("position[7]", r"no \[7\]"), ("velocity[0]", "no field 'velocity'")],
+)
+def test_field_paths_fail_per_message_with_the_reason(path: str, reason: str) -> None:
+    with pytest.raises(FieldError, match=reason):
+        compile_path(path)(joint_state(["elbow"], [1.0]))
+
+
+def test_field_paths_are_checked_against_message_classes() -> None:
+    messages = pytest.importorskip("sensor_msgs.msg")
+    from geometry_msgs.msg import TwistStamped, WrenchStamped
+    from std_msgs.msg import Float64, Float64MultiArray, Int32
+
+    for cls, path in [
+        (Float64, "data"),
+        (Int32, "data"),
+        (Float64MultiArray, "data[0]"),
+        (messages.JointState, "position[elbow]"),
+        (TwistStamped, "twist.linear.x"),
+        (WrenchStamped, "wrench.torque.z"),
+    ]:
+        check_path(cls, path)
+    for cls, path, reason in [
+        (Float64, "dat", "no field 'dat'"),
+        (Float64MultiArray, "data", "give an \\[index\\]"),
+        (Float64, "data[0]", "not an array"),
+        (TwistStamped, "twist.linear", "not a number"),
+        (messages.JointState, "name[0]", "not a number"),
+        (Float64, "", "empty field path"),
+    ]:
+        with pytest.raises(FieldError, match=reason):
+            check_path(cls, path)
+
+
+# -- alignment ----------------------------------------------------------------------------------
+
+
+def robot_events(steps: int, period: float = 0.01, drop_y: set[int] = frozenset()) -> list[tuple]:
+    """y(k) = k stamped at the plant's steps; u(j) = j from a 50 Hz controller, receive time."""
+    events = []
+    for k in range(steps):
+        if k not in drop_y:
+            stamp = 5.0 + k * period
+            events.append((stamp + 0.002, Y, float(k), stamp))
+    for j in range(steps // 2 + 49):  # the controller stops with the plant
+        sent = 4.0 + 0.003 + j * 2 * period
+        events.append((sent + 0.001, U, float(j), sent + 0.001))
+    return sorted(events)
+
+
+def test_sample_grid_holds_the_latest_command_and_turns_lost_measurements_into_gaps() -> None:
+    period = 0.01
+    for drop in (set(), {100, 101, 400}):
+        sampler = GridSampler(period)
+        pairs = []
+        for received, channel, value, time in robot_events(1000, period, drop):
+            pairs += sampler.add(channel, value, time, received)
+        pairs += sampler.flush()
+        for pair in pairs:
+            k = round((pair.time - 5.0) / period)
+            assert pair.y == k  # the measurement of that step, never an old one
+            command_times = [4.004 + j * 2 * period for j in range(600)]
+            assert pair.u == max(j for j, t in enumerate(command_times) if t <= pair.time + 1e-9)
+        steps = np.diff([pair.index for pair in pairs])
+        assert sampler.counters["grid_gaps"] == len(drop) == int(np.sum(steps - 1))
+        assert len(pairs) == 997 - len(drop)  # flush stops at the last command, 14.964 s
+
+
+def test_stamp_pairing_drops_what_has_no_partner_and_marks_the_gap() -> None:
+    aligner = StampAligner(slop=0.004)
+    pairs = []
+    for k in range(100):
+        if k != 10:
+            pairs += aligner.add(U, float(k), k * 0.01, k * 0.01)
+        if k != 20:
+            pairs += aligner.add(Y, -float(k), k * 0.01 + 0.003, k * 0.01 + 0.004)
+    pairs += aligner.poll(math.inf)
+    assert all(pair.u == -pair.y for pair in pairs)
+    assert aligner.counters["dropped_u"] == aligner.counters["dropped_y"] == 1
+    indices = [pair.index for pair in pairs]
+    assert indices[9:11] == [10, 12] and indices[18:20] == [20, 22]
+
+
+def test_clock_jump_back_restarts_the_stream() -> None:
+    sampler = GridSampler(0.01)
+    for k in range(300):  # 3 s, then the clock starts again at 0 (simulator reset, bag looped)
+        sampler.add(U, 0.0, k * 0.01, k * 0.01)
+        sampler.add(Y, 0.0, k * 0.01, k * 0.01)
+    sampler.add(Y, 0.0, 0.0, 3.0)
+    assert sampler.counters["clock_jumps"] == 1 and sampler.restarted
+
+
+# -- the session ------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def series():
+    example = get_example(1)
+    return simulate(example.plant(), example.noise_db, 0, 3000, 400)
+
+
+def session(**config) -> Session:
+    values, network = resolve({})
+    return Session(build_identifier(values, network), SessionConfig(**config))
+
+
+def test_sequence_pairing_refuses_halves_published_apart(series) -> None:
+    live = session()
+    for k in range(300):
+        live.offer(U, series.u[k], k * 0.01, sequence=k + 1, source_time=k * 0.01)
+        live.offer(Y, series.y[k], k * 0.01 + 4.0, sequence=k + 1, source_time=k * 0.01 + 4.0)
+    counters = live.all_counters()
+    assert counters["misaligned"] == 300 and counters["learned"] == 0
+    assert any("published 4.000 s apart" in notice.text for notice in live.take_notices())
+
+
+def test_sequence_pairing_refuses_without_sequence_numbers(series) -> None:
+    live = session()
+    samples = []
+    for k in range(50):
+        samples += live.offer(U, series.u[k], k * 0.01, sequence=2**64 - 1)
+        samples += live.offer(Y, series.y[k], k * 0.01, sequence=2**64 - 1)
+    assert samples == [] and live.counters["no_sequence"] == 100
+    assert "use pairing:=sample" in live.take_notices()[0].text
+
+
+def test_a_lone_input_is_reported_and_counted() -> None:
+    live = session(pairing="sample", sample_period=0.01, lone_timeout=2.0)
+    for k in range(400):
+        live.offer(U, 0.1, k * 0.01)
+    live.poll(4.0)
+    notices = [notice for notice in live.take_notices() if notice.kind == "lone_u"]
+    assert notices and "nothing on y_p" in notices[-1].text
+    assert live.counters["lone_u"] > 150
+
+
+def test_bad_values_never_reach_the_model(series) -> None:
+    live = session()
+    for k in range(200):
+        y = math.nan if k == 50 else (1e9 if k == 80 else series.y[k])
+        live.offer(U, series.u[k], k * 0.01, sequence=k + 1)
+        live.offer(Y, y, k * 0.01, sequence=k + 1)
+    counters = live.all_counters()
+    assert counters["nan"] == 1 and counters["out_of_range"] == 1 and counters["rejected"] == 2
+
+
+def test_batch_replay_of_samples_equals_stepping_them(series) -> None:
+    """What evaluate does with a recording equals what the node did live, to rounding."""
+    n = len(series.y)
+    keep = np.ones(n, dtype=bool)
+    keep[[500, 501, 1700]] = False  # samples lost before they reached the node
+    index = np.arange(1, n + 1)[keep]
+    u, y = series.u[keep].copy(), series.y[keep].copy()
+    y[900] = math.nan  # a refused sample
+    learn = index <= 3000
+    live = session()
+    stepped = []
+    for k, uk, yk, lk in zip(index, u, y, learn, strict=True):
+        pair = type("P", (), {})()
+        pair.index, pair.time, pair.u, pair.y = int(k), 0.0, float(uk), float(yk)
+        live.config.learning = bool(lk)
+        sample = live._step(pair)
+        stepped.append(math.nan if sample.result is None or sample.result.y_hat is None else sample.result.y_hat)
+    offline = session()
+    y_hat = offline.run_samples(index, u, y, learn)
+    assert np.allclose(y_hat, stepped, equal_nan=True, rtol=0, atol=1e-12)
+    assert offline.identifier.counters["gaps"] == live.identifier.counters["gaps"] == 2
+    assert abs(offline.phase_nmse.nmse_db - live.phase_nmse.nmse_db) < 1e-9
+    assert np.array_equal(offline.identifier.model.weights_, live.identifier.model.weights_)

@@ -20,7 +20,10 @@ from lenn_ros import topics
 REPO = Path(__file__).resolve().parents[1]
 
 
-def start_node(module: str, *params: str, params_file: Path | None = None) -> subprocess.Popen[str]:
+def start_node(
+    module: str, *params: str, params_file: Path | None = None, ros_args: tuple[str, ...] = ()
+) -> subprocess.Popen[str]:
+    """The node's entry module as a real process; ``ros_args`` e.g. ("-r", "u:=/robot/cmd")."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
     env["PYTHONUNBUFFERED"] = "1"
     args = [sys.executable, "-m", f"lenn_ros.nodes.{module}", "--ros-args"]
@@ -28,6 +31,7 @@ def start_node(module: str, *params: str, params_file: Path | None = None) -> su
         args += ["--params-file", str(params_file)]
     for param in params:
         args += ["-p", param]
+    args += list(ros_args)
     return subprocess.Popen(args, env=env, cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 

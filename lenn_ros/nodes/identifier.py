@@ -25,6 +25,7 @@ import difflib
 import json
 import os
 import sys
+import time
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -48,6 +49,8 @@ from lenn_ros.nodes import run_node
 
 #: Parameters set by rclpy itself or by the QoS override mechanism: not unknown.
 _FOREIGN_PARAMETERS = ("use_sim_time", "start_type_description_service", "qos_overrides.")
+#: Seconds after start in which a wrong message type on u / y_p stops the node (later: an error line).
+_START_GRACE = 5.0
 #: Notice kinds that are news, not trouble.
 _INFO_KINDS = ("phase",)
 
@@ -87,6 +90,7 @@ class IdentifierNode(Node):
 
     def __init__(self) -> None:
         super().__init__("identifier", automatically_declare_parameters_from_overrides=False)
+        self._started = time.monotonic()
         self.values = self._declare_all()
         self.u_name = self.resolve_topic_name(topics.U)
         self.y_name = self.resolve_topic_name(topics.Y_P)
@@ -358,8 +362,8 @@ class IdentifierNode(Node):
                     f"{name} is published as {', '.join(wrong)}, not {key} {self.values[key]}: "
                     f"pass -p {key}:={wrong[0]} and a matching -p {key[0]}_field:=..."
                 )
-                if at_start:
-                    raise SystemExit(f"identifier: {text}")
+                if at_start or time.monotonic() - self._started < _START_GRACE:
+                    raise SystemExit(f"identifier: {text}")  # discovery takes a moment: still "at start"
                 self.node_counters["type_mismatch"] += 1
                 self._log(Notice("type", text))
         if publishers[U] and publishers[Y]:

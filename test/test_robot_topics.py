@@ -1,0 +1,244 @@
+"""The identifier on a robot's own topics, as a new user connects it: real processes over DDS.
+
+Command and measurement come from *different* nodes, as stamped or vector messages,
+BEST_EFFORT or not; each way it can go wrong must be said in one line and counted.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import yaml
+
+rclpy = pytest.importorskip("rclpy")
+
+from rclpy.context import Context  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
+from rosutil import final_status, start_node, stop  # noqa: E402
+
+from lenn_ros import topics  # noqa: E402
+
+pytestmark = pytest.mark.timeout(180)
+
+
+class Graph:
+    """In-test publisher nodes (each its own node, as a controller and a driver are)."""
+
+    def __init__(self, domain_id: int) -> None:
+        self.ctx = Context()
+        rclpy.init(context=self.ctx, domain_id=domain_id)
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.nodes = []
+        self.status: dict = {}
+        self.diagnostics: list = []
+        self.stamped: list = []
+        self.thread: threading.Thread | None = None
+
+    def node(self, name: str):
+        node = rclpy.create_node(name, context=self.ctx)
+        self.nodes.append(node)
+        self.executor.add_node(node)
+        return node
+
+    def listen(self, namespace: str = "") -> None:
+        from diagnostic_msgs.msg import DiagnosticArray
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import String
+
+        node = self.node("test_listener")
+        prefix = namespace.rstrip("/") + "/" if namespace else ""
+        node.create_subscription(
+            String, prefix + topics.STATUS, lambda m: self.status.update(json.loads(m.data)), topics.data_qos()
+        )
+        node.create_subscription(DiagnosticArray, topics.DIAGNOSTICS, self.diagnostics.append, 10)
+        node.create_subscription(JointState, prefix + topics.Y_HAT_STAMPED, self.stamped.append, topics.data_qos())
+
+    def spin(self) -> None:
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    def wait(self, condition, timeout: float = 30.0) -> dict:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if self.status and condition(self.status):
+                return self.status
+            time.sleep(0.1)
+        raise AssertionError(f"status never satisfied the condition; last: {self.status}")
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        if self.thread is not None:
+            self.thread.join(timeout=5)
+        for node in self.nodes:
+            node.destroy_node()
+        self.ctx.try_shutdown()
+
+
+@pytest.fixture
+def graph(domain: int):
+    g = Graph(domain)
+    yield g
+    g.close()
+
+
+def publish_for(seconds: float, rate: float, publish) -> None:
+    start = time.monotonic()
+    k = 0
+    while time.monotonic() - start < seconds:
+        publish(k)
+        k += 1
+        time.sleep(1.0 / rate)
+
+
+def test_separate_publishers_are_refused_in_sequence_mode(graph: Graph) -> None:
+    """u from a controller, y_p from a driver, 0.5 s apart: sequence mode must not pair them."""
+    from std_msgs.msg import Float64
+
+    identifier = start_node("identifier", "status_period:=0.2")
+    u_pub = graph.node("controller").create_publisher(Float64, topics.U, topics.data_qos())
+    y_pub = graph.node("driver").create_publisher(Float64, topics.Y_P, topics.data_qos())
+    graph.listen()
+    graph.spin()
+    try:
+        graph.wait(lambda s: True)  # the identifier is up
+        publish_for(0.5, 100, lambda k: u_pub.publish(Float64(data=0.1 * (k % 7))))
+        publish_for(3.0, 100, lambda k: (u_pub.publish(Float64(data=0.1)), y_pub.publish(Float64(data=0.2))))
+        status = graph.wait(lambda s: s["counters"]["refused"] > 50)
+    finally:
+        _, err = stop(identifier)
+    assert status["counters"]["learned"] == 0 and "different nodes" in status["refused"]
+    assert "come from different nodes" in err and "pairing:=sample" in err
+    assert final_status(err)["counters"]["learned"] == 0
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    levels = {status.level for array in graph.diagnostics for status in array.status}
+    assert DiagnosticStatus.ERROR in levels  # standard tools show the refusal too
+
+
+def test_best_effort_publisher_is_reported_with_the_fix_then_accepted(graph: Graph) -> None:
+    from std_msgs.msg import Float64
+
+    best_effort = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+    identifier = start_node("identifier", "status_period:=0.2")
+    publisher = graph.node("sensor").create_publisher(Float64, topics.U, best_effort)
+    graph.listen()
+    graph.spin()
+    try:
+        publish_for(2.0, 50, lambda k: publisher.publish(Float64(data=0.1)))
+        graph.wait(lambda s: s["counters"]["qos_incompatible"] >= 1, timeout=20)
+    finally:
+        _, err = stop(identifier)
+    assert "qos_overrides./u.subscription.reliability:=best_effort" in err
+    # the fix, as the warning words it
+    graph.status.clear()
+    fixed = start_node(
+        "identifier", "status_period:=0.2", "qos_overrides./u.subscription.reliability:=best_effort"
+    )
+    try:
+        deadline = time.monotonic() + 20
+        while time.monotonic() < deadline and not graph.status.get("counters", {}).get("u_messages"):
+            publisher.publish(Float64(data=0.1))
+            time.sleep(0.02)
+    finally:
+        _, err = stop(fixed)
+    assert final_status(err)["counters"]["u_messages"] > 0
+    assert final_status(err)["counters"]["qos_incompatible"] == 0
+
+
+def test_u_without_y_p_is_said_and_counted(graph: Graph) -> None:
+    from std_msgs.msg import Float64
+
+    identifier = start_node("identifier", "status_period:=0.2", "lone_timeout:=1.0")
+    publisher = graph.node("controller").create_publisher(Float64, topics.U, topics.data_qos())
+    graph.listen()
+    graph.spin()
+    try:
+        graph.wait(lambda s: True)  # the identifier is up
+        publish_for(4.0, 50, lambda k: publisher.publish(Float64(data=0.1)))
+        graph.wait(lambda s: s["counters"]["lone_u"] > 20, timeout=20)
+    finally:
+        _, err = stop(identifier)
+    assert "/u has been arriving alone" in err and "nothing on /y_p" in err
+
+
+@pytest.mark.parametrize("remap", [("-r", "__ns:=/id3"), ("-r", "__node:=ident3")])
+def test_params_file_applies_under_any_namespace_or_node_name(tmp_path: Path, domain: int, remap) -> None:
+    params = tmp_path / "p.yaml"
+    params.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"example": 3, "network": "lenn"}}}))
+    identifier = start_node("identifier", params_file=params, ros_args=remap)
+    time.sleep(3.0)  # its start-up line is all this test reads
+    _, err = stop(identifier)
+    assert "example preset 3" in err, err
+
+
+def test_wrong_type_or_field_is_one_line_at_start(graph: Graph) -> None:
+    from sensor_msgs.msg import JointState
+
+    publisher = graph.node("driver").create_publisher(JointState, topics.U, topics.data_qos())
+    graph.spin()
+    deadline = time.monotonic() + 10
+    while not graph.nodes[0].get_publishers_info_by_topic("/u") and time.monotonic() < deadline:
+        time.sleep(0.1)
+    identifier = start_node("identifier")
+    try:
+        _, err = identifier.communicate(timeout=30)
+    finally:
+        if identifier.poll() is None:
+            stop(identifier)
+    assert identifier.returncode == 2
+    assert "/u is published as sensor_msgs/msg/JointState, not u_type std_msgs/msg/Float64" in err
+    assert "Traceback" not in err
+    del publisher
+    bad_field = start_node("identifier", "y_type:=sensor_msgs/msg/JointState", "y_field:=positions[0]")
+    _, err = bad_field.communicate(timeout=30)
+    assert bad_field.returncode == 2 and "JointState has no field 'positions'" in err
+    assert len(err.strip().splitlines()) == 1
+
+
+def test_stamped_vector_topics_pair_by_stamp_and_outputs_carry_the_sample_time(graph: Graph) -> None:
+    """PointStamped command and JointState measurement from two nodes, paired by header stamp."""
+    from geometry_msgs.msg import PointStamped
+    from sensor_msgs.msg import JointState
+
+    identifier = start_node(
+        "identifier",
+        "status_period:=0.2",
+        "pairing:=stamp",
+        "u_type:=geometry_msgs/msg/PointStamped",
+        "u_field:=point.x",
+        "y_type:=sensor_msgs/msg/JointState",
+        "y_field:=position[elbow]",
+        ros_args=("-r", "u:=/robot/cmd", "-r", "y_p:=/robot/joint_states"),
+    )
+    best_effort = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+    u_pub = graph.node("controller").create_publisher(PointStamped, "/robot/cmd", best_effort)
+    y_pub = graph.node("driver").create_publisher(JointState, "/robot/joint_states", topics.data_qos())
+    graph.listen()
+    graph.spin()
+    sent = []
+    try:
+        graph.wait(lambda s: True)  # the identifier is up
+        for k in range(300):
+            stamp = graph.nodes[0].get_clock().now().to_msg()
+            command = PointStamped()
+            command.header.stamp = stamp
+            command.point.x = 0.5 * ((k * 7919) % 13 / 13.0 - 0.5)
+            measurement = JointState(name=["shoulder", "elbow"], position=[9.0, 0.3 * command.point.x])
+            measurement.header.stamp = stamp
+            y_pub.publish(measurement)
+            u_pub.publish(command)
+            sent.append(stamp.sec + stamp.nanosec * 1e-9)
+            time.sleep(0.01)
+        status = graph.wait(lambda s: s["counters"]["paired"] >= 280, timeout=20)
+    finally:
+        stop(identifier)
+    assert status["counters"]["misaligned"] == 0 and status["counters"]["learned"] > 250
+    stamps = {m.header.stamp.sec + m.header.stamp.nanosec * 1e-9 for m in graph.stamped}
+    assert len(stamps) > 250
+    assert all(any(abs(s - t) < 1e-6 for t in sent) for s in stamps)
+    assert graph.stamped[0].name == ["/robot/joint_states"]

@@ -19,7 +19,8 @@ setup(
     install_requires=[
         "numpy>=1.26",
         "numba>=0.59",
-        "rosbags>=0.11,<0.12",  # BagWriter flushes chunks through rosbags internals (see bag.py)
+        "rosbags>=0.11",  # typestore (CDR, msgdefs), QoS types: public API only
+        "mcap>=1.6",  # lenn_ros.bag writes through mcap.writer.Writer (flush() since 1.6), repairs with StreamReader
         "matplotlib>=3.8",
         "tqdm>=4.66",
         "pyyaml>=6",

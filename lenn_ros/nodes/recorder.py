@@ -27,7 +27,7 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 
 from lenn_ros import topics
-from lenn_ros.bag import ROSBAGS_CHUNK_LIMIT, BagWriter
+from lenn_ros.bag import DEFAULT_CHUNK_SIZE, BagWriter
 from lenn_ros.nodes import run_node
 
 #: rmw reports this (or 0) when the middleware has no publication sequence numbers.
@@ -67,10 +67,10 @@ class Recorder(Node):
         )
         self.declare_parameter(
             "max_chunk_size",
-            ROSBAGS_CHUNK_LIMIT,
+            DEFAULT_CHUNK_SIZE,
             ParameterDescriptor(
-                description="Bytes after which a chunk is written even before flush_period (at most 1 MiB).",
-                integer_range=[IntegerRange(from_value=1024, to_value=ROSBAGS_CHUNK_LIMIT)],
+                description="Bytes after which a chunk is written even before flush_period (default 1 MiB).",
+                integer_range=[IntegerRange(from_value=1024, to_value=DEFAULT_CHUNK_SIZE)],
                 read_only=True,
             ),
         )

@@ -1,0 +1,110 @@
+"""``lenn-ros import-csv``: a run bag (``/u``, ``/y_p``, optional ``/test_start``) from logged data.
+
+Errors name the file line and column, so a user can fix the CSV instead of guessing.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+from typing import Any
+
+from lenn_ros import topics
+from lenn_ros.bag.errors import BagError
+from lenn_ros.bag.writer import BagWriter
+
+__all__ = ["import_csv"]
+
+
+def _column_index(header: list[str] | None, column: str | int, csv_path: Path) -> int:
+    if isinstance(column, int) or (header is None and str(column).isdigit()):
+        index = int(column)
+    elif header is not None and column in header:
+        return header.index(column)
+    elif header is not None and str(column).isdigit():
+        index = int(column)
+    else:
+        shown = ", ".join(header) if header else "no header row"
+        raise BagError(f"{csv_path}: no column {column!r} (columns: {shown}); pass a column name or 0-based index")
+    width = len(header) if header is not None else None
+    if index < 0 or (width is not None and index >= width):
+        raise BagError(f"{csv_path}: column index {index} out of range (0..{(width or 1) - 1})")
+    return index
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def import_csv(
+    csv_path: str | Path,
+    u_column: str | int,
+    y_column: str | int,
+    dt: float,
+    out_path: str | Path,
+    test_from: int | None = None,
+) -> Path:
+    """Make a run bag (``/u``, ``/y_p`` at log time k*dt, optional latched ``/test_start``) from logged data.
+
+    ``test_from`` is 1-based, like ``test_start`` on the live graph (the publication
+    sequence number of the first test sample, i.e. row k of the data is sample k + 1).
+    Columns are names or 0-based indices (a digit string counts as an index unless the
+    header has a column of that name). The first row is a header when its cells are not
+    all numbers. Errors name the file line, so a user can fix the CSV instead of guessing.
+    """
+    csv_path, out_path = Path(csv_path), Path(out_path)
+    if not (dt > 0 and math.isfinite(dt)):
+        raise BagError(f"dt must be a positive number of seconds, got {dt}")
+    if not csv_path.is_file():
+        raise BagError(f"{csv_path}: no such file; pass the CSV with the logged input and output")
+    text = csv_path.read_text(encoding="utf-8-sig")
+    try:
+        dialect: Any = csv.Sniffer().sniff(text[:4096], delimiters=",;\t")
+    except csv.Error:
+        dialect = csv.excel
+    rows = [(n, row) for n, row in enumerate(csv.reader(text.splitlines(), dialect), start=1) if any(row)]
+    if not rows:
+        raise BagError(f"{csv_path}: the file has no rows")
+    first = [cell.strip() for cell in rows[0][1]]
+    named = any(isinstance(c, str) and not c.isdigit() for c in (u_column, y_column))
+    has_header = named or not all(_is_number(c) for c in first if c)
+    header = first if has_header else None
+    iu = _column_index(header, u_column, csv_path)
+    iy = _column_index(header, y_column, csv_path)
+    data = rows[1:] if has_header else rows
+    u_vals: list[float] = []
+    y_vals: list[float] = []
+    for line, row in data:
+        for index, column, values in ((iu, u_column, u_vals), (iy, y_column, y_vals)):
+            if index >= len(row):
+                raise BagError(f"{csv_path}: line {line} has {len(row)} cells, no column {column!r}; fix that row")
+            cell = row[index].strip()
+            try:
+                value = float(cell)
+            except ValueError:
+                raise BagError(f"{csv_path}: line {line}, column {column!r}: {cell!r} is not a number") from None
+            if not math.isfinite(value):
+                raise BagError(f"{csv_path}: line {line}, column {column!r}: {cell!r} is not finite")
+            values.append(value)
+    if not u_vals:
+        raise BagError(f"{csv_path}: no data rows after the header")
+    if test_from is not None and not 1 <= test_from <= len(u_vals):
+        raise BagError(
+            f"test_from={test_from} is outside samples 1..{len(u_vals)} of {csv_path} (1-based, like test_start)"
+        )
+    with BagWriter(out_path, flush_period=None) as bag:
+        bag.add_topic("/" + topics.U)
+        bag.add_topic("/" + topics.Y_P)
+        if test_from is not None:
+            bag.add_topic("/" + topics.TEST_START)
+            bag.write_value("/" + topics.TEST_START, int(test_from), 0)
+        for k, (u, y) in enumerate(zip(u_vals, y_vals, strict=True)):
+            stamp = round(k * dt * 1e9)
+            bag.write_value("/" + topics.U, u, stamp)
+            bag.write_value("/" + topics.Y_P, y, stamp)
+    return out_path

@@ -1,15 +1,40 @@
 """Record a run's topics into a rosbag2/MCAP bag (``ros2 bag record`` is not pip-installable).
 
-The node is a thin adapter around :class:`lenn_ros.bag.BagWriter`: raw (CDR) subscriptions
-so nothing is deserialised, the QoS of :mod:`lenn_ros.topics` so the RELIABLE queues
-match the publishers, and the receive time as log time, as rosbag2 does.
+The node is a thin adapter around :class:`lenn_ros.bag.BagWriter`: raw (CDR)
+subscriptions, so nothing is deserialised and any message type records; per message
+the receive time (log time), the DDS source timestamp (publish time) and the DDS
+publication sequence number (MCAP ``sequence``), so that ``evaluate`` and ``bag-info``
+can pair and count exactly as the live identifier did.
+
+Topics. The package's own topics (``topics.RUN_TOPICS``) with their types and QoS, plus
+the identifier's inputs ``u`` and ``y_p`` *whatever their type*: ``u_type`` / ``y_type``
+name it (default ``std_msgs/msg/Float64``, subscribed at once so nothing of a run is
+missed); empty (or ``auto``) takes it from the graph when a publisher appears. Names
+are remappable: ``-r u:=/robot/cmd -r y_p:=/robot/joint_states``. A publisher of
+another type than the one given is said in one error line per type (DDS would never
+deliver its messages, so without the line the topic would just stay silent).
+
+QoS of u and y_p (parameter ``reliability``): ``auto`` (default) subscribes RELIABLE
+while every publisher seen offers RELIABLE (our simulator; nothing may be lost) and
+re-subscribes BEST_EFFORT, with one log line, as soon as a BEST_EFFORT publisher
+appears (sensor drivers; a RELIABLE reader would never match it). Why not
+``QoSOverridingOptions``: an override is fixed at start, while a robot's publishers
+appear later; the graph tells what they offer. ``reliable``/``best_effort`` force one.
+The depth is ``topics.DATA_DEPTH`` (10 s at 1 kHz) either way.
 
 Stopping. SIGINT and SIGTERM only set a flag (rclpy's own handlers are not installed):
 rclpy's handlers shut the context down at once, after which the samples already sitting
 in the DDS reader queues can no longer be taken. Here the main loop sees the flag,
-drains the executor until the queues stay empty, then closes the bag. SIGKILL cannot be
-caught; the bound on what it loses is the writer's ``flush_period`` / ``max_chunk_size``
-(see :mod:`lenn_ros.bag`), and ``lenn-ros bag-repair`` rebuilds such a bag.
+drains the executor until the queues stay empty, then closes the bag (complete, with
+metadata.yaml).
+
+SIGKILL cannot be caught. What it loses: the messages written since the last flush
+(at most ``flush_period`` plus a quarter of it, see :mod:`lenn_ros.bag.writer`) **plus**
+what DDS had received but the recorder had not yet taken, which is small when the
+recorder keeps up. Measured (``bench/recorder_kill.py``, 1 kHz u + y_p from a separate
+process, ``flush_period`` 0.5 s, SIGKILL at a random moment, 8 runs): see the README
+section "Recording"; the test asserts loss <= rate x (1.25 x flush_period + 0.25 s).
+``lenn-ros bag-repair`` rebuilds such a bag.
 """
 
 from __future__ import annotations
@@ -23,17 +48,32 @@ from pathlib import Path
 from typing import Any
 
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.qos import QoSProfile, ReliabilityPolicy
 
 from lenn_ros import topics
-from lenn_ros.bag import DEFAULT_CHUNK_SIZE, BagWriter
+from lenn_ros.bag import DEFAULT_CHUNK_SIZE, BagError, BagWriter
+from lenn_ros.bag.writer import SEQUENCE_UNSUPPORTED
 from lenn_ros.nodes import run_node
 
-#: rmw reports this (or 0) when the middleware has no publication sequence numbers.
-_SEQ_UNSUPPORTED = 2**64 - 1
-#: Topics whose publication sequence numbers are the sample index (see lenn_ros.topics).
-_SEQUENCED = (topics.U, topics.Y_P)
+#: The identifier's inputs: any type, QoS chosen from the graph, sequence gaps counted.
+_INPUTS = {topics.U: "u_type", topics.Y_P: "y_type"}
+_AUTO = ("", "auto")
+_GRAPH_PERIOD = 0.25
+
+
+class _Input:
+    """State of one input topic (u or y_p): its type, subscription and what was said about it."""
+
+    def __init__(self, name: str, resolved: str, type_name: str | None) -> None:
+        self.name = name
+        self.resolved = resolved
+        self.type_name = type_name
+        self.subscription: Any = None
+        self.reliability: ReliabilityPolicy | None = None
+        self.said: set[str] = set()
 
 
 class Recorder(Node):
@@ -41,70 +81,173 @@ class Recorder(Node):
 
     def __init__(self, **kwargs: Any) -> None:
         super().__init__("recorder", **kwargs)
-        self.declare_parameter(
-            "output",
-            "",
-            ParameterDescriptor(
-                description="Bag directory to create (must not exist). Empty: run_<date>_<time> in the working dir.",
-                read_only=True,
-            ),
-        )
-        self.declare_parameter(
-            "topics",
-            [spec.name for spec in topics.RUN_TOPICS],
-            ParameterDescriptor(
-                description="Names of the lenn_ros topics to record (relative, remappable).", read_only=True
-            ),
-        )
-        self.declare_parameter(
-            "flush_period",
-            0.5,
-            ParameterDescriptor(
-                description="Seconds between forced chunk writes: a SIGKILL loses at most about this much data.",
-                floating_point_range=[FloatingPointRange(from_value=0.01, to_value=60.0)],
-                read_only=True,
-            ),
-        )
-        self.declare_parameter(
-            "max_chunk_size",
-            DEFAULT_CHUNK_SIZE,
-            ParameterDescriptor(
-                description="Bytes after which a chunk is written even before flush_period (default 1 MiB).",
-                integer_range=[IntegerRange(from_value=1024, to_value=DEFAULT_CHUNK_SIZE)],
-                read_only=True,
-            ),
-        )
+        self._declare_parameters()
         output = self.get_parameter("output").value or datetime.now().strftime("run_%Y%m%d_%H%M%S")
         flush_period = float(self.get_parameter("flush_period").value)
         names = list(self.get_parameter("topics").value)
+        self.reliability = str(self.get_parameter("reliability").value).lower()
         specs = {spec.name: spec for spec in topics.RUN_TOPICS}
         unknown = [name for name in names if name not in specs]
         if unknown:
-            raise ValueError(f"topics {unknown} are not lenn_ros topics; choose from {sorted(specs)}")
-
-        self.bag = BagWriter(
-            Path(output),
-            flush_period=flush_period,
-            max_chunk_size=int(self.get_parameter("max_chunk_size").value),
-        ).open()
+            raise SystemExit(f"recorder: topics {unknown} are not lenn_ros topics; choose from {sorted(specs)}")
+        if self.reliability not in ("auto", "reliable", "best_effort"):
+            raise SystemExit(f"recorder: reliability {self.reliability!r}: use auto, reliable or best_effort")
+        try:
+            self.bag = BagWriter(
+                Path(output), flush_period=flush_period, max_chunk_size=int(self.get_parameter("max_chunk_size").value)
+            ).open()
+        except BagError as err:
+            raise SystemExit(f"recorder: {err}") from None
         self.counts: Counter[str] = Counter()
         self.gaps: Counter[str] = Counter()
+        self.problems: Counter[str] = Counter()
         self._last_seq: dict[str, int] = {}
-        self._subs = []  # (not ``_subscriptions``: rclpy's Node uses that name)
+        self._subs: list[Any] = []  # (not ``_subscriptions``: rclpy's Node uses that name)
         self._bag_topic: dict[str, str] = {}  # short name -> resolved name stored in the bag
+        self._inputs: dict[str, _Input] = {}
         for name in names:
-            spec = specs[name]
-            qos = topics.qos_for(spec)
-            sub = self.create_subscription(
-                topics.message_class(spec.type_name), name, self._callback_for(name), qos, raw=True
-            )
-            self._subs.append(sub)
-            self._bag_topic[name] = sub.topic_name
-            self.bag.add_topic(sub.topic_name, spec.type_name, qos)
+            if name in _INPUTS:
+                self._add_input(name)
+            else:
+                self._subscribe_own(specs[name])
         # Flushes a quiet bag too: pending data is on disk within 1.25 * flush_period.
         self.create_timer(flush_period / 4, self.bag.maybe_flush)
-        self.get_logger().info(f"recording {', '.join(self._bag_topic.values())} into {self.bag.path}")
+        if self._inputs:
+            self.create_timer(_GRAPH_PERIOD, self._check_graph)
+            self._check_graph()
+        shown = [self._bag_topic.get(n) or f"{self._inputs[n].resolved} (type from the graph)" for n in names]
+        self.get_logger().info(f"recording {', '.join(shown)} into {self.bag.path}")
 
+    def _declare_parameters(self) -> None:
+        def declare(name: str, value: Any, description: str, **ranges: Any) -> None:
+            self.declare_parameter(name, value, ParameterDescriptor(description=description, read_only=True, **ranges))
+
+        declare("output", "", "Bag directory to create (must not exist). Empty: run_<date>_<time> in the working dir.")
+        declare("topics", [spec.name for spec in topics.RUN_TOPICS], "lenn_ros topics to record (remappable).")
+        declare("u_type", topics.FLOAT64, "Message type of u; empty or 'auto': from the graph once published.")
+        declare("y_type", topics.FLOAT64, "Message type of y_p; empty or 'auto': from the graph.")
+        declare("reliability", "auto", "u/y_p subscriptions: auto (follow the publishers), reliable or best_effort.")
+        declare(
+            "flush_period",
+            0.5,
+            "Seconds between forced chunk writes: a SIGKILL loses at most about this much data.",
+            floating_point_range=[FloatingPointRange(from_value=0.01, to_value=60.0)],
+        )
+        declare(
+            "max_chunk_size",
+            DEFAULT_CHUNK_SIZE,
+            "Bytes after which a chunk is written even before flush_period.",
+            integer_range=[IntegerRange(from_value=1024, to_value=64 * DEFAULT_CHUNK_SIZE)],
+        )
+
+    # -- subscriptions
+    def _subscribe_own(self, spec: topics.TopicSpec) -> None:
+        qos = topics.qos_for(spec)
+        sub = self.create_subscription(
+            topics.message_class(spec.type_name), spec.name, self._callback_for(spec.name), qos, raw=True
+        )
+        self._subs.append(sub)
+        self._bag_topic[spec.name] = sub.topic_name
+        self.bag.add_topic(sub.topic_name, spec.type_name, qos)
+
+    def _add_input(self, name: str) -> None:
+        given = str(self.get_parameter(_INPUTS[name]).value).strip()
+        resolved = self.resolve_topic_name(name)
+        entry = _Input(name, resolved, None if given.lower() in _AUTO else given)
+        self._inputs[name] = entry
+        if entry.type_name is not None:
+            try:
+                topics.message_class(entry.type_name)
+            except ValueError as err:
+                raise SystemExit(f"recorder: {_INPUTS[name]}: {err}") from None
+            self._subscribe_input(entry, self._wanted_reliability([]), offered=None)
+
+    def _wanted_reliability(self, infos: list[Any]) -> ReliabilityPolicy:
+        if self.reliability != "auto":
+            return ReliabilityPolicy.RELIABLE if self.reliability == "reliable" else ReliabilityPolicy.BEST_EFFORT
+        offered = {info.qos_profile.reliability for info in infos}
+        return ReliabilityPolicy.BEST_EFFORT if ReliabilityPolicy.BEST_EFFORT in offered else ReliabilityPolicy.RELIABLE
+
+    def _subscribe_input(self, entry: _Input, reliability: ReliabilityPolicy, offered: list[Any] | None) -> None:
+        """(Re)create the raw subscription of u or y_p; the bag topic is added the first time."""
+        assert entry.type_name is not None
+        if entry.subscription is not None:
+            self.destroy_subscription(entry.subscription)
+            self._subs.remove(entry.subscription)
+        qos = QoSProfile(depth=topics.DATA_DEPTH, reliability=reliability)
+        events = SubscriptionEventCallbacks(incompatible_qos=lambda _event, e=entry: self._on_incompatible_qos(e))
+        entry.subscription = self.create_subscription(
+            topics.message_class(entry.type_name),
+            entry.name,
+            self._callback_for(entry.name),
+            qos,
+            raw=True,
+            event_callbacks=events,
+        )
+        entry.reliability = reliability
+        self._subs.append(entry.subscription)
+        if entry.name not in self._bag_topic:
+            self._bag_topic[entry.name] = entry.subscription.topic_name
+            self.bag.add_topic(entry.subscription.topic_name, entry.type_name, offered or qos)
+
+    # -- the graph
+    def _check_graph(self) -> None:
+        for entry in self._inputs.values():
+            infos = self.get_publishers_info_by_topic(entry.resolved)
+            if entry.type_name is None and infos:
+                self._adopt_type(entry, infos)
+            if entry.type_name is None:
+                continue
+            self._say_wrong_types(entry, infos)
+            matching = [info for info in infos if info.topic_type == entry.type_name]
+            wanted = self._wanted_reliability(matching)
+            if wanted == ReliabilityPolicy.BEST_EFFORT and entry.reliability == ReliabilityPolicy.RELIABLE:
+                self.get_logger().info(
+                    f"{entry.resolved}: a BEST_EFFORT publisher appeared; subscribing BEST_EFFORT "
+                    "(a RELIABLE reader never matches it); losses show as sequence gaps"
+                )
+                self._subscribe_input(entry, wanted, [info.qos_profile for info in matching])
+
+    def _adopt_type(self, entry: _Input, infos: list[Any]) -> None:
+        offered = sorted({info.topic_type for info in infos})
+        entry.type_name = offered[0]
+        if len(offered) > 1:
+            self._problem(entry, "several", f"{entry.resolved} is published as {', '.join(offered)}: recording "
+                          f"{offered[0]}; pass -p {_INPUTS[entry.name]}:=TYPE to choose")  # fmt: skip
+        try:
+            topics.message_class(entry.type_name)
+        except ValueError as err:
+            self._problem(entry, "missing", f"{entry.resolved}: cannot record: {err}")
+            entry.type_name = None
+            return
+        self.get_logger().info(f"{entry.resolved}: recording as {entry.type_name} (type taken from the graph)")
+        matching = [info for info in infos if info.topic_type == entry.type_name]
+        self._subscribe_input(entry, self._wanted_reliability(matching), [info.qos_profile for info in matching])
+
+    def _say_wrong_types(self, entry: _Input, infos: list[Any]) -> None:
+        for info in infos:
+            if info.topic_type != entry.type_name:
+                node = f"{info.node_namespace.rstrip('/')}/{info.node_name}"
+                key = _INPUTS[entry.name]
+                self._problem(
+                    entry,
+                    f"type {info.topic_type}",
+                    f"{entry.resolved} is published as {info.topic_type} (by {node}), not {key} {entry.type_name}: "
+                    f"its messages are NOT recorded; pass -p {key}:={info.topic_type}",
+                )
+
+    def _problem(self, entry: _Input, key: str, text: str) -> None:
+        """One error line per problem and topic, counted (shown again in the exit summary)."""
+        if key not in entry.said:
+            entry.said.add(key)
+            self.problems[entry.name] += 1
+            self.get_logger().error(text)
+
+    def _on_incompatible_qos(self, entry: _Input) -> None:
+        self._problem(entry, "qos", f"{entry.resolved}: a publisher's QoS is incompatible with this subscription "
+                      "(nothing arrives from it); run with -p reliability:=best_effort")  # fmt: skip
+
+    # -- messages
     def _callback_for(self, name: str) -> Callable[[bytes, dict[str, int]], None]:
         # Two parameters: rclpy then passes the message info (sequence number, timestamps).
         def on_message(msg: bytes, msg_info: dict[str, int]) -> None:
@@ -114,14 +257,17 @@ class Recorder(Node):
 
     def _on_message(self, name: str, data: bytes, info: dict[str, int]) -> None:
         stamp = info.get("received_timestamp") or self.get_clock().now().nanoseconds
-        self.bag.write_raw(self._bag_topic[name], data, stamp)
+        sequence = int(info.get("publication_sequence_number", 0))
+        self.bag.write_raw(
+            self._bag_topic[name], data, stamp, publish_time_ns=info.get("source_timestamp", 0), sequence=sequence
+        )
         self.counts[name] += 1
-        if name in _SEQUENCED:
-            self._check_sequence(name, int(info.get("publication_sequence_number", 0)))
+        if name in _INPUTS:
+            self._check_sequence(name, sequence)
 
     def _check_sequence(self, name: str, seq: int) -> None:
         """Count samples the middleware lost; assumes one publisher per topic, as the package does."""
-        if seq in (0, _SEQ_UNSUPPORTED):
+        if seq in (0, SEQUENCE_UNSUPPORTED):
             return
         last = self._last_seq.get(name)
         self._last_seq[name] = seq
@@ -133,6 +279,7 @@ class Recorder(Node):
         elif seq <= last:
             self.get_logger().info(f"{name}: sequence restarted at {seq} (new publisher?)")
 
+    # -- stopping
     def drain(self, executor: SingleThreadedExecutor, quiet: float = 0.2, limit: float = 5.0) -> None:
         """Take what the DDS queues still hold: spin until nothing arrives for ``quiet`` seconds."""
         end = time.monotonic() + limit
@@ -150,10 +297,12 @@ class Recorder(Node):
     def close(self) -> str:
         """Close the bag and return the one-line summary printed at exit."""
         self.bag.close()
-        counts = ", ".join(f"{name}: {self.counts[name]}" for name in self._bag_topic)
+        names = [*self._bag_topic, *(n for n in self._inputs if n not in self._bag_topic)]
+        counts = ", ".join(f"{name}: {self.counts[name]}" for name in names)
         lost = sum(self.gaps.values())
         gaps = f"; {lost} samples lost ({dict(self.gaps)})" if lost else ""
-        return f"recorder: wrote {self.bag.path} ({counts}){gaps}"
+        problems = f"; problems (see the error lines above): {dict(self.problems)}" if self.problems else ""
+        return f"recorder: wrote {self.bag.path} ({counts}){gaps}{problems}"
 
 
 def main(args: list[str] | None = None) -> int:

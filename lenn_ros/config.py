@@ -11,6 +11,7 @@ Defaults come from the chosen paper example (``example`` 1-4); ``example: 0`` me
 
 from __future__ import annotations
 
+import difflib
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -18,6 +19,7 @@ from typing import Any
 import yaml
 
 from lenn_ros.core.examples import PARAMETER_SETS, get_example
+from lenn_ros.core.expansions import parse_terms
 from lenn_ros.core.networks import OUTPUTS, SOLVERS
 from lenn_ros.core.structure import Identifier, ModelStructure
 
@@ -112,6 +114,12 @@ def identifier_parameters(example: int, network: str, parameters: str = "calibra
             1e6,
         ),
         Parameter("u_scale", structure.u_scale, "the network sees u / u_scale, which must be in [-1, 1]", 1e-6, 1e6),
+        Parameter(
+            "y_offset", structure.y_offset, "centre of y: the network sees (y - y_offset) / y_scale", -1e12, 1e12
+        ),
+        Parameter(
+            "u_offset", structure.u_offset, "centre of u: the network sees (u - u_offset) / u_scale", -1e12, 1e12
+        ),
         Parameter("separate", structure.separate, "Model 3 structure: N1[y] + N2[u] instead of one network"),
         Parameter(
             "order", int(net.get("order", 4)), "LeNN: polynomial degree per input (paper's terms / inputs)", 1, 30
@@ -125,6 +133,12 @@ def identifier_parameters(example: int, network: str, parameters: str = "calibra
             "LeNN: tensor-product terms up to this total degree (0: the paper's per-input expansion)",
             0,
             6,
+        ),
+        Parameter(
+            "terms",
+            [""],
+            "LeNN: selected terms instead of the full expansion ([''] = full), as lenn-ros fit writes them: "
+            "'1' bias, 'y1^3' = degree-3 basis polynomial of scaled y(k-1), 'y1*u2' = P1(y(k-1)) P1(u(k-2))",
         ),
         Parameter("hidden", [int(h) for h in net.get("hidden", [20, 10])], "MLP hidden layer sizes"),
         Parameter("output", net.get("output", "tanh"), "output node", choices=OUTPUTS),
@@ -150,6 +164,8 @@ def build_identifier(values: dict[str, Any], network: str) -> Identifier:
         y_scale=float(values["y_scale"]),
         u_scale=float(values["u_scale"]),
         separate=bool(values["separate"]),
+        y_offset=float(values.get("y_offset", 0.0)),
+        u_offset=float(values.get("u_offset", 0.0)),
     )
     common = {
         "n_inputs": structure.n_inputs,
@@ -167,7 +183,12 @@ def build_identifier(values: dict[str, Any], network: str) -> Identifier:
     elif network == "lenn":
         from lenn_ros.core.networks import FunctionalLinkNetwork
 
+        terms = [str(t) for t in values.get("terms", [""]) if str(t).strip()]
+        exponents = parse_terms(terms, structure.y_lags, structure.u_lags).tolist() if terms else None
+        if exponents is not None and structure.separate:
+            raise ValueError("terms select one combiner over all inputs: set separate: false")
         model = FunctionalLinkNetwork(
+            exponents=exponents,
             order=int(values["order"]),
             basis=values["basis"],
             cross_degree=int(values["cross_degree"]),
@@ -187,21 +208,76 @@ def _coefficients(values: Any) -> tuple[float, ...]:
 
 
 def read_params_file(path: str | Path, node_name: str = "identifier") -> dict[str, Any]:
-    """The ``ros__parameters`` of ``node_name`` (or ``/**``) in a ROS 2 params file."""
+    """The ``ros__parameters`` for ``node_name`` in a ROS 2 params file.
+
+    Accepts the keys ROS 2 itself matches: ``/**`` (any node), ``/**/identifier``,
+    ``identifier``, ``/identifier`` and ``/ns/identifier`` (any namespace); several
+    matching sections are merged, the more specific one winning, as ROS 2 does.
+    """
     path = Path(path)
     try:
         document = yaml.safe_load(path.read_text())
     except FileNotFoundError:
         raise ValueError(f"params file {path} does not exist") from None
+    except IsADirectoryError:
+        raise ValueError(f"params file {path} is a directory; pass the .yaml file in it") from None
     except yaml.YAMLError as error:
         raise ValueError(f"params file {path} is not valid YAML: {str(error).splitlines()[0]}") from None
     if not isinstance(document, dict):
         raise ValueError(f"params file {path} must map node names to {{ros__parameters: ...}}")
-    for key in (node_name, f"/{node_name}", "/**"):
-        section = document.get(key)
+    merged: dict[str, Any] = {}
+    found = False
+    for key in sorted(document, key=lambda k: _specificity(str(k), node_name)):
+        if _specificity(str(key), node_name) < 0:
+            continue
+        section = document[key]
         if isinstance(section, dict) and isinstance(section.get("ros__parameters"), dict):
-            return dict(section["ros__parameters"])
-    raise ValueError(f"params file {path} has no '{node_name}: ros__parameters:' section")
+            merged.update(_flatten(section["ros__parameters"]))
+            found = True
+    if not found:
+        raise ValueError(
+            f"params file {path} has no section for the node: start it with '/**:' (any node) "
+            f"or '{node_name}:', then 'ros__parameters:'"
+        )
+    return merged
+
+
+def _specificity(key: str, node_name: str) -> int:
+    """-1: the key does not address the node; else higher = more specific."""
+    key = key.strip()
+    if key in ("/**", "**"):
+        return 0
+    last = key.rstrip("/").rsplit("/", 1)[-1]
+    if last != node_name:
+        return -1
+    return 1 if key.startswith("/**") else 2
+
+
+def _flatten(parameters: dict[str, Any], prefix: str = "") -> dict[str, Any]:
+    """Nested YAML maps are dotted names in ROS 2 (``qos_overrides: {/u: ...}``)."""
+    flat: dict[str, Any] = {}
+    for name, value in parameters.items():
+        if isinstance(value, dict):
+            flat.update(_flatten(value, f"{prefix}{name}."))
+        else:
+            flat[f"{prefix}{name}"] = value
+    return flat
+
+
+#: names ROS 2 itself gives every node, and prefixes of its per-topic settings
+FOREIGN_PARAMETERS = ("use_sim_time", "start_type_description_service", "qos_overrides.")
+PRESET_PARAMETERS = ("example", "network", "parameters")
+
+
+def check_known(names: Any, known: Any, where: str = "params file") -> None:
+    """Stop at the first unknown parameter name, naming the closest known one."""
+    known = sorted(set(known) | set(PRESET_PARAMETERS))
+    for name in names:
+        if name in known or str(name).startswith(FOREIGN_PARAMETERS):
+            continue
+        close = difflib.get_close_matches(str(name), known, n=1)
+        hint = f"; did you mean {close[0]!r}?" if close else f"; known: {', '.join(known)}"
+        raise ValueError(f"unknown parameter {name!r} in the {where}{hint}")
 
 
 def resolve(values: dict[str, Any]) -> tuple[dict[str, Any], str]:
@@ -220,6 +296,7 @@ def resolve(values: dict[str, Any]) -> tuple[dict[str, Any], str]:
     if example:
         get_example(example)
     table = {p.name: p for p in identifier_parameters(example, network, parameter_set)}
+    check_known(values, set(table) | {p.name for p in NODE_PARAMETERS})
     result = {name: p.default for name, p in table.items()}
     for name, value in values.items():
         if name in ("example", "network", "parameters"):

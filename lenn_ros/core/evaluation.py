@@ -139,3 +139,33 @@ def least_squares_floor(example: PaperExample, series: Series, **feature_overrid
     y_hat = identifier.run(series.u, series.y, learn=False)
     test = slice(series.test_start, None)
     return nmse_db(series.y[test], y_hat[test])
+
+
+def free_run_problems(y_test: np.ndarray, y_free: np.ndarray, info: dict | None = None) -> list[str]:
+    """One line per thing wrong with a free run, for the text report and the JSON (``[]``: none).
+
+    A free run is unstable when it diverged (``info`` from ``Identifier.last_free_run``)
+    or came out non-finite, and useless when its NMSE is above 0 dB (worse than
+    predicting the mean of y). Clipped network inputs are reported too: the model was
+    driven outside the range it was built for, so its figure means less.
+    """
+    info = info or {}
+    problems = []
+    y_free = np.asarray(y_free, dtype=np.float64)
+    if info.get("diverged") or not np.all(np.isfinite(y_free)):
+        where = f" at sample {info['diverged_at'] + 1}" if info.get("diverged_at") is not None else ""
+        problems.append(
+            f"free run diverged{where}: the model is unstable in simulation; "
+            "fit a structure that simulates (lenn-ros fit) or lower the lags/order"
+        )
+    elif len(y_test) and nmse_db(y_test, y_free) > 0.0:
+        problems.append(
+            f"free run NMSE {nmse_db(y_test, y_free):.2f} dB is worse than predicting the mean: "
+            "the model does not simulate this plant (unstable or wrong structure)"
+        )
+    if info.get("clipped_inputs"):
+        problems.append(
+            f"{info['clipped_inputs']} free-run network inputs were outside [-1, 1] and clipped: "
+            "scale/offset too small for these signals (lenn-ros fit takes them from the data)"
+        )
+    return problems

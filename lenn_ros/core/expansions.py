@@ -166,3 +166,101 @@ def expand(
 def legendre_features(x: np.ndarray, order: int) -> np.ndarray:
     """The paper's LeNN expansion: bias, then L1..L_order of each input on its own."""
     return expand(x, order, "legendre", 0)
+
+
+# -- selected terms: any subset of the products of univariate polynomials --------------------
+#
+# A term is a product prod_i P_{e_i}(x_i) of basis polynomials of the inputs; one row of
+# non-negative integers e (an exponent row) names it: all zeros is the bias, a single
+# non-zero entry is a per-input term, several are a cross term. Term selection (FROLS)
+# keeps a few rows out of a large dictionary, so a selected model is stored as its rows.
+
+
+def full_exponents(n_inputs: int, order: int, cross_degree: int = 0) -> np.ndarray:
+    """Exponent rows of :func:`expand`'s columns, in its order (bias first)."""
+    rows = [[0] * n_inputs]
+    for i in range(n_inputs):
+        for degree in range(1, order + 1):
+            row = [0] * n_inputs
+            row[i] = degree
+            rows.append(row)
+    rows += [list(e) for e in cross_term_exponents(n_inputs, cross_degree)]
+    return np.array(rows, dtype=np.int64).reshape(len(rows), n_inputs)
+
+
+def dictionary_exponents(n_inputs: int, degree: int, nonlinear_inputs: list[int] | None = None) -> np.ndarray:
+    """Every term of total degree <= ``degree``: the candidate dictionary of term selection.
+
+    Linear terms cover all inputs; terms of degree >= 2 only involve
+    ``nonlinear_inputs`` (default: all), which keeps the dictionary small when long
+    lags are wanted for the linear dynamics but the nonlinearity sits in a few recent samples.
+    """
+    nonlinear = list(range(n_inputs)) if nonlinear_inputs is None else list(nonlinear_inputs)
+    rows = [[0] * n_inputs]
+    for i in range(n_inputs):
+        row = [0] * n_inputs
+        row[i] = 1
+        rows.append(row)
+    for total in range(2, degree + 1):
+        for combo in combinations_with_replacement(nonlinear, total):
+            rows.append([combo.count(i) for i in range(n_inputs)])
+    return np.array(rows, dtype=np.int64).reshape(len(rows), n_inputs)
+
+
+def term_features(x: np.ndarray, exponents: np.ndarray, basis: str = "legendre") -> np.ndarray:
+    """Columns prod_i P_{e_i}(x_i) for each exponent row (x already in [-1, 1])."""
+    if basis not in _UNIVARIATE:
+        raise ValueError(f"unknown basis {basis!r}; expected one of {', '.join(BASES)}")
+    x = np.atleast_2d(np.asarray(x, dtype=np.float64))
+    exponents = np.asarray(exponents, dtype=np.int64)
+    if exponents.ndim != 2 or exponents.shape[1] != x.shape[1]:
+        raise ValueError(f"exponent rows must have {x.shape[1]} entries (one per input)")
+    top = int(exponents.max(initial=0))
+    univariate = _UNIVARIATE[basis](x, top) if top else np.empty((*x.shape, 0))
+    features = np.ones((x.shape[0], exponents.shape[0]))
+    for t, row in enumerate(exponents):
+        for i, e in enumerate(row):
+            if e:
+                features[:, t] *= univariate[:, i, e - 1]
+    return features
+
+
+def format_terms(exponents: np.ndarray, y_lags: int) -> list[str]:
+    """Readable names: ``y1^3*u2`` is P3(y(k-1)) P1(u(k-2)) for a model of y(k), ``1`` the bias.
+
+    Inputs 0..y_lags-1 are y(k-1..k-y_lags), then u(k-1)...: the usual NARX lags of
+    the predicted sample (the structure's y(k), u(k) when it predicts y(k+1)).
+    """
+    names = []
+    for row in np.asarray(exponents, dtype=np.int64):
+        factors = []
+        for i, e in enumerate(row):
+            if e:
+                name = f"y{i + 1}" if i < y_lags else f"u{i - y_lags + 1}"
+                factors.append(name if e == 1 else f"{name}^{e}")
+        names.append("*".join(factors) or "1")
+    return names
+
+
+def parse_terms(terms: list[str], y_lags: int, u_lags: int) -> np.ndarray:
+    """Exponent rows from names written by :func:`format_terms`; a bad name is an error naming it."""
+    rows = []
+    for text in terms:
+        row = [0] * (y_lags + u_lags)
+        clean = str(text).replace(" ", "")
+        if clean != "1":
+            for factor in clean.split("*"):
+                name, _, power = factor.partition("^")
+                try:
+                    lag, degree = int(name[1:]), int(power or 1)
+                except ValueError:
+                    raise ValueError(f"term {text!r}: factor {factor!r} is not like y1, u2^3") from None
+                limit = y_lags if name[:1] == "y" else u_lags if name[:1] == "u" else 0
+                if not 1 <= lag <= limit or degree < 1:
+                    raise ValueError(
+                        f"term {text!r}: {factor!r} needs {name[:1] or '?'} lag 1..{limit} "
+                        f"(y_lags={y_lags}, u_lags={u_lags}) and a degree >= 1"
+                    )
+                row[lag - 1 if name[0] == "y" else y_lags + lag - 1] += degree
+        rows.append(row)
+    return np.array(rows, dtype=np.int64).reshape(len(rows), y_lags + u_lags)

@@ -274,3 +274,100 @@ def mlp_sgd(
                 momentum[row + fan_in] = g + beta * momentum[row + fan_in]
                 params[row + fan_in] += momentum[row + fan_in]
     return n_samples
+
+
+#: basis name -> code understood by the compiled free run
+BASIS_CODES = {"legendre": 0, "chebyshev": 1, "trigonometric": 2}
+
+
+@njit(cache=True, nogil=True)
+def _univariate_row(x: float, top: int, basis: int, out: np.ndarray) -> None:
+    """out[0..top] = P_0(x)..P_top(x) in the numbered basis (same recursions as expansions)."""
+    out[0] = 1.0
+    if top == 0:
+        return
+    out[1] = x
+    for n in range(1, top):
+        if basis == 0:
+            out[n + 1] = ((2 * n + 1) * x * out[n] - n * out[n - 1]) / (n + 1)
+        elif basis == 1:
+            out[n + 1] = 2.0 * x * out[n] - out[n - 1]
+        else:
+            harmonic = (n + 1) // 2
+            out[n + 1] = math.sin(harmonic * math.pi * x) if n % 2 else math.cos(harmonic * math.pi * x)
+
+
+@njit(cache=True, nogil=True)
+def free_run_functional_link(
+    u: np.ndarray,
+    y: np.ndarray,
+    start: int,
+    y_lags: int,
+    u_lags: int,
+    y_offset: float,
+    y_scale: float,
+    u_offset: float,
+    u_scale: float,
+    known_a: np.ndarray,
+    known_b: np.ndarray,
+    exponents: np.ndarray,
+    weights: np.ndarray,
+    feature_branch: np.ndarray,
+    n_branches: int,
+    basis: int,
+    tanh_output: bool,
+    output_scale: float,
+    divergence_bound: float,
+    y_out: np.ndarray,
+) -> tuple[int, int]:
+    """Parallel (free-run) simulation of a functional-link model from sample ``start``.
+
+    ``y_out`` holds the measured y; its entries before ``start`` seed the history and
+    the rest are overwritten with the model's outputs, each fed back as the next input.
+    Network inputs outside [-1, 1] are clipped (the polynomials are only bounded
+    there) and counted. Returns (clipped inputs, first diverged sample or -1): a
+    sample whose output is non-finite or further than ``divergence_bound`` scale
+    units from the offset ends the run (the rest is nan), so an unstable model is
+    flagged instead of printed as a number.
+    """
+    n = len(u)
+    n_inputs = y_lags + u_lags
+    n_terms = exponents.shape[0]
+    top = 0
+    for t in range(n_terms):
+        for i in range(n_inputs):
+            top = max(top, exponents[t, i])
+    table = np.empty((n_inputs, top + 1))
+    sums = np.zeros(n_branches)
+    clipped = 0
+    for k in range(start - 1, n - 1):
+        for i in range(n_inputs):
+            x = (y_out[k - i] - y_offset) / y_scale if i < y_lags else (u[k - i + y_lags] - u_offset) / u_scale
+            if x > 1.0:
+                x = 1.0
+                clipped += 1
+            elif x < -1.0:
+                x = -1.0
+                clipped += 1
+            _univariate_row(x, top, basis, table[i])
+        sums[:] = 0.0
+        for t in range(n_terms):
+            value = weights[t]
+            for i in range(n_inputs):
+                e = exponents[t, i]
+                if e:
+                    value *= table[i, e]
+            sums[feature_branch[t]] += value
+        out = 0.0
+        for b in range(n_branches):
+            out += output_scale * math.tanh(sums[b]) if tanh_output else sums[b]
+        for i in range(len(known_a)):
+            out += known_a[i] * y_out[k - i]
+        for i in range(len(known_b)):
+            out += known_b[i] * u[k - i]
+        if not math.isfinite(out) or abs(out - y_offset) > divergence_bound * y_scale:
+            for j in range(k + 1, n):
+                y_out[j] = np.nan
+            return clipped, k + 1
+        y_out[k + 1] = out
+    return clipped, -1

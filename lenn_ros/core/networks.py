@@ -24,7 +24,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from lenn_ros.core import kernels
-from lenn_ros.core.expansions import BASES, expand, feature_count
+from lenn_ros.core.expansions import BASES, expand, feature_count, full_exponents, term_features
 
 SOLVERS = ("sgd", "nlms", "rls")
 OUTPUTS = ("tanh", "linear")
@@ -237,7 +237,7 @@ class FunctionalLinkNetwork(OnlineRegressor):
 
     _state_names = ("weights_", "momentum_", "covariance_")
     _kind = "functional_link"
-    _structural_params = ("n_inputs", "order", "basis", "cross_degree", "branches", "output", "solver")
+    _structural_params = ("n_inputs", "order", "basis", "cross_degree", "branches", "output", "solver", "exponents")
 
     def __init__(
         self,
@@ -258,6 +258,7 @@ class FunctionalLinkNetwork(OnlineRegressor):
         init_scale: float = 0.1,
         out_of_range: str = "clip",
         random_state: int | None = 0,
+        exponents: list[list[int]] | None = None,
     ) -> None:
         super().__init__(
             n_inputs=n_inputs,
@@ -277,10 +278,17 @@ class FunctionalLinkNetwork(OnlineRegressor):
             init_scale=init_scale,
             out_of_range=out_of_range,
             random_state=random_state,
+            exponents=None if exponents is None else [[int(e) for e in row] for row in exponents],
         )
         self._validate()
 
     def _validate(self) -> None:
+        if self.exponents is not None:
+            rows = np.asarray(self.exponents, dtype=np.int64).reshape(len(self.exponents), -1)
+            if len(self.exponents) == 0 or rows.shape[1] != int(self.n_inputs) or (rows < 0).any():
+                raise ValueError(f"exponents must be non-empty rows of {self.n_inputs} non-negative integers")
+            if self.branches is not None and len(self.branches) > 1:
+                raise ValueError("selected terms (exponents) make one combiner: use branches=None")
         if self.basis not in BASES:
             raise ValueError(f"basis must be one of {', '.join(BASES)}, not {self.basis!r}")
         if self.solver not in SOLVERS:
@@ -304,12 +312,34 @@ class FunctionalLinkNetwork(OnlineRegressor):
     @property
     def n_weights(self) -> int:
         """Weights incl. one bias per branch: Table I's n1 N0 per output node."""
+        if self.exponents is not None:
+            return len(self.exponents)
         return sum(1 + feature_count(len(b), self.order, self.cross_degree) for b in self.branch_inputs_)
+
+    def term_exponents(self) -> tuple[np.ndarray, np.ndarray]:
+        """(exponent row of every weight over all inputs, branch of every weight).
+
+        The one description of the features the compiled free run needs, whether the
+        terms were selected (``exponents``) or are the full per-branch expansion.
+        """
+        if self.exponents is not None:
+            rows = np.asarray(self.exponents, dtype=np.int64).reshape(len(self.exponents), int(self.n_inputs))
+            return rows, np.zeros(len(rows), dtype=np.int64)
+        blocks, branch_of = [], []
+        for index, branch in enumerate(self.branch_inputs_):
+            local = full_exponents(len(branch), int(self.order), int(self.cross_degree))
+            rows = np.zeros((len(local), int(self.n_inputs)), dtype=np.int64)
+            rows[:, branch] = local
+            blocks.append(rows)
+            branch_of += [index] * len(local)
+        return np.vstack(blocks), np.array(branch_of, dtype=np.int64)
 
     def _initialise(self) -> None:
         rng = np.random.default_rng(self.random_state)
         branch_of = []
-        for index, branch in enumerate(self.branch_inputs_):
+        if self.exponents is not None:
+            branch_of = [0] * len(self.exponents)
+        for index, branch in enumerate(self.branch_inputs_ if self.exponents is None else []):
             branch_of += [index] * (1 + feature_count(len(branch), self.order, self.cross_degree))
         self.feature_branch_ = np.array(branch_of, dtype=np.int64)
         n = len(branch_of)
@@ -325,6 +355,8 @@ class FunctionalLinkNetwork(OnlineRegressor):
     def features(self, x: np.ndarray) -> np.ndarray:
         """Expanded pattern (bias first) of each branch, concatenated."""
         x = self._check_inputs(x)
+        if self.exponents is not None:
+            return term_features(x, np.asarray(self.exponents, dtype=np.int64), self.basis)
         parts = [expand(x[:, branch], self.order, self.basis, self.cross_degree) for branch in self.branch_inputs_]
         return parts[0] if len(parts) == 1 else np.hstack(parts)
 

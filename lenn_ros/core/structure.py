@@ -25,6 +25,8 @@ class ModelStructure:
     - ``known_a`` / ``known_b``: the known linear part (Model 1's a_i, Model 2's b_i).
     - ``y_scale`` / ``u_scale``: the paper's scale factor SF; the network sees y / SF
       so its inputs lie in [-1, 1] (a Legendre requirement).
+    - ``y_offset`` / ``u_offset``: centring, the network sees (y - y_offset) / y_scale;
+      real signals rarely sit symmetric about 0 (``lenn-ros fit`` takes both from the data).
     - ``separate``: Model 3's N1[y] + N2[u], two networks summed, rather than one.
     """
 
@@ -35,6 +37,8 @@ class ModelStructure:
     y_scale: float = 1.0
     u_scale: float = 1.0
     separate: bool = False
+    y_offset: float = 0.0
+    u_offset: float = 0.0
 
     def __post_init__(self) -> None:
         if self.y_lags < 0 or self.u_lags < 0 or self.y_lags + self.u_lags == 0:
@@ -77,8 +81,8 @@ class ModelStructure:
         y = np.asarray(y, dtype=np.float64)
         first = self.warm_up - 1
         k = np.arange(first, len(y))
-        columns = [y[k - i] / self.y_scale for i in range(self.y_lags)]
-        columns += [u[k - i] / self.u_scale for i in range(self.u_lags)]
+        columns = [(y[k - i] - self.y_offset) / self.y_scale for i in range(self.y_lags)]
+        columns += [(u[k - i] - self.u_offset) / self.u_scale for i in range(self.u_lags)]
         x = np.stack(columns, axis=1) if len(k) else np.empty((0, self.n_inputs))
         linear = np.zeros(len(k))
         for i, a in enumerate(self.known_a):
@@ -129,7 +133,17 @@ class Identifier:
     diverged: bool = False
 
     def __post_init__(self) -> None:
-        for name in ("samples", "learned", "gaps", "lost", "duplicates", "rejected", "diverged"):
+        for name in (
+            "samples",
+            "learned",
+            "gaps",
+            "lost",
+            "duplicates",
+            "rejected",
+            "diverged",
+            "clipped",
+            "clipped_free_run",
+        ):
             self.counters.setdefault(name, 0)
         self._y_past: list[float] = []
         self._u_past: list[float] = []
@@ -137,6 +151,7 @@ class Identifier:
         self._pending: tuple[np.ndarray, float] | None = None  # x(k-1), lin(k-1)
         self._block_errors: list[float] = []
         self._block_targets: list[float] = []
+        self.last_free_run: dict = {}
         self.mark_healthy()
 
     # -- one sample ------------------------------------------------------------------
@@ -177,6 +192,7 @@ class Identifier:
         self._push(u, y)
         if len(self._y_past) >= self.structure.warm_up:
             x, linear = self.structure.regressors(np.array(self._u_past[::-1]), np.array(self._y_past[::-1]))
+            self.counters["clipped"] += int(np.count_nonzero(np.abs(x) > 1.0))
             self._pending = (x, float(linear[-1]))
             result.y_hat_next = float(linear[-1] + self.model.predict(x)[0])
         return result
@@ -256,6 +272,7 @@ class Identifier:
         y = np.asarray(y, dtype=np.float64)
         learn_mask = np.broadcast_to(np.asarray(learn, dtype=bool), y.shape)
         x, linear = self.structure.regressors(u, y)
+        self.counters["clipped"] += int(np.count_nonzero(np.abs(x) > 1.0))
         first = self.structure.warm_up - 1
         targets = y[first + 1 :] - linear[:-1]
         inputs, mask, outputs = x[:-1], learn_mask[first + 1 :], y[first + 1 :]  # outputs: y(k+1)
@@ -288,16 +305,74 @@ class Identifier:
     def free_run(self, u: np.ndarray, y: np.ndarray, start: int) -> np.ndarray:
         """Parallel model from ``start`` on: the network fed its own past outputs.
 
-        Plant outputs y(0..start-1) seed the model's history; from then on only u is
-        taken from the data. Returns y^(start..N-1) (frozen weights). Network inputs
-        are clipped to [-1, 1], so an unstable model saturates instead of overflowing.
+        Plant outputs y(0..start-1) seed the model's history (a live switch from
+        series-parallel to parallel); from then on only u is taken from the data.
+        Returns y^(start..N-1) (frozen weights). Network inputs outside [-1, 1] are
+        clipped, so an unstable model saturates instead of overflowing, and counted
+        in ``counters["clipped_free_run"]``; ``last_free_run`` says how many and
+        whether (and where) the run diverged. Functional-link models run compiled.
         """
         u = np.asarray(u, dtype=np.float64)
         y_model = np.array(y, dtype=np.float64, copy=True)
         window = self.structure.warm_up
         if start < window:
             raise ValueError(f"free run needs {window} samples of history before it starts")
-        for k in range(start - 1, len(u) - 1):
-            x, linear = self.structure.regressors(u[k - window + 1 : k + 1], y_model[k - window + 1 : k + 1])
-            y_model[k + 1] = float(linear[-1] + self.model.predict(np.clip(x[-1:], -1.0, 1.0))[0])
+        term_exponents = getattr(self.model, "term_exponents", None)
+        if term_exponents is not None:
+            clipped, diverged_at = self._compiled_free_run(u, y_model, start, term_exponents)
+        else:
+            clipped, diverged_at = 0, -1
+            bound = FREE_RUN_DIVERGENCE_BOUND * self.structure.y_scale
+            for k in range(start - 1, len(u) - 1):
+                x, linear = self.structure.regressors(u[k - window + 1 : k + 1], y_model[k - window + 1 : k + 1])
+                clipped += int(np.count_nonzero(np.abs(x[-1]) > 1.0))
+                value = float(linear[-1] + self.model.predict(np.clip(x[-1:], -1.0, 1.0))[0])
+                if not np.isfinite(value) or abs(value - self.structure.y_offset) > bound:
+                    y_model[k + 1 :] = np.nan
+                    diverged_at = k + 1
+                    break
+                y_model[k + 1] = value
+        self.counters["clipped_free_run"] += clipped
+        self.last_free_run = {
+            "samples": len(u) - start,
+            "clipped_inputs": clipped,
+            "diverged": diverged_at >= 0,
+            "diverged_at": diverged_at if diverged_at >= 0 else None,
+        }
         return y_model[start:]
+
+    def _compiled_free_run(self, u: np.ndarray, y_model: np.ndarray, start: int, term_exponents) -> tuple[int, int]:
+        from lenn_ros.core import kernels
+
+        model, structure = self.model, self.structure
+        if not model.is_initialised:
+            model._initialise()
+        exponents, branch_of = term_exponents()
+        clipped, diverged_at = kernels.free_run_functional_link(
+            u,
+            y_model,
+            int(start),
+            structure.y_lags,
+            structure.u_lags,
+            float(structure.y_offset),
+            float(structure.y_scale),
+            float(structure.u_offset),
+            float(structure.u_scale),
+            np.asarray(structure.known_a, dtype=np.float64),
+            np.asarray(structure.known_b, dtype=np.float64),
+            exponents,
+            np.ascontiguousarray(model.weights_, dtype=np.float64),
+            branch_of,
+            int(branch_of.max(initial=0)) + 1,
+            kernels.BASIS_CODES[model.basis],
+            model.output == "tanh",
+            float(model.output_scale),
+            FREE_RUN_DIVERGENCE_BOUND,
+            y_model,
+        )
+        return int(clipped), int(diverged_at)
+
+
+#: a free-run output further than this many scale units from the offset is divergence
+#: (the network's inputs span one unit each side; a hundred is far beyond any plant it saw)
+FREE_RUN_DIVERGENCE_BOUND = 100.0

@@ -1,0 +1,263 @@
+"""Structure selection for a LeNN on real data: the LeNN's counterpart of FROLS.
+
+A functional-link network is linear in its weights, so choosing its structure is
+choosing columns of a feature matrix. For every candidate (lags of y and u,
+polynomial degree, basis) a dictionary of Legendre terms (per-input and cross
+terms) is built from the estimation part of the training data, and orthogonal
+forward regression ranks the terms by their error-reduction ratio (ERR). Up to
+here this is Billings' FROLS. The difference is how a model is judged: every prefix
+of every ranked list is fitted by least squares and *simulated* (free run, the
+model fed its own outputs) over a held-out tail of the training data, and the
+lowest simulation error wins. One-step error rewards models that lean on the
+measured past; simulation error is what a model is used for, and a candidate whose
+simulation diverges or leaves the range it was trained on is rejected outright.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lenn_ros.core import kernels
+from lenn_ros.core.expansions import dictionary_exponents, format_terms, term_features
+from lenn_ros.core.scaling import Scaling
+from lenn_ros.core.structure import FREE_RUN_DIVERGENCE_BOUND, ModelStructure
+
+#: a candidate whose held-out free run clips more than this fraction of inputs is rejected
+MAX_CLIPPED_FRACTION = 0.01
+
+
+@dataclass
+class TermModel:
+    """y(k) = sum_t w_t prod_i P_{e_ti}(x_i(k)), x = scaled y(k-1..k-ny), u(k-1..k-nu)."""
+
+    y_lags: int
+    u_lags: int
+    scaling: Scaling
+    exponents: np.ndarray
+    basis: str = "legendre"
+    weights: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+    @property
+    def structure(self) -> ModelStructure:
+        s = self.scaling
+        return ModelStructure(
+            y_lags=self.y_lags,
+            u_lags=self.u_lags,
+            y_scale=s.y_scale,
+            u_scale=s.u_scale,
+            y_offset=s.y_offset,
+            u_offset=s.u_offset,
+        )
+
+    @property
+    def warm_up(self) -> int:
+        return max(self.y_lags, self.u_lags, 1)
+
+    @property
+    def terms(self) -> list[str]:
+        return format_terms(self.exponents, self.y_lags)
+
+    def regression(self, u: np.ndarray, y: np.ndarray, exponents: np.ndarray | None = None):
+        """(features of every complete regressor, target y(k+1)); inputs clipped to [-1, 1]."""
+        x, _ = self.structure.regressors(u, y)
+        x = np.clip(x[:-1], -1.0, 1.0)
+        rows = self.exponents if exponents is None else exponents
+        return term_features(x, rows, self.basis), np.asarray(y, dtype=np.float64)[self.warm_up :]
+
+    def free_run(
+        self, u: np.ndarray, y: np.ndarray, start: int, weights: np.ndarray | None = None
+    ) -> tuple[np.ndarray, int, int]:
+        """Compiled simulation from ``start`` (measured y before it): (y^(start..), clipped, diverged_at)."""
+        s = self.scaling
+        y_model = np.array(y, dtype=np.float64, copy=True)
+        w = self.weights if weights is None else weights
+        clipped, diverged_at = kernels.free_run_functional_link(
+            np.asarray(u, dtype=np.float64),
+            y_model,
+            int(start),
+            self.y_lags,
+            self.u_lags,
+            s.y_offset,
+            s.y_scale,
+            s.u_offset,
+            s.u_scale,
+            np.zeros(0),
+            np.zeros(0),
+            np.ascontiguousarray(self.exponents, dtype=np.int64),
+            np.ascontiguousarray(w, dtype=np.float64),
+            np.zeros(len(self.exponents), dtype=np.int64),
+            1,
+            kernels.BASIS_CODES[self.basis],
+            False,
+            1.0,
+            FREE_RUN_DIVERGENCE_BOUND,
+            y_model,
+        )
+        return y_model[start:], int(clipped), int(diverged_at)
+
+
+def forward_regression(features: np.ndarray, targets: np.ndarray, max_terms: int) -> tuple[list[int], list[float]]:
+    """Orthogonal forward regression: columns in order of error-reduction ratio.
+
+    Classical Gram-Schmidt of the remaining columns against each chosen one, so every
+    step scores all candidates by the share of the target's energy they explain
+    beyond the terms already chosen (Billings' ERR). Returns (column order, ERR of each).
+    """
+    work = np.array(features, dtype=np.float64, copy=True)
+    d = np.asarray(targets, dtype=np.float64)
+    energy = float(d @ d) or 1.0
+    norms = np.einsum("ij,ij->j", work, work)
+    alive = norms > 1e-12 * max(float(norms.max(initial=0.0)), 1e-300)
+    chosen: list[int] = []
+    ratios: list[float] = []
+    for _ in range(min(max_terms, work.shape[1])):
+        squares = np.einsum("ij,ij->j", work, work)
+        projections = work.T @ d
+        with np.errstate(divide="ignore", invalid="ignore"):
+            err = np.where(alive & (squares > 1e-10 * norms), projections**2 / (squares * energy), -1.0)
+        best = int(np.argmax(err))
+        if err[best] <= 0.0:
+            break
+        chosen.append(best)
+        ratios.append(float(err[best]))
+        alive[best] = False
+        q = work[:, best] / math.sqrt(squares[best])
+        work -= np.outer(q, q @ work)
+    return chosen, ratios
+
+
+@dataclass
+class Candidate:
+    """One structure tried, with its verdict: every choice ``fit`` makes is one of these."""
+
+    y_lags: int
+    u_lags: int
+    degree: int
+    basis: str
+    dictionary: int  # terms offered
+    terms: int = 0  # terms kept (best prefix)
+    rmse_validation: float = math.inf  # free-run RMSE on the held-out tail
+    rmse_one_step_validation: float = math.inf
+    rejected: str = ""  # why no prefix of this candidate was usable
+    model: TermModel | None = None
+
+    def as_dict(self) -> dict:
+        return {
+            "y_lags": self.y_lags,
+            "u_lags": self.u_lags,
+            "degree": self.degree,
+            "basis": self.basis,
+            "dictionary": self.dictionary,
+            "terms": self.terms,
+            "rmse_free_run_validation": _finite(self.rmse_validation),
+            "rmse_one_step_validation": _finite(self.rmse_one_step_validation),
+            "rejected": self.rejected,
+        }
+
+
+def _finite(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None
+
+
+def candidate_grid(n_train: int, max_lag: int = 10) -> list[tuple[int, int, int]]:
+    """(lags, degree, nonlinear lags) to try, bounded by how much data there is.
+
+    Equal y and u lags 1..max_lag (long lags let the linear part of a resonant or
+    slow plant be right), degree 1-3; nonlinear terms only over the 3 most recent
+    lags of each signal, the usual home of a static nonlinearity in a NARX model.
+    """
+    grid = []
+    for lags in (1, 2, 3, 4, 5, 6, 8, 10):
+        if lags > max_lag or 20 * 2 * lags > n_train:
+            continue
+        for degree in (1, 2, 3):
+            grid.append((lags, degree, min(lags, 3)))
+    return grid
+
+
+def evaluate_prefixes(
+    model: TermModel,
+    ranked: list[int],
+    gram: np.ndarray,
+    moment: np.ndarray,
+    u: np.ndarray,
+    y: np.ndarray,
+    validation_start: int,
+    dictionary: np.ndarray,
+) -> tuple[int, float, np.ndarray, str]:
+    """Best number of ranked terms by held-out simulation error: (terms, rmse, weights, why-none)."""
+    best = (0, math.inf, np.zeros(0))
+    reasons: list[str] = []
+    y_val = y[validation_start:]
+    for m in range(1, len(ranked) + 1):
+        index = ranked[:m]
+        try:
+            weights = np.linalg.solve(gram[np.ix_(index, index)], moment[index])
+        except np.linalg.LinAlgError:
+            continue
+        trial = TermModel(model.y_lags, model.u_lags, model.scaling, dictionary[index], model.basis, weights)
+        y_sim, clipped, diverged_at = trial.free_run(u, y, validation_start)
+        if diverged_at >= 0:
+            reasons.append("diverged")
+            continue
+        if clipped > MAX_CLIPPED_FRACTION * len(y_val) * (model.y_lags + model.u_lags):
+            reasons.append("left the training range")
+            continue
+        error = float(np.sqrt(np.mean((y_sim - y_val) ** 2)))
+        if error < best[1]:
+            best = (m, error, weights)
+    why = "" if best[0] else (f"every prefix {sorted(set(reasons))[0]}" if reasons else "no usable term")
+    return best[0], best[1], best[2], why
+
+
+def select_structure(
+    u: np.ndarray,
+    y: np.ndarray,
+    validation_start: int,
+    scaling: Scaling,
+    bases: tuple[str, ...] = ("legendre",),
+    max_terms: int = 40,
+    max_lag: int = 10,
+) -> list[Candidate]:
+    """Try every candidate structure; returns them all, best (lowest held-out free-run RMSE) first.
+
+    ``u``/``y`` are the training data; samples from ``validation_start`` on are the
+    held-out tail, simulated from the measured outputs just before it. Terms are
+    ranked and fitted on the samples before it only.
+    """
+    u = np.asarray(u, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64)
+    candidates = []
+    for lags, degree, nonlinear_lags in candidate_grid(validation_start, max_lag):
+        nonlinear = list(range(nonlinear_lags)) + [lags + i for i in range(nonlinear_lags)]
+        dictionary = dictionary_exponents(2 * lags, degree, nonlinear)
+        for basis in bases if degree > 1 else bases[:1]:
+            candidate = Candidate(lags, lags, degree, basis, len(dictionary))
+            candidates.append(candidate)
+            model = TermModel(lags, lags, scaling, dictionary, basis)
+            features, targets = model.regression(u[:validation_start], y[:validation_start])
+            limit = min(max_terms, len(dictionary), max(1, len(targets) // 10))
+            ranked, _ = forward_regression(features, targets, limit)
+            if not ranked:
+                candidate.rejected = "no usable term"
+                continue
+            chosen = features[:, ranked]
+            gram = np.zeros((len(dictionary), len(dictionary)))
+            moment = np.zeros(len(dictionary))
+            gram[np.ix_(ranked, ranked)] = chosen.T @ chosen + 1e-10 * np.eye(len(ranked))
+            moment[ranked] = chosen.T @ targets
+            terms, error, weights, why = evaluate_prefixes(
+                model, ranked, gram, moment, u, y, validation_start, dictionary
+            )
+            if not terms:
+                candidate.rejected = why
+                continue
+            candidate.terms, candidate.rmse_validation = terms, error
+            candidate.model = TermModel(lags, lags, scaling, dictionary[ranked[:terms]], basis, weights)
+            f_val, t_val = candidate.model.regression(u[validation_start - lags :], y[validation_start - lags :])
+            candidate.rmse_one_step_validation = float(np.sqrt(np.mean((f_val @ weights - t_val) ** 2)))
+    candidates.sort(key=lambda c: c.rmse_validation)
+    return candidates

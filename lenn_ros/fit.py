@@ -1,0 +1,406 @@
+"""``lenn-ros fit DATA --test-from K``: build a good LeNN model of logged data, automatically.
+
+What it does, each step reported:
+1. reads u and y from a CSV file or a bag; samples 1..K-1 (1-based) build the model,
+   samples K.. only score it;
+2. takes offsets and scale factors from the training samples (with a margin);
+3. selects the structure (lags, degree, terms) by orthogonal forward regression,
+   judging candidates by free-run error on the last 20 % of the training samples
+   (:mod:`lenn_ros.core.selection`);
+4. refines the weights of the chosen model on simulation error
+   (:mod:`lenn_ros.core.refinement`), early-stopped on the same held-out tail, then
+   refits on all training samples;
+5. scores the frozen model on the test samples: one-step and free run (the free run
+   starts from the measured outputs just before sample K, as a live switch from
+   series-parallel to parallel would), counting clipped inputs and flagging divergence;
+6. with ``-o DIR`` writes ``params.yaml`` and ``weights.npz`` from which the
+   identifier node starts and keeps adapting live (RLS with forgetting).
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from lenn_ros.core.evaluation import free_run_problems
+from lenn_ros.core.metrics import nmse_db, rmse
+from lenn_ros.core.networks import FunctionalLinkNetwork
+from lenn_ros.core.refinement import refine_simulation_error
+from lenn_ros.core.scaling import Scaling
+from lenn_ros.core.selection import TermModel, select_structure
+from lenn_ros.core.structure import Identifier
+
+#: share of the training samples held out to judge candidates by free-run error
+VALIDATION_FRACTION = 0.2
+MIN_VALIDATION = 50
+REFINE_ITERATIONS = 20
+
+
+@dataclass
+class Data:
+    u: np.ndarray
+    y: np.ndarray
+    source: str  # what was read, for the report
+
+
+def load_data(path: str | Path, u_column: str | None = None, y_column: str | None = None) -> Data:
+    """u and y from a bag (directory or .mcap) or a CSV file (columns by name or 0-based index)."""
+    path = Path(path)
+    if not path.exists():
+        raise ValueError(f"{path} does not exist (expected a CSV file or a bag directory)")
+    if path.is_dir() or path.suffix == ".mcap":
+        from lenn_ros.bag import read_run
+
+        run = read_run(path)
+        pairs = min(len(run.u), len(run.y_p))
+        return Data(np.asarray(run.u[:pairs], float), np.asarray(run.y_p[:pairs], float), f"bag {path}: u, y_p")
+    return _load_csv(path, u_column, y_column)
+
+
+def _load_csv(path: Path, u_column: str | None, y_column: str | None) -> Data:
+    with path.open(newline="") as stream:
+        rows = [row for row in csv.reader(stream) if row and any(cell.strip() for cell in row)]
+    if not rows:
+        raise ValueError(f"{path} is empty")
+    header = None if all(_is_number(cell) for cell in rows[0]) else [cell.strip() for cell in rows[0]]
+    body = rows[1:] if header else rows
+    width = len(rows[0])
+    if u_column is None or y_column is None:
+        if header and "u" in header and "y" in header:
+            u_column, y_column = u_column or "u", y_column or "y"
+        elif width == 2:
+            u_column, y_column = u_column or "0", y_column or "1"
+        else:
+            shown = ", ".join(header) if header else f"{width} unnamed columns"
+            raise ValueError(f"{path} has columns {shown}: pass --u COL --y COL (name or 0-based index)")
+    iu, iy = _column(header, u_column, width, path), _column(header, y_column, width, path)
+    u, y = np.empty(len(body)), np.empty(len(body))
+    for n, row in enumerate(body):
+        try:
+            u[n], y[n] = float(row[iu]), float(row[iy])
+        except (ValueError, IndexError):
+            line = n + (2 if header else 1)
+            raise ValueError(f"{path}, line {line}: not a number in column {u_column} or {y_column}: {row}") from None
+    names = (header[iu], header[iy]) if header else (str(iu), str(iy))
+    return Data(u, y, f"CSV {path}: u = column {names[0]}, y = column {names[1]}")
+
+
+def _is_number(text: str) -> bool:
+    try:
+        float(text)
+    except ValueError:
+        return False
+    return True
+
+
+def _column(header: list[str] | None, column: str, width: int, path: Path) -> int:
+    if header and column in header:
+        return header.index(column)
+    if column.lstrip("-").isdigit() and 0 <= int(column) < width:
+        return int(column)
+    shown = ", ".join(header) if header else f"indices 0..{width - 1}"
+    raise ValueError(f"{path}: no column {column!r}; columns are {shown}")
+
+
+def check_split(n: int, test_from: int) -> int:
+    """0-based index of the first test sample from the 1-based ``--test-from``."""
+    if test_from is None:
+        raise ValueError("pass --test-from K: the 1-based index of the first test sample (samples before K build)")
+    if not 2 <= test_from <= n:
+        raise ValueError(f"--test-from {test_from} is outside the data's samples 2..{n} (1-based)")
+    start = test_from - 1
+    if start < 100:
+        raise ValueError(f"only {start} samples before --test-from {test_from}; a model needs at least 100 to build on")
+    return start
+
+
+def live_forgetting(n_train: int) -> float:
+    """RLS forgetting factor for live tracking: a memory of the training length, 1 000..10 000 samples."""
+    return 1.0 - 1.0 / min(max(n_train, 1000), 10_000)
+
+
+def build_identifier(model: TermModel, u: np.ndarray, y: np.ndarray, forgetting: float) -> Identifier:
+    """The fitted model as the package's :class:`Identifier` (what the node runs), RLS-ready.
+
+    The RLS covariance is the least-squares one of the training features, scaled to the
+    forgetting factor's memory: live adaptation starts as if it had seen the training data.
+    """
+    network = FunctionalLinkNetwork(
+        n_inputs=model.y_lags + model.u_lags,
+        exponents=model.exponents.tolist(),
+        order=max(1, int(model.exponents.max(initial=1))),
+        basis=model.basis,
+        output="linear",
+        solver="rls",
+        forgetting=forgetting,
+        init_scale=0.0,
+    )
+    network._initialise()
+    network.weights_ = np.array(model.weights, dtype=np.float64)
+    features, _ = model.regression(u, y)
+    gram = features.T @ features + 1e-9 * np.eye(features.shape[1])
+    memory = len(features) if forgetting >= 1.0 else min(len(features), 1.0 / (1.0 - forgetting))
+    network.covariance_ = np.linalg.inv(gram) * (len(features) / memory)
+    return Identifier(model.structure, network, learning=False)
+
+
+def fit(
+    data: Data,
+    test_from: int,
+    *,
+    refine: bool = True,
+    max_lag: int = 10,
+    progress: Any = None,
+) -> dict[str, Any]:
+    """The whole procedure; returns the report (also what ``--json`` prints) and the identifier."""
+    began = time.perf_counter()
+    say = progress or (lambda text: None)
+    u, y = data.u, data.y
+    if not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
+        bad = int(np.count_nonzero(~(np.isfinite(u) & np.isfinite(y))))
+        raise ValueError(f"{bad} samples hold NaN/inf: remove or interpolate them before fitting")
+    start = check_split(len(y), test_from)
+    u_train, y_train = u[:start], y[:start]
+    scaling = Scaling.from_training(u_train, y_train)
+    validation_start = start - max(MIN_VALIDATION, round(VALIDATION_FRACTION * start))
+    say(f"selecting a structure on samples 1..{validation_start}, judged by free run on the rest up to {start}")
+    candidates = select_structure(u_train, y_train, validation_start, scaling, max_lag=max_lag)
+    usable = [c for c in candidates if c.model is not None]
+    if not usable:
+        reasons = sorted({c.rejected for c in candidates})
+        raise ValueError(f"no candidate structure simulates stably on the held-out tail ({'; '.join(reasons)})")
+    chosen = usable[0]
+    model = chosen.model
+    refinement: dict[str, Any] = {"done": False}
+    if refine:
+        say(f"refining {chosen.terms} terms on simulation error")
+        weights, held_out = refine_simulation_error(
+            model, u_train[:validation_start], y_train[:validation_start], REFINE_ITERATIONS,
+            validation=(u_train, y_train, validation_start),
+        )  # fmt: skip
+        refinement = {"done": True, "on_estimation_part": held_out.as_dict()}
+        model = TermModel(model.y_lags, model.u_lags, scaling, model.exponents, model.basis, weights)
+    # all training samples: least squares, then the refinement's number of iterations
+    final = TermModel(model.y_lags, model.u_lags, scaling, model.exponents, model.basis)
+    features, targets = final.regression(u_train, y_train)
+    final.weights = np.linalg.lstsq(features, targets, rcond=None)[0]
+    if refine and refinement["on_estimation_part"]["iterations"]:
+        _, _, diverged_at = final.free_run(u_train, y_train, final.warm_up)
+        if diverged_at < 0:
+            weights, whole = refine_simulation_error(
+                final, u_train, y_train, refinement["on_estimation_part"]["iterations"]
+            )
+            final.weights = weights
+            refinement["on_all_training"] = whole.as_dict()
+    forgetting = live_forgetting(start)
+    identifier = build_identifier(final, u_train, y_train, forgetting)
+    report = score(identifier, u, y, start)
+    report.update(
+        {
+            "data": data.source,
+            "test_from": test_from,
+            "train_samples": start,
+            "model": describe_model(final, chosen, forgetting),
+            "choices": {
+                "scaling": {
+                    "from": f"training samples 1..{start}",
+                    "margin": scaling.margin,
+                    "y_offset": scaling.y_offset,
+                    "y_scale": scaling.y_scale,
+                    "u_offset": scaling.u_offset,
+                    "u_scale": scaling.u_scale,
+                },
+                "estimation_samples": validation_start,
+                "validation_samples": start - validation_start,
+                "judged_by": "free-run RMSE on the held-out tail of the training samples",
+                "candidates": [c.as_dict() for c in candidates],
+                "chosen": candidates.index(chosen),
+                "refinement": refinement,
+            },
+            "seconds": round(time.perf_counter() - began, 2),
+        }
+    )
+    return {"report": report, "identifier": identifier, "model": final}
+
+
+def score(identifier: Identifier, u: np.ndarray, y: np.ndarray, start: int) -> dict[str, Any]:
+    """Test-part figures of the frozen model: one-step and free run from sample ``start``."""
+    y_hat = identifier.run(u, y, learn=False)
+    first = start - identifier.structure.warm_up  # the regressors that predict samples start..N-1
+    x_test, _ = identifier.structure.regressors(u[first:], y[first:])
+    test_clipped = int(np.count_nonzero(np.abs(x_test[:-1]) > 1.0))
+    y_free = identifier.free_run(u, y, start)
+    y_test = y[start:]
+    info = identifier.last_free_run
+    finite = bool(np.all(np.isfinite(y_free)))
+    structure = identifier.structure
+    outside = Scaling(structure.y_offset, structure.y_scale, structure.u_offset, structure.u_scale).outside(
+        u[start:], y_test
+    )
+    return {
+        "samples": len(y_test),
+        "rmse": rmse(y_test, y_hat[start:]),
+        "nmse_db": nmse_db(y_test, y_hat[start:]),
+        "rmse_free_run": rmse(y_test, y_free) if finite else math.nan,
+        "nmse_free_run_db": nmse_db(y_test, y_free) if finite else math.nan,
+        "free_run": {**info, "starts_from": f"measured outputs before sample {start + 1}"},
+        "clipped_inputs_one_step": test_clipped,
+        "test_samples_outside_training_range": outside,
+        "warnings": free_run_problems(y_test, y_free, info),
+        "y_test": y_test,
+        "y_hat_test": y_hat[start:],
+        "y_free_test": y_free,
+    }
+
+
+def describe_model(model: TermModel, chosen: Any, forgetting: float) -> dict[str, Any]:
+    return {
+        "network": "lenn",
+        "structure": {"y_lags": model.y_lags, "u_lags": model.u_lags, "predicts": "y(k) from y(k-1..), u(k-1..)"},
+        "expansion": {
+            "basis": model.basis,
+            "degree": chosen.degree,
+            "terms": model.terms,
+            "dictionary": chosen.dictionary,
+        },
+        "n_terms": len(model.exponents),
+        "weights": [float(w) for w in model.weights],
+        "solver": "least squares, then Levenberg-Marquardt on free-run error (offline); RLS live",
+        "live": {"solver": "rls", "forgetting": forgetting},
+    }
+
+
+def params_values(identifier: Identifier, model: TermModel, forgetting: float, u: np.ndarray, y: np.ndarray):
+    """``ros__parameters`` for the identifier node (and ``evaluate --params``)."""
+    s = identifier.structure
+    limit = float(10.0 ** math.ceil(math.log10(max(1e3, 10.0 * float(max(np.abs(u).max(), np.abs(y).max()))))))
+    return {
+        "example": 0,
+        "network": "lenn",
+        "y_lags": s.y_lags,
+        "u_lags": s.u_lags,
+        "known_a": [0.0],
+        "known_b": [0.0],
+        "y_scale": float(s.y_scale),
+        "u_scale": float(s.u_scale),
+        "y_offset": float(s.y_offset),
+        "u_offset": float(s.u_offset),
+        "separate": False,
+        "order": int(identifier.model.order),
+        "basis": model.basis,
+        "cross_degree": 0,
+        "terms": model.terms,
+        "output": "linear",
+        "output_scale": 1.0,
+        "solver": "rls",
+        "forgetting": float(forgetting),
+        "u_limit": limit,
+        "y_limit": limit,
+    }
+
+
+def write_outputs(directory: str | Path, result: dict[str, Any], u: np.ndarray, y: np.ndarray) -> dict[str, str]:
+    """``DIR/params.yaml`` (key ``/**``: any node name or namespace) and ``DIR/weights.npz``."""
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    identifier, model = result["identifier"], result["model"]
+    forgetting = result["report"]["model"]["live"]["forgetting"]
+    weights = directory / "weights.npz"
+    identifier.model.save(weights)
+    values = params_values(identifier, model, forgetting, u, y)
+    params = directory / "params.yaml"
+    header = (
+        f"# written by lenn-ros fit ({result['report']['data']}, test from sample {result['report']['test_from']})\n"
+        f"# ros2 run lenn_ros identifier --ros-args --params-file {params} -p weights_in:={weights.resolve()}\n"
+    )
+    params.write_text(header + yaml.safe_dump({"/**": {"ros__parameters": values}}, sort_keys=False))
+    return {"params": str(params), "weights": str(weights)}
+
+
+def _jsonable(report: dict[str, Any]) -> dict[str, Any]:
+    out = {k: v for k, v in report.items() if not k.endswith("_test")}
+    return json.loads(json.dumps(out, default=float, allow_nan=True))
+
+
+def main(args: Any) -> int:
+    import sys
+
+    data = load_data(args.data, args.u, args.y)
+    progress = None if args.json else (lambda text: print(text, file=sys.stderr, flush=True))
+    result = fit(data, args.test_from, refine=not args.no_refine, progress=progress)
+    report = result["report"]
+    if args.output:
+        report["files"] = write_outputs(args.output, result, data.u[: report["train_samples"]], data.y)
+    if args.plot:
+        from lenn_ros.plotting import plot_identification
+
+        title = f"{Path(args.data).name}: free-run RMSE {report['rmse_free_run']:.4g} on the test part"
+        plot_identification(args.plot, report["y_test"], report["y_hat_test"], title, report["y_free_test"])
+    if args.json:
+        print(json.dumps(_jsonable(report), indent=1))
+        return 0
+    print(format_report(report, args.dt))
+    return 0
+
+
+def format_report(report: dict[str, Any], dt: float | None = None) -> str:
+    m, c = report["model"], report["choices"]
+    lines = [
+        f"{report['data']}: built on samples 1..{report['train_samples']}, "
+        f"tested on {report['samples']} samples from {report['test_from']}",
+        f"  scaling from the training samples, margin {c['scaling']['margin']:.0%}: "
+        f"y = {c['scaling']['y_offset']:.6g} +- {c['scaling']['y_scale']:.6g}, "
+        f"u = {c['scaling']['u_offset']:.6g} +- {c['scaling']['u_scale']:.6g}",
+        f"  structure judged by free run on training samples {c['estimation_samples'] + 1}..{report['train_samples']}:",
+    ]
+    for index, candidate in enumerate(c["candidates"]):
+        mark = "->" if index == c["chosen"] else "  "
+        value = candidate["rmse_free_run_validation"]
+        shown = f"free-run RMSE {value:.5g}" if value is not None else f"rejected: {candidate['rejected']}"
+        lines.append(
+            f"   {mark} lags {candidate['y_lags']}/{candidate['u_lags']}, degree {candidate['degree']}, "
+            f"{candidate['basis']}: {candidate['terms']} of {candidate['dictionary']} terms, {shown}"
+        )
+    terms = " + ".join(m["expansion"]["terms"])
+    lines.append(f"  model: LeNN ({m['expansion']['basis']}), {m['n_terms']} terms: {terms}")
+    refinement = c["refinement"]
+    if refinement.get("done"):
+        r = refinement["on_estimation_part"]
+        lines.append(
+            f"  refined on simulation error: {r['iterations']} iterations, held-out free-run RMSE "
+            f"{r['rmse_validation_before']:.5g} -> {r['rmse_validation_after']:.5g}"
+        )
+    lines.append(f"  live: RLS, forgetting {m['live']['forgetting']:.6g}")
+    lines.append(f"  test part ({report['samples']} samples):")
+    lines.append(f"    one-step: RMSE {report['rmse']:.5g}, NMSE {report['nmse_db']:.2f} dB")
+    free = report["free_run"]
+    lines.append(
+        f"    free run (from the measured outputs before sample {report['test_from']}): "
+        f"RMSE {report['rmse_free_run']:.5g}, NMSE {report['nmse_free_run_db']:.2f} dB, "
+        f"{free['clipped_inputs']} inputs clipped"
+    )
+    outside = report["test_samples_outside_training_range"]
+    if outside["u"] or outside["y"]:
+        lines.append(
+            f"  note: {outside['u']} test u and {outside['y']} test y samples lie beyond the training range "
+            "plus margin; their network inputs are clipped (counted above)"
+        )
+    lines += [f"  WARNING: {text}" for text in report["warnings"]]
+    if dt:
+        lines.append(f"  sample time {dt:g} s: test part {report['samples'] * dt:.4g} s")
+    if "files" in report:
+        lines.append(f"  wrote {report['files']['params']} and {report['files']['weights']}")
+        lines.append(
+            f"  live: ros2 run lenn_ros identifier --ros-args --params-file {report['files']['params']} "
+            f"-p weights_in:={report['files']['weights']}"
+        )
+    lines.append(f"  {report['seconds']} s")
+    return "\n".join(lines)

@@ -24,7 +24,7 @@ reproduce: setup
 	$(BIN)/lenn-ros reproduce --plots results
 
 bench: setup
-	$(BIN)/lenn-ros bench
+	$(BIN)/python bench/speed.py
 
 clean:
 	rm -rf $(VENV) build install log results *.egg-info

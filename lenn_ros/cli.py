@@ -35,6 +35,12 @@ def _evaluate(args: argparse.Namespace) -> int:
     return evaluate.main(args)
 
 
+def _fit(args: argparse.Namespace) -> int:
+    from lenn_ros import fit
+
+    return fit.main(args)
+
+
 def _import_csv(args: argparse.Namespace) -> int:
     from lenn_ros.bag import import_csv
 
@@ -63,12 +69,6 @@ def _demo(args: argparse.Namespace) -> int:
     from lenn_ros import demo
 
     return demo.main(args)
-
-
-def _bench(args: argparse.Namespace) -> int:
-    from lenn_ros import bench
-
-    return bench.main(args)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -102,6 +102,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print a JSON object")
     p.set_defaults(handler=_evaluate)
 
+    p = commands.add_parser(
+        "fit",
+        help="build a LeNN model of logged data automatically (structure, terms, weights) and score it",
+        description="Select lags, degree and terms by free-run error on a held-out tail of the training "
+        "samples, refine on simulation error, score on the test part; -o DIR writes a params file and "
+        "weights the identifier node starts from.",
+    )
+    p.add_argument("data", help="CSV file (columns by name or 0-based index) or bag directory with u and y_p")
+    p.add_argument("--u", help="CSV column of the plant input (default: 'u', or the first of two columns)")
+    p.add_argument("--y", help="CSV column of the plant output (default: 'y', or the second of two columns)")
+    p.add_argument("--dt", type=float, help="sample time in seconds (reported only)")
+    p.add_argument(
+        "--test-from",
+        type=int,
+        required=True,
+        metavar="K",
+        help="1-based index of the first test sample: samples 1..K-1 build the model, K.. score it "
+        "(row K of the data, not counting a header; the same meaning as in evaluate and import-csv)",
+    )
+    p.add_argument("--json", action="store_true", help="print the report as a JSON object")
+    p.add_argument("--plot", metavar="FILE", help="write plant vs model (one-step and free run) on the test part")
+    p.add_argument("-o", "--output", metavar="DIR", help="write DIR/params.yaml and DIR/weights.npz")
+    p.add_argument("--no-refine", action="store_true", help="skip the simulation-error refinement")
+    p.set_defaults(handler=_fit)
+
     p = commands.add_parser("import-csv", help="make a bag (u, y_p) from a logged CSV file")
     p.add_argument("file")
     p.add_argument("--u", required=True, help="column of the plant input (name or 0-based index)")
@@ -129,12 +154,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--output", default="demo_output", help="directory for the bag and the plot")
     p.set_defaults(handler=_demo)
 
-    p = commands.add_parser("bench", help="speed: cost per update, offline and online throughput")
-    p.add_argument("--quick", action="store_true", help="smaller sizes, for CI")
-    p.add_argument("--online-seconds", type=float, default=30.0, help="duration of each online rate trial")
-    p.add_argument("--skip-online", action="store_true", help="offline figures only")
-    p.add_argument("--json", action="store_true")
-    p.set_defaults(handler=_bench)
     return parser
 
 

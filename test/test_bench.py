@@ -1,16 +1,21 @@
-"""lenn-ros bench: compiled kernels equal their pure-Python versions; the quick offline run works."""
+"""bench/speed.py: compiled kernels equal their pure-Python versions; the quick offline run works."""
 
 from __future__ import annotations
 
 import dataclasses
 import json
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from lenn_ros import bench
-from lenn_ros.benchmarks import offline
 from lenn_ros.core import kernels
+
+# The benchmarks are scripts of the source checkout (bench/), not part of the installed package.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+import speed as bench
+import speed_offline as offline
 
 #: The kernels the package ships, each with the network configuration that drives it.
 REQUIRED = ("lenn_sgd", "lenn_nlms", "lenn_rls", "mlp")
@@ -59,7 +64,7 @@ def test_numpy_reference_loop_is_the_kernels_rule() -> None:
 
 
 def test_quick_offline_bench_runs_and_reports_every_figure() -> None:
-    """`lenn-ros bench --quick --skip-online` end to end (smaller sizes still, to stay fast)."""
+    """`python bench/speed.py --quick --skip-online` end to end (smaller sizes still, to stay fast)."""
     sizes = dataclasses.replace(
         offline.QUICK,
         repeats=1,

@@ -4,8 +4,8 @@ It subscribes to ``u`` and ``y_p`` with the identifier's QoS (so the transport
 carries exactly what it carries to the identifier) and publishes every ``y_p``
 message back on ``y_hat``, unchanged.
 
-    python -m lenn_ros.benchmarks.echo_node            # rclpy.spin, like the identifier
-    python -m lenn_ros.benchmarks.echo_node --waitset  # no executor: own wait set, raw take/publish
+    python bench/echo_node.py            # rclpy.spin, like the identifier
+    python bench/echo_node.py --waitset  # no executor: own wait set, raw take/publish
 
 The first is the ceiling of an rclpy node spun the usual way (what the identifier
 can reach at best). The second shows what the executor itself costs: it waits on a

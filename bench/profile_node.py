@@ -1,8 +1,8 @@
 """The identifier node, unchanged, run under cProfile (this thread's CPU time).
 
-    python -m lenn_ros.benchmarks.profile_node OUT.prof --ros-args -p example:=1 ...
+    python bench/profile_node.py OUT.prof --ros-args -p example:=1 ...
 
-Used by ``lenn-ros bench`` to split the node's per-message CPU between the rclpy
+Used by ``bench/speed.py`` to split the node's per-message CPU between the rclpy
 executor (building the wait set, taking and dispatching messages) and the node's own
 callbacks. The clock is ``time.thread_time``: a node blocked waiting for messages
 costs nothing, so the profile shows where the CPU goes, not where the time passes.
@@ -17,7 +17,7 @@ import time
 
 def main() -> int:
     if len(sys.argv) < 2:
-        print("usage: python -m lenn_ros.benchmarks.profile_node OUT.prof [--ros-args ...]", file=sys.stderr)
+        print("usage: python bench/profile_node.py OUT.prof [--ros-args ...]", file=sys.stderr)
         return 2
     output = sys.argv[1]
     from lenn_ros.nodes import identifier

@@ -1,14 +1,15 @@
-"""``lenn-ros bench``: how fast the learning rules and the identifier node are.
+"""How fast the learning rules and the identifier node are (run from a source checkout).
 
-    lenn-ros bench                          # everything, 30 s online trials (~20 min)
-    lenn-ros bench --quick --skip-online    # offline figures only, small sizes (~30 s)
-    lenn-ros bench --json                   # one JSON object instead of markdown tables
+    python bench/speed.py                          # everything, 30 s online trials (~20 min)
+    python bench/speed.py --quick --skip-online    # offline figures only, small sizes (~30 s)
+    python bench/speed.py --json                   # one JSON object instead of markdown tables
 
-Offline (:mod:`lenn_ros.benchmarks.offline`): cost per update of every example's
+The benchmarks live outside the installed package: they measure it, they are not part of it.
+Offline (``bench/speed_offline.py``): cost per update of every example's
 LeNN and MLP next to Table I's operation counts, training throughput against a
 plain-numpy loop, ``Identifier.run`` and ``lenn-ros evaluate`` throughput, and the
 compiled kernels checked against their pure-Python versions. Online
-(:mod:`lenn_ros.benchmarks.online`): the highest loss-free rate through ROS of a
+(``bench/speed_online.py``): the highest loss-free rate through ROS of a
 do-nothing echo node and of the identifier, latency at 1 kHz, memory over a long
 run, and where the identifier's time per message goes.
 
@@ -19,6 +20,7 @@ bench/RESULTS.md holds the latest full run.
 
 from __future__ import annotations
 
+import argparse
 import json
 import math
 import os
@@ -27,7 +29,7 @@ import sys
 import time
 from typing import Any
 
-from lenn_ros.benchmarks import offline
+import speed_offline as offline
 
 TARGETS = {
     "lenn_offline": 1_000_000.0,  # samples/s, Ex. 1 LeNN training, one core
@@ -78,7 +80,7 @@ def run(
     if skip_online:
         report["online"] = {"skipped": "--skip-online"}
     else:
-        from lenn_ros.benchmarks import online
+        import speed_online as online
 
         seconds = min(online_seconds, 3.0) if quick else online_seconds
         report["online"] = online.online(seconds, quick, _log)
@@ -500,13 +502,21 @@ def _online_markdown(online: dict[str, Any]) -> list[str]:
     return out
 
 
-def main(args: Any) -> int:
-    report = run(
-        quick=bool(getattr(args, "quick", False)),
-        online_seconds=float(getattr(args, "online_seconds", 30.0)),
-        skip_online=bool(getattr(args, "skip_online", False)),
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python bench/speed.py", description="speed: cost per update, offline and online throughput"
     )
-    if getattr(args, "json", False):
+    parser.add_argument("--quick", action="store_true", help="smaller sizes, for CI")
+    parser.add_argument("--online-seconds", type=float, default=30.0, help="duration of each online rate trial")
+    parser.add_argument("--skip-online", action="store_true", help="offline figures only")
+    parser.add_argument("--json", action="store_true", help="one JSON object instead of markdown tables")
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    report = run(quick=args.quick, online_seconds=args.online_seconds, skip_online=args.skip_online)
+    if args.json:
         print(json.dumps(_finite_only(report), indent=1, allow_nan=False))
     else:
         print(markdown(report))
@@ -524,3 +534,7 @@ def _finite_only(value: Any) -> Any:
     if isinstance(value, float) and not math.isfinite(value):
         return None
     return value
+
+
+if __name__ == "__main__":
+    sys.exit(main())

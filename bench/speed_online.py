@@ -1,7 +1,7 @@
 """Online speed through ROS: highest loss-free rate, latency, memory, per-message cost.
 
 Setup of every trial: the node under test (the bare :mod:`echo node
-<lenn_ros.benchmarks.echo_node>` or the real identifier) runs as a subprocess on a
+<echo_node>` or the real identifier) runs as a subprocess on a
 private ROS domain, discovery kept on this machine. The driver, in this process,
 publishes u(k) then y_p(k) (RELIABLE, depth ``topics.DATA_DEPTH``) on a wall-clock
 schedule and counts the ``y_hat`` replies. Its own costs are kept small: the
@@ -48,9 +48,9 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+from speed_offline import example_series
 
 from lenn_ros import topics
-from lenn_ros.benchmarks.offline import example_series
 from lenn_ros.core.examples import EXAMPLES
 
 RATE_MIN = 500.0
@@ -63,7 +63,8 @@ MAX_END_LAG = 0.25  # seconds
 MIN_SEND_FRACTION = 0.97
 STATUS_PERIOD = 0.25  # seconds, the identifier's status_period during the benchmark
 PAYLOAD_SAMPLES = 20_000  # distinct (u, y_p) pairs published, cycled
-PACKAGE_ROOT = Path(__file__).resolve().parents[2]
+BENCH = Path(__file__).resolve().parent
+PACKAGE_ROOT = BENCH.parent
 
 
 @dataclass(frozen=True)
@@ -77,9 +78,9 @@ class NodeUnderTest:
 def nodes_under_test(example: int = 1, network: str = "lenn") -> dict[str, NodeUnderTest]:
     python = sys.executable
     return {
-        "echo": NodeUnderTest("echo", [python, "-m", "lenn_ros.benchmarks.echo_node"], 0, False),
+        "echo": NodeUnderTest("echo", [python, str(BENCH / "echo_node.py")], 0, False),
         "echo_waitset": NodeUnderTest(
-            "echo_waitset", [python, "-m", "lenn_ros.benchmarks.echo_node", "--waitset"], 0, False
+            "echo_waitset", [python, str(BENCH / "echo_node.py"), "--waitset"], 0, False
         ),
         "identifier": NodeUnderTest(
             "identifier",
@@ -698,7 +699,7 @@ def profile_identifier_process(
         base = nodes_under_test()["identifier"]
         node = NodeUnderTest(
             "identifier_profiled",
-            [sys.executable, "-m", "lenn_ros.benchmarks.profile_node", str(output), *base.argv[3:]],
+            [sys.executable, str(BENCH / "profile_node.py"), str(output), *base.argv[3:]],
             base.reply_offset,
             True,
         )

@@ -174,3 +174,115 @@ def test_recorder_counts_sequence_gaps(tmp_path: Path, domain: int) -> None:
     assert node.gaps == {topics.U: 2}
     assert summary.endswith("2 samples lost ({'u': 2})")
     assert read_run(tmp_path / "gaps").u.size == 6
+
+
+# ---------------------------------------------------------------- robot topics: any type, BEST_EFFORT, remapped
+
+
+class RobotTalker:
+    """A controller (Float64MultiArray on /robot/cmd) and a driver (JointState on /robot/joint_states).
+
+    Two nodes, BEST_EFFORT like sensor drivers, stamped JointState: what issue 9 calls a robot.
+    """
+
+    def __init__(self, domain_id: int) -> None:
+        from rclpy.qos import qos_profile_sensor_data
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float64MultiArray
+
+        self.ctx = Context()
+        rclpy.init(context=self.ctx, domain_id=domain_id)
+        self.controller = rclpy.create_node("controller", context=self.ctx)
+        self.driver = rclpy.create_node("driver", context=self.ctx)
+        self.cmd = self.controller.create_publisher(Float64MultiArray, "/robot/cmd", qos_profile_sensor_data)
+        self.joints = self.driver.create_publisher(JointState, "/robot/joint_states", qos_profile_sensor_data)
+        self.types = (Float64MultiArray, JointState)
+
+    def matched(self, timeout: float = 15) -> bool:
+        deadline = time.monotonic() + timeout
+        while min(self.cmd.get_subscription_count(), self.joints.get_subscription_count()) < 1:
+            if time.monotonic() > deadline:
+                return False
+            threading.Event().wait(0.05)
+        return True
+
+    def publish(self, n: int) -> None:
+        array, joint_state = self.types
+        for k in range(n):
+            self.cmd.publish(array(data=[float(k), 2.0 * k]))
+            msg = joint_state(name=["elbow"], position=[-float(k)])
+            msg.header.stamp.sec, msg.header.stamp.nanosec = k, 500
+            self.joints.publish(msg)
+            threading.Event().wait(0.002)  # 500 Hz: BEST_EFFORT on localhost loses nothing at this rate
+
+    def close(self) -> None:
+        self.controller.destroy_node()
+        self.driver.destroy_node()
+        self.ctx.try_shutdown()
+
+
+@pytest.fixture
+def robot(domain: int):
+    talker = RobotTalker(domain)
+    yield talker
+    talker.close()
+
+
+def test_robot_topics_any_type_best_effort_remapped(tmp_path: Path, robot: RobotTalker) -> None:
+    """u from the graph (auto), y_p typed; both BEST_EFFORT publishers; stored with sequence and source stamps."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    from lenn_ros.bag import bag_info, iter_messages
+
+    out, n = tmp_path / "robot", 200
+    proc = start_node(
+        "recorder",
+        f"output:={out}",
+        "u_type:=''",
+        "y_type:=sensor_msgs/msg/JointState",
+        ros_args=("-r", "u:=/robot/cmd", "-r", "y_p:=/robot/joint_states"),
+    )
+    try:
+        assert robot.matched(), "recorder did not subscribe to the BEST_EFFORT robot topics"
+        robot.publish(n)
+        threading.Event().wait(0.5)
+    finally:
+        stdout, stderr = stop(proc)
+    assert proc.returncode == 0, stderr
+    assert "/robot/cmd: recording as std_msgs/msg/Float64MultiArray (type taken from the graph)" in stderr
+    assert f"(u: {n}, y_p: {n}," in stdout, stdout
+    cmd = list(iter_messages(out, ["/robot/cmd"]))
+    joints = list(iter_messages(out, ["/robot/joint_states"]))
+    assert [m.message.data.tolist() for m in cmd] == [[float(k), 2.0 * k] for k in range(n)]
+    assert [m.message.position[0] for m in joints] == [-float(k) for k in range(n)]
+    assert [(m.message.header.stamp.sec, m.message.name) for m in joints[:2]] == [(0, ["elbow"]), (1, ["elbow"])]
+    assert [m.sequence for m in cmd] == list(range(1, n + 1))  # DDS publication sequence numbers
+    assert all(0 < m.publish_time_ns <= m.log_time_ns for m in joints)  # source stamp before receipt
+    info = bag_info(out)["topics"]
+    assert info["/robot/cmd"]["missing"] == 0 and info["/robot/joint_states"]["count"] == n
+    assert info["/robot/cmd"]["offered_qos"][0]["reliability"] == "best_effort"
+    with (out / "robot.mcap").open("rb") as f:  # the independent reader decodes from the stored msgdefs
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        decoded = [(c.topic, m) for _s, c, _m, m in reader.iter_decoded_messages()]
+    assert [m.position[0] for topic, m in decoded if topic == "/robot/joint_states"] == [-float(k) for k in range(n)]
+    assert [list(m.data) for topic, m in decoded if topic == "/robot/cmd"][-1] == [n - 1.0, 2.0 * (n - 1)]
+
+
+def test_wrong_input_type_is_said_once(tmp_path: Path, robot: RobotTalker) -> None:
+    """y_type says Float64 but the driver publishes JointState: one error line, not silence."""
+    out = tmp_path / "wrong"
+    proc = start_node("recorder", f"output:={out}", ros_args=("-r", "y_p:=/robot/joint_states"))
+    try:
+        deadline = time.monotonic() + 15
+        while robot.cmd.get_subscription_count() == 0 and time.monotonic() < deadline:
+            robot.publish(1)  # keeps the driver visible in the graph
+        robot.publish(20)
+        threading.Event().wait(1.0)
+    finally:
+        stdout, stderr = stop(proc)
+    assert proc.returncode == 0, stderr
+    lines = [line for line in stderr.splitlines() if "is published as sensor_msgs/msg/JointState" in line]
+    assert len(lines) == 1, stderr
+    assert "not y_type std_msgs/msg/Float64" in lines[0] and "-p y_type:=sensor_msgs/msg/JointState" in lines[0]
+    assert "problems (see the error lines above): {'y_p': 1}" in stdout

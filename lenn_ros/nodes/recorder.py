@@ -105,6 +105,7 @@ class Recorder(Node):
         self._subs: list[Any] = []  # (not ``_subscriptions``: rclpy's Node uses that name)
         self._bag_topic: dict[str, str] = {}  # short name -> resolved name stored in the bag
         self._inputs: dict[str, _Input] = {}
+        self._names = names
         for name in names:
             if name in _INPUTS:
                 self._add_input(name)
@@ -175,7 +176,9 @@ class Recorder(Node):
             self.destroy_subscription(entry.subscription)
             self._subs.remove(entry.subscription)
         qos = QoSProfile(depth=topics.DATA_DEPTH, reliability=reliability)
-        events = SubscriptionEventCallbacks(incompatible_qos=lambda _event, e=entry: self._on_incompatible_qos(e))
+        # No QoS event handlers: destroying a subscription whose event handler is in the executor's
+        # wait set crashes rclpy 7.1 (SystemError); the graph check below sees incompatible publishers.
+        events = SubscriptionEventCallbacks(use_default_callbacks=False)
         entry.subscription = self.create_subscription(
             topics.message_class(entry.type_name),
             entry.name,
@@ -201,7 +204,11 @@ class Recorder(Node):
             self._say_wrong_types(entry, infos)
             matching = [info for info in infos if info.topic_type == entry.type_name]
             wanted = self._wanted_reliability(matching)
-            if wanted == ReliabilityPolicy.BEST_EFFORT and entry.reliability == ReliabilityPolicy.RELIABLE:
+            best_effort = any(info.qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT for info in matching)
+            if best_effort and entry.reliability == ReliabilityPolicy.RELIABLE and self.reliability == "reliable":
+                self._problem(entry, "qos", f"{entry.resolved}: a BEST_EFFORT publisher never reaches this RELIABLE "
+                              "subscription (nothing arrives from it); run with -p reliability:=auto")  # fmt: skip
+            elif wanted == ReliabilityPolicy.BEST_EFFORT and entry.reliability == ReliabilityPolicy.RELIABLE:
                 self.get_logger().info(
                     f"{entry.resolved}: a BEST_EFFORT publisher appeared; subscribing BEST_EFFORT "
                     "(a RELIABLE reader never matches it); losses show as sequence gaps"
@@ -242,10 +249,6 @@ class Recorder(Node):
             entry.said.add(key)
             self.problems[entry.name] += 1
             self.get_logger().error(text)
-
-    def _on_incompatible_qos(self, entry: _Input) -> None:
-        self._problem(entry, "qos", f"{entry.resolved}: a publisher's QoS is incompatible with this subscription "
-                      "(nothing arrives from it); run with -p reliability:=best_effort")  # fmt: skip
 
     # -- messages
     def _callback_for(self, name: str) -> Callable[[bytes, dict[str, int]], None]:
@@ -297,8 +300,7 @@ class Recorder(Node):
     def close(self) -> str:
         """Close the bag and return the one-line summary printed at exit."""
         self.bag.close()
-        names = [*self._bag_topic, *(n for n in self._inputs if n not in self._bag_topic)]
-        counts = ", ".join(f"{name}: {self.counts[name]}" for name in names)
+        counts = ", ".join(f"{name}: {self.counts[name]}" for name in self._names)
         lost = sum(self.gaps.values())
         gaps = f"; {lost} samples lost ({dict(self.gaps)})" if lost else ""
         problems = f"; problems (see the error lines above): {dict(self.problems)}" if self.problems else ""

@@ -61,12 +61,36 @@ class OnlineRegressor:
         return {name: _jsonable(getattr(self, name)) for name in self._param_names}
 
     def set_params(self, **params: Any) -> OnlineRegressor:
-        """Change hyper-parameters that do not alter the state's shape (alpha, beta...)."""
+        """Change hyper-parameters; on a fitted model only those that keep its learned state valid.
+
+        Structural parameters (order, n_inputs, solver, hidden...) fix the shape and meaning
+        of the learned arrays: changed under a fitted model, the compiled kernels would
+        index past them. They are refused there (make a new model instead). The change is
+        all or nothing: a refused or invalid value leaves every parameter as it was.
+        """
+        unknown = sorted(name for name in params if name not in self._param_names)
+        if unknown:
+            raise ValueError(f"{type(self).__name__} has no parameter {', '.join(map(repr, unknown))}")
+        if self.is_initialised:
+            structural = sorted(
+                name
+                for name, value in params.items()
+                if name in self._structural_params and _jsonable(value) != _jsonable(getattr(self, name))
+            )
+            if structural:
+                raise ValueError(
+                    f"cannot change {', '.join(structural)} of a fitted {type(self).__name__}: it changes the "
+                    "learned state's shape or meaning; build a new model with the new value"
+                )
+        before = {name: getattr(self, name) for name in params}
         for name, value in params.items():
-            if name not in self._param_names:
-                raise ValueError(f"{type(self).__name__} has no parameter {name!r}")
             setattr(self, name, value)
-        self._validate()
+        try:
+            self._validate()
+        except ValueError:
+            for name, value in before.items():
+                setattr(self, name, value)
+            raise
         return self
 
     def _validate(self) -> None:

@@ -286,3 +286,50 @@ def test_wrong_input_type_is_said_once(tmp_path: Path, robot: RobotTalker) -> No
     assert len(lines) == 1, stderr
     assert "not y_type std_msgs/msg/Float64" in lines[0] and "-p y_type:=sensor_msgs/msg/JointState" in lines[0]
     assert "problems (see the error lines above): {'y_p': 1}" in stdout
+
+
+def test_replay_loop_restarts_the_stream(tmp_path: Path, domain: int) -> None:
+    """With loop:=true each pass starts at sample index 1 again and re-sends test_start.
+
+    The identifier pairs by publication sequence number: if pass 2 went on counting
+    (6, 7, ...), every later sample would lie past test_start and learning would stay frozen.
+    """
+    source, n = tmp_path / "source", 5
+    with BagWriter(source) as bag:
+        for name in ("/u", "/y_p", "/test_start"):
+            bag.add_topic(name)
+        bag.write_value("/test_start", 4, 0)
+        for k in range(n):
+            bag.write_value("/u", float(k), k * 1_000_000)
+            bag.write_value("/y_p", -float(k), k * 1_000_000)
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    node = rclpy.create_node("loop_listener", context=ctx)
+    float64, int64 = topics.message_class(topics.FLOAT64), topics.message_class(topics.INT64)
+    received: list[tuple[int, float]] = []
+    starts: list[int] = []
+    enough = threading.Event()
+
+    def on_u(msg: object, info: dict[str, int]) -> None:
+        received.append((info["publication_sequence_number"], msg.data))
+        if len(received) >= 3 * n:
+            enough.set()
+
+    node.create_subscription(float64, topics.U, on_u, topics.data_qos())
+    node.create_subscription(float64, topics.Y_P, lambda _msg: None, topics.data_qos())
+    node.create_subscription(int64, topics.TEST_START, lambda msg: starts.append(msg.data), topics.latched_qos())
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    replay = start_node("replay", f"bag:={source}", "loop:=true", "rate:=0.0", "max_rate_hz:=200.0")
+    try:
+        assert enough.wait(30), f"only {len(received)} u messages from the looping replay"
+    finally:
+        _stdout, stderr = stop(replay)
+        executor.shutdown()
+        node.destroy_node()
+        ctx.try_shutdown()
+    assert replay.returncode == 0, stderr
+    one_pass = [(k + 1, float(k)) for k in range(n)]
+    assert received[: 3 * n] == one_pass * 3, received
+    assert len(starts) >= 3 and set(starts) == {4}

@@ -21,6 +21,13 @@ Pacing (``rate``):
     DATA_DEPTH gives a stalled subscriber 10 s before it loses anything).
 
 Before exiting, replay waits until every subscriber has acknowledged every sample.
+
+Looping (``loop``): each pass is a new stream, as if the run were recorded again. Replay
+waits until the last pass is acknowledged, then publishes through *new* publishers, so
+the DDS publication sequence numbers (the sample index the identifier pairs by) start
+at 1 again, and it re-publishes ``test_start``. Counting on instead would make the
+identifier take pass 2 as samples N+1.. of one history: past ``test_start``, so learning
+would stay frozen for every later pass.
 """
 
 from __future__ import annotations
@@ -99,13 +106,27 @@ class Replay(Node):
         self._identifier_seen = False
         self._next_slot = 0.0
         self._msg = topics.message_class(topics.FLOAT64)
-        self.pub_u = self.create_publisher(self._msg, topics.U, topics.data_qos())
-        self.pub_y = self.create_publisher(self._msg, topics.Y_P, topics.data_qos())
+        self.passes = 0
+        self._open_stream()
         self.pub_start = None
         if self.test_start is not None:
             int_msg = topics.message_class(topics.INT64)
             self.pub_start = self.create_publisher(int_msg, topics.TEST_START, topics.latched_qos())
         self.create_subscription(self._msg, topics.Y_HAT, self._on_y_hat, topics.data_qos())
+
+    def _open_stream(self) -> None:
+        """Publishers for one pass: new ones start their publication sequence numbers at 1."""
+        self.pub_u = self.create_publisher(self._msg, topics.U, topics.data_qos())
+        self.pub_y = self.create_publisher(self._msg, topics.Y_P, topics.data_qos())
+
+    def _restart_stream(self) -> None:
+        acked = self.wait_acked()
+        if not acked:
+            self.get_logger().warning("previous pass not acknowledged by every subscriber before restarting")
+        self.destroy_publisher(self.pub_u)
+        self.destroy_publisher(self.pub_y)
+        self._open_stream()
+        self.get_logger().info(f"pass {self.passes + 1}: new publishers, sample indices restart at 1")
 
     def _declare(self, name: str, default: Any, description: str, **ranges: Any) -> None:
         self.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=True, **ranges))
@@ -132,18 +153,21 @@ class Replay(Node):
             executor.spin_once(timeout_sec=0.05)
 
     def run(self, executor: SingleThreadedExecutor) -> int:
-        """Publish every sample (repeatedly with ``loop``); returns how many were published."""
-        self._wait_for_subscribers(executor)
-        if self.pub_start is not None:
-            self.pub_start.publish(topics.message_class(topics.INT64)(data=int(self.test_start)))
+        """Publish every sample (repeatedly with ``loop``, each pass a new stream); returns how many."""
         rate = float(self._param("rate"))
         # Back-pressure is allowed with rate 0; it starts once a y_hat publisher is seen
         # (looked up every 128 samples, so an identifier started late still counts).
         self._feedback_allowed = rate == 0 and int(self._param("max_in_flight")) > 0
         self._identifier_seen = False
-        self._next_slot = time.monotonic()
         while not self.stop.is_set():
+            if self.passes:
+                self._restart_stream()
+            self._wait_for_subscribers(executor)
+            if self.pub_start is not None:
+                self.pub_start.publish(topics.message_class(topics.INT64)(data=int(self.test_start)))
+            self._next_slot = time.monotonic()
             self._play_once(executor, rate)
+            self.passes += 1
             if not self._param("loop") or not len(self.u):
                 break
         return self.published

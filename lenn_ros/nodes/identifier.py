@@ -135,6 +135,7 @@ class IdentifierNode(Node):
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
         config_publisher = self.create_publisher(String, topics.IDENTIFIER_CONFIG, topics.latched_qos())
         config_publisher.publish(String(data=json.dumps(json_safe({**self.values, "network": self.network}))))
+        self._sim_time = bool(self.get_parameter("use_sim_time").value)
         self._subscribe(message_types)
         self.create_subscription(Int64, topics.TEST_START, self._on_test_start, topics.latched_qos())
         self.create_timer(self.values["status_period"], self._on_status_timer)
@@ -232,9 +233,10 @@ class IdentifierNode(Node):
             ReliabilityPolicy.RELIABLE if self.values["pairing"] == "sequence" else ReliabilityPolicy.BEST_EFFORT
         )
         profile = QoSProfile(depth=topics.DATA_DEPTH, reliability=reliability)
+        self._data_subscriptions = {}
         for channel, name in ((U, topics.U), (Y, topics.Y_P)):
             events = SubscriptionEventCallbacks(incompatible_qos=lambda event, c=channel: self._on_incompatible_qos(c))
-            self.create_subscription(
+            self._data_subscriptions[channel] = self.create_subscription(
                 message_types[channel],
                 name,
                 lambda message, info, c=channel: self._on_message(c, message, info),
@@ -284,13 +286,34 @@ class IdentifierNode(Node):
         return self.get_clock().now().nanoseconds * 1e-9
 
     def _on_message(self, channel: str, message: Any, info: dict) -> None:
+        """One message from the executor, then every message already waiting on u and y_p.
+
+        The executor rebuilds its wait set in Python for each message it hands over
+        (most of the cost at kilohertz rates); taking what is queued straight from the
+        subscriptions handles a burst in one wake-up. Pairing does not depend on the
+        order in which u and y_p are taken (index, stamp or time decide).
+        """
+        self._offer(channel, message, info)
+        taken = True
+        while taken:
+            taken = False
+            for other, subscription in self._data_subscriptions.items():
+                with subscription.handle:
+                    waiting = subscription.handle.take_message(subscription.msg_type, False)
+                if waiting is not None:
+                    self._offer(other, waiting[0], waiting[1])
+                    taken = True
+        self._emit_notices()
+
+    def _offer(self, channel: str, message: Any, info: dict) -> None:
         try:
             value = self._extract[channel](message)
         except FieldError as error:
             self.node_counters["field_errors"] += 1
             self._log(Notice("field", f"{self.u_name if channel == U else self.y_name}: {error}; message skipped"))
             return
-        received = self._now()
+        received = info.get("received_timestamp")
+        received = received * 1e-9 if received and not self._sim_time else self._now()
         stamp = stamp_seconds(message) if self._stamped[channel] else None
         source = info.get("source_timestamp")
         if not self._graph_checked:
@@ -304,7 +327,6 @@ class IdentifierNode(Node):
             source_time=source * 1e-9 if source else None,
         )
         self._publish(samples)
-        self._emit_notices()
 
     def _on_poll_timer(self) -> None:
         self._publish(self.session.poll(self._now()))

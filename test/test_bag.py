@@ -41,7 +41,7 @@ def independent_read(mcap_file: Path) -> dict[str, list[tuple[int, float]]]:
     with mcap_file.open("rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         for _schema, channel, message, decoded in reader.iter_decoded_messages(log_time_order=True):
-            out.setdefault(channel.topic, []).append((message.log_time, decoded.data))
+            out.setdefault(channel.topic, []).append((message.log_time, getattr(decoded, "data", None)))
     return out
 
 

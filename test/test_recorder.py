@@ -5,13 +5,12 @@ from __future__ import annotations
 import signal
 import threading
 import time
-from collections import Counter
 from pathlib import Path
 
 import pytest
 
 from lenn_ros import topics
-from lenn_ros.bag import BagWriter, read_run, recover
+from lenn_ros.bag import BagWriter, read_run
 
 pytestmark = [pytest.mark.ros, pytest.mark.timeout(60)]
 
@@ -21,7 +20,7 @@ domain_coordinator = pytest.importorskip("domain_coordinator")
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rosutil import Talker, start_node, stop  # noqa: E402
-from test_bag import complete_chunk_counts, independent_read  # noqa: E402
+from test_bag import independent_read  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -52,33 +51,29 @@ def test_signal_closes_bag_with_every_message(tmp_path: Path, talker: Talker, si
     check_bag(out, 500)
 
 
-def test_sigkill_loses_at_most_the_unflushed_tail(tmp_path: Path, talker: Talker) -> None:
-    out = tmp_path / "run"
-    proc = start_node("recorder", f"output:={out}", "flush_period:=0.2")
-    try:
-        assert talker.wait_matched(), "recorder did not subscribe"
-        talker.publish(300)
-        assert talker.acked()
-        deadline = time.monotonic() + 10  # a flush is due within 1.25 * flush_period
-        done = threading.Event()
-        counts: Counter[str] = Counter()
-        while not done.wait(0.05) and time.monotonic() < deadline:
-            counts = complete_chunk_counts(out / "run.mcap")
-            if min(counts["/u"], counts["/y_p"]) >= 300:
-                done.set()
-        assert done.is_set(), f"first 300 samples not flushed to disk: {counts}"
-        talker.publish(300)
-    finally:
-        proc.kill()
-        proc.communicate(timeout=10)
-    assert not (out / "metadata.yaml").exists()
-    report = recover(out)
-    assert report.messages["/u"] >= 300 and report.messages["/y_p"] >= 300, str(report)
-    run = read_run(out)
+def test_sigkill_loss_counted_at_the_publisher(tmp_path: Path, domain: int) -> None:
+    """SIGKILL while 500 Hz of u/y_p flow: loss counted at the publisher, DDS queue included.
+
+    Bound: the writer's unflushed tail (<= 1.25 x flush_period: the period plus the flush
+    timer's quarter period) plus 1 s for what DDS delivered but the recorder had not yet
+    written (measured up to ~0.55 s on the loaded 2-core CI machine, see bench/recorder_kill.py).
+    A recorder that never flushed, or lost its queue wholesale, loses all 1500 samples.
+    """
+    import sys
+
+    sys.path.insert(0, str(REPO / "bench"))
+    from recorder_kill import one_run
+
+    rate, flush_period = 500.0, 0.2
+    result = one_run(tmp_path / "run", rate, flush_period, 3.0, domain)
+    bound = rate * (1.25 * flush_period + 1.0)
+    assert result["published"] >= 1000, result  # the talker really ran at about its rate
+    assert 0 <= result["lost"] <= bound, f"{result} (bound {bound:.0f})"
+    run = read_run(tmp_path / "run")
     assert run.u.tolist() == [float(k) for k in range(run.u.size)]  # a prefix, in order
-    assert run.y_p.tolist() == [-float(k) for k in range(run.y_p.size)]
-    theirs = independent_read(out / "run.mcap")
-    assert len(theirs["/u"]) == report.messages["/u"]
+    assert run.u_sequence.tolist() == list(range(1, run.u.size + 1))
+    theirs = independent_read(tmp_path / "run" / "run.mcap")
+    assert len(theirs["/u"]) == run.u.size
 
 
 def test_replay_into_recorder(tmp_path: Path, domain: int) -> None:

@@ -335,3 +335,220 @@ def test_import_csv_errors(tmp_path: Path, text: str, u: str | int, y: str | int
     with pytest.raises(BagError, match=pattern):
         import_csv(csv, u, y, 0.1, tmp_path / "bag", **kwargs)
     assert not (tmp_path / "bag").exists()
+
+
+# ---------------------------------------------------------------- any message type, sequence numbers, fast path
+
+
+def typestore_message(type_name: str, **fields: object) -> object:
+    from lenn_ros.bag.msgtypes import TYPESTORE
+
+    return TYPESTORE.types[type_name](**fields)
+
+
+def stamp(sec: int) -> object:
+    time_msg = typestore_message("builtin_interfaces/msg/Time", sec=sec, nanosec=7)
+    return typestore_message("std_msgs/msg/Header", stamp=time_msg, frame_id="base")
+
+
+def vector(x: float) -> object:
+    return typestore_message("geometry_msgs/msg/Vector3", x=x, y=0.0, z=-x)
+
+
+ROBOT_MESSAGES = {
+    "/robot/joint_states": lambda k: typestore_message(
+        "sensor_msgs/msg/JointState",
+        header=stamp(k),
+        name=["shoulder", "elbow"],
+        position=np.array([k, -k], dtype=float),
+        velocity=np.array([], dtype=float),
+        effort=np.array([], dtype=float),
+    ),
+    "/robot/cmd": lambda k: typestore_message(
+        "std_msgs/msg/Float64MultiArray",
+        layout=typestore_message("std_msgs/msg/MultiArrayLayout", dim=[], data_offset=0),
+        data=np.array([k, 0.5 * k]),
+    ),
+    "/robot/twist": lambda k: typestore_message(
+        "geometry_msgs/msg/TwistStamped",
+        header=stamp(k),
+        twist=typestore_message("geometry_msgs/msg/Twist", linear=vector(k), angular=vector(0.0)),
+    ),
+    "/robot/wrench": lambda k: typestore_message(
+        "geometry_msgs/msg/WrenchStamped",
+        header=stamp(k),
+        wrench=typestore_message("geometry_msgs/msg/Wrench", force=vector(k), torque=vector(1.0)),
+    ),
+}
+
+
+def write_robot_bag(path: Path, n: int = 20) -> Path:
+    with BagWriter(path) as bag:
+        for topic, make in ROBOT_MESSAGES.items():
+            bag.add_topic(topic, make(0).__msgtype__)
+        for k in range(n):
+            for j, (topic, make) in enumerate(ROBOT_MESSAGES.items()):
+                t = k * 10_000_000 + j
+                bag.write_message(topic, make(k), t, publish_time_ns=t - 1 if t else 0, sequence=k + 1)
+    return path
+
+
+def test_any_type_read_back_by_three_readers(tmp_path: Path) -> None:
+    """Stamped and vector messages: ours, rosbags' AnyReader and mcap_ros2 all decode the same values."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    from lenn_ros.bag import iter_messages, topic_types
+
+    bag = write_robot_bag(tmp_path / "robot")
+    assert topic_types(bag)["/robot/wrench"] == "geometry_msgs/msg/WrenchStamped"
+    ours = list(iter_messages(bag))
+    assert [m.log_time_ns for m in ours] == sorted(m.log_time_ns for m in ours)
+    joints = [m for m in ours if m.topic == "/robot/joint_states"]
+    assert [m.message.position[1] for m in joints] == [-float(k) for k in range(20)]
+    assert joints[3].message.header.stamp.sec == 3 and joints[3].message.name == ["shoulder", "elbow"]
+    assert [m.sequence for m in joints] == list(range(1, 21))
+    assert joints[2].publish_time_ns == joints[2].log_time_ns - 1
+    with AnyReader([bag], default_typestore=get_typestore(Stores.ROS2_JAZZY)) as reader:
+        forces = [reader.deserialize(raw, c.msgtype).wrench.force.x for c, _t, raw in reader.messages()
+                  if c.topic == "/robot/wrench"]  # fmt: skip
+    assert forces == [float(k) for k in range(20)]
+    with (bag / "robot.mcap").open("rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        decoded = [(c.topic, m, d) for s, c, m, d in reader.iter_decoded_messages(log_time_order=True)]
+    assert [d.twist.linear.z for t, _m, d in decoded if t == "/robot/twist"] == [-float(k) for k in range(20)]
+    assert [m.sequence for t, m, _d in decoded if t == "/robot/cmd"] == list(range(1, 21))
+    assert [list(d.data) for t, _m, d in decoded if t == "/robot/cmd"][5] == [5.0, 2.5]
+
+
+def test_type_from_an_installed_msg_file(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A type rosbags does not know is taken from <prefix>/share/<pkg>/msg; the stored msgdef decodes."""
+    from lenn_ros.bag import iter_messages
+    from lenn_ros.bag.msgtypes import TYPESTORE, ensure_type
+
+    share = tmp_path / "prefix" / "share" / "lenn_test_msgs" / "msg"
+    share.mkdir(parents=True)
+    (share / "Inner.msg").write_text("float64 gain\nstring label\n")
+    (share / "Reading.msg").write_text("# a custom sensor\nstd_msgs/Header header\nfloat64[] values\nInner inner\n"
+                                       "int32 LIMIT=3\n")  # fmt: skip
+    monkeypatch.setenv("AMENT_PREFIX_PATH", str(tmp_path / "prefix"))
+    ensure_type("lenn_test_msgs/msg/Reading")
+    inner = TYPESTORE.types["lenn_test_msgs/msg/Inner"](gain=2.5, label="x")
+    reading = TYPESTORE.types["lenn_test_msgs/msg/Reading"](header=stamp(1), values=np.array([1.0, 2.0]), inner=inner)
+    with BagWriter(tmp_path / "custom") as bag:
+        bag.add_topic("/reading", "lenn_test_msgs/msg/Reading")
+        bag.write_message("/reading", reading, 5)
+    with (tmp_path / "custom" / "custom.mcap").open("rb") as f:
+        decoded = [d for *_rest, d in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages()]
+    assert decoded[0].inner.gain == 2.5 and list(decoded[0].values) == [1.0, 2.0]
+    assert next(iter_messages(tmp_path / "custom")).message.inner.label == "x"
+    with pytest.raises(BagError, match=r"'lenn_test_msgs/msg/Nope' is unknown.*install its message package"):
+        BagWriter(tmp_path / "other").open().add_topic("/x", "lenn_test_msgs/msg/Nope")
+
+
+def test_lost_and_reordered_messages_are_counted(tmp_path: Path) -> None:
+    """A bag whose u lost sequence numbers 4 and 7 and got 9 before 8: read in order, reported."""
+    from lenn_ros.bag import sequence_gaps
+
+    sent = [1, 2, 3, 5, 6, 9, 8, 10]
+    with BagWriter(tmp_path / "lossy") as bag:
+        bag.add_topic("/u")
+        bag.add_topic("/y_p")
+        for k, seq in enumerate(sent):
+            bag.write_value("/u", float(seq), 1000 * k, publish_time_ns=1000 * k, sequence=seq)
+        for seq in range(1, 11):
+            bag.write_value("/y_p", -float(seq), 1000 * seq, sequence=seq)
+    run = read_run(tmp_path / "lossy")
+    assert run.u_sequence.tolist() == sent and run.u.tolist() == [float(s) for s in sent]
+    assert run.y_p_sequence.tolist() == list(range(1, 11))
+    info = bag_info(tmp_path / "lossy")
+    assert info["topics"]["/u"]["missing"] == 3 - 1  # 4 and 7 (8 arrived late, not lost)
+    assert info["topics"]["/u"]["reordered"] == 1
+    assert info["topics"]["/y_p"]["missing"] == 0 and info["missing"] == 2
+    assert info["topics"]["/u"]["first_ns"] == 0 and info["topics"]["/u"]["last_ns"] == 7000
+    # a restarted publisher starts a new run; a late-started recorder is no loss; no numbers: unknown
+    assert sequence_gaps(np.array([5, 6, 8, 1, 2, 4]))["missing"] == 2
+    assert sequence_gaps(np.array([5, 6, 8, 1, 2, 4]))["restarts"] == 1
+    assert sequence_gaps(np.zeros(4, np.int64))["missing"] is None
+
+
+def test_fast_path_equals_general_reader(tmp_path: Path) -> None:
+    """The numpy decoding gives what per-message deserialisation gives, for every scalar type."""
+    from lenn_ros.bag.reader import read_summary
+    from lenn_ros.bag.scalars import SCALAR_TYPES, _bulk, _slow
+
+    values = [0, 1, 127, 3, 42]
+    with BagWriter(tmp_path / "types", max_chunk_size=200) as bag:  # several chunks
+        for type_name in SCALAR_TYPES:
+            bag.add_topic("/" + type_name.rsplit("/", 1)[-1].lower(), type_name)
+        for k, value in enumerate(values):
+            for type_name in SCALAR_TYPES:
+                topic = "/" + type_name.rsplit("/", 1)[-1].lower()
+                data = bool(value) if type_name.endswith("Bool") else value
+                if type_name.endswith(("Byte", "Char")):
+                    data = value
+                bag.write_message(topic, typestore_message(type_name, data=data), k, sequence=k + 1)
+    file, summary = read_summary(tmp_path / "types")
+    assert len(summary.chunk_indexes) > 1
+    for channel in summary.channels.values():
+        type_name = summary.schemas[channel.schema_id].name
+        fast = _bulk(file, summary, channel.id, type_name)
+        slow = _slow(tmp_path / "types", channel.topic, True)
+        np.testing.assert_array_equal(fast.values, slow.values.astype(float), err_msg=channel.topic)
+        np.testing.assert_array_equal(fast.sequence, slow.sequence)
+        np.testing.assert_array_equal(fast.log_time_ns, slow.log_time_ns)
+
+
+def test_samples_and_varying_arrays(tmp_path: Path) -> None:
+    """read_samples decodes the identifier's rows; arrays whose layout varies take the general path."""
+    from lenn_ros.bag import read_samples
+
+    def row(k: int, labelled: bool) -> object:
+        dims = [typestore_message("std_msgs/msg/MultiArrayDimension", label="index" * labelled, size=5, stride=5)]
+        layout = typestore_message("std_msgs/msg/MultiArrayLayout", dim=dims, data_offset=0)
+        return typestore_message(
+            "std_msgs/msg/Float64MultiArray", layout=layout, data=np.array([k + 1, k / 100, k, -k, k % 2])
+        )
+
+    for name, labelled in (("same", lambda k: True), ("varying", lambda k: k % 3 == 0)):
+        with BagWriter(tmp_path / name) as bag:
+            bag.add_topic("/id3/samples")
+            for k in range(30):
+                bag.write_message("/id3/samples", row(k, labelled(k)), 1000 + k)
+        samples = read_samples(tmp_path / name)
+        assert samples is not None and samples.topic == "/id3/samples"
+        assert samples.index.tolist() == list(range(1, 31)) and samples.index.dtype == np.int64
+        assert samples.y_p.tolist() == [-float(k) for k in range(30)]
+        assert samples.learn.tolist() == [bool(k % 2) for k in range(30)]
+        assert samples.log_time_ns.tolist() == list(range(1000, 1030))
+    assert read_samples(write_run(tmp_path / "run")) is None
+
+
+def test_namespaced_run(tmp_path: Path) -> None:
+    with BagWriter(tmp_path / "ns") as bag:
+        for ns in ("/id3", "/id4"):
+            bag.add_topic(f"{ns}/u")
+            bag.add_topic(f"{ns}/y_p")
+            for k in range(3):
+                bag.write_value(f"{ns}/u", float(k) + (ns == "/id4"), k)
+                bag.write_value(f"{ns}/y_p", -float(k), k)
+    with pytest.raises(BagError, match=r"several topics end in 'u'.*namespace="):
+        read_run(tmp_path / "ns")
+    run = read_run(tmp_path / "ns", namespace="/id4")
+    assert run.u.tolist() == [1.0, 2.0, 3.0] and run.topics[topics.U] == "/id4/u"
+
+
+def test_repair_keeps_sequence_and_publish_time(tmp_path: Path) -> None:
+    """A cut-off uncompressed chunk gives up its whole messages, with their record fields."""
+    from lenn_ros.bag import iter_messages
+
+    with BagWriter(tmp_path / "big", flush_period=None) as bag:  # one big chunk
+        bag.add_topic("/u")
+        for k in range(500):
+            bag.write_value("/u", float(k), 10 * k, publish_time_ns=10 * k + 3, sequence=k + 1)
+    cut = cut_copy(tmp_path / "big", tmp_path / "cut", 0.5)
+    report = recover(cut)
+    assert 100 < report.messages["/u"] < 500 and "cut off" in report.stop_reason
+    messages = list(iter_messages(cut))
+    assert [m.sequence for m in messages] == list(range(1, len(messages) + 1))
+    assert all(m.publish_time_ns == m.log_time_ns + 3 for m in messages)

@@ -68,7 +68,6 @@ def _whole_records(stream: IO[bytes], data: bytes, skip_magic: bool, base: int =
         end = stream.tell()
         (declared,) = struct.unpack_from("<Q", data, start + 1) if start + 9 <= len(data) else (len(data),)
         if start + 9 + declared > len(data):
-            yield record, None
             present = len(data) - start - 9
             raise _Stop(f"record at byte {base + start} is cut off (needs {declared} bytes, {present} present)")
         yield record, end
@@ -79,14 +78,26 @@ class _Stop(Exception):
     pass
 
 
-def _salvage_chunk(chunk: Chunk, scan: _Scan) -> None:
-    """Take the whole records of a cut-off, uncompressed chunk (the one being written at the kill)."""
-    if chunk.compression != "":
+def _salvage_tail(data: bytes, start: int, scan: _Scan) -> None:
+    """Take the whole messages of the uncompressed chunk cut off at ``start`` (being written at the kill).
+
+    StreamReader cannot return a chunk that is cut short, so the missing bytes are made up
+    with zeros: the chunk header then parses, and only the records before the cut are used.
+    """
+    if start + 9 > len(data) or data[start] != 0x06:
         return
+    (declared,) = struct.unpack_from("<Q", data, start + 1)
+    missing = start + 9 + declared - len(data)
     try:
-        for record, _end in _whole_records(BytesIO(chunk.data), chunk.data, skip_magic=True):
-            if _end is not None:
-                scan.take(record)
+        chunk = next(StreamReader(BytesIO(data[start:] + bytes(missing)), skip_magic=True, emit_chunks=True).records)
+    except Exception:  # the cut is inside the chunk header: nothing to take
+        return
+    if not isinstance(chunk, Chunk) or chunk.compression != "" or not 0 < missing <= len(chunk.data):
+        return
+    records = chunk.data[: len(chunk.data) - missing]
+    try:
+        for record, _end in _whole_records(BytesIO(records), records, skip_magic=True):
+            scan.take(record)
     except _Stop:
         pass
 
@@ -110,10 +121,6 @@ def _scan_mcap(file: Path) -> _Scan:
     scan.bytes_used = len(MCAP_MAGIC)
     try:
         for record, end in _whole_records(stream, data, skip_magic=False):
-            if end is None:
-                if isinstance(record, Chunk):
-                    _salvage_chunk(record, scan)
-                continue
             if isinstance(record, Chunk) and not _take_chunk(record, scan, scan.bytes_used):
                 return scan
             scan.take(record)
@@ -123,6 +130,7 @@ def _scan_mcap(file: Path) -> _Scan:
                 scan.bytes_used = len(data)
     except _Stop as stop:
         scan.stop_reason = str(stop)
+        _salvage_tail(data, scan.bytes_used, scan)
     return scan
 
 

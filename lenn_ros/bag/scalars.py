@@ -145,11 +145,17 @@ def _chunk_part(mm: mmap.mmap, index: ChunkIndex, channel_id: int, type_name: st
 def _bulk(file: Path, summary: Summary, channel_id: int, type_name: str | None) -> Series:
     parts = []
     indexes = sorted(summary.chunk_indexes, key=lambda i: i.chunk_start_offset)
+    failure = "no chunks" if not indexes else ""
     with file.open("rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as mm:
         for index in indexes:
-            parts.append(_chunk_part(mm, index, channel_id, type_name))
-    if not parts:
-        raise _SlowPath("no chunks")
+            try:
+                parts.append(_chunk_part(mm, index, channel_id, type_name))
+            except (_SlowPath, struct.error, IndexError, ValueError) as err:
+                # Only the text leaves this block: a live traceback would keep views of the map open.
+                failure = f"{type(err).__name__}: {err}"
+                break
+    if failure:
+        raise _SlowPath(failure)
     log_time = np.concatenate([p[1] for p in parts])
     order = np.argsort(log_time, kind="stable") if np.any(np.diff(log_time) < 0) else slice(None)
     values = None

@@ -3,7 +3,8 @@
 Each subcommand lives in its own module and is imported only when used, so
 ``lenn-ros reproduce`` starts without loading rclpy. Expected failures (a missing
 bag, a malformed params file, a weights file of another network) end in one line
-on stderr naming the problem and the fix, and exit status 2; a traceback means a bug.
+on stderr naming the problem and the fix, and exit status 2; a traceback means a bug
+(which exceptions count as the user's: :mod:`lenn_ros.errors`).
 """
 
 from __future__ import annotations
@@ -13,10 +14,7 @@ import sys
 from collections.abc import Sequence
 
 from lenn_ros.core.examples import PARAMETER_SETS, TRAIN_SAMPLES
-
-
-class UserError(Exception):
-    """A problem the user can fix: printed as one line, exit status 2."""
+from lenn_ros.errors import user_error_types
 
 
 def _reproduce(args: argparse.Namespace) -> int:
@@ -170,7 +168,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(args.handler(args) or 0)
     except KeyboardInterrupt:
         return 130
-    except (UserError, ValueError, OSError, RuntimeError) as error:
+    except Exception as error:
+        if not isinstance(error, user_error_types()):
+            raise  # a bug: the traceback says where
         print(f"lenn-ros {args.command}: error: {error}", file=sys.stderr)
         return 2
 

@@ -24,6 +24,10 @@ from lenn_ros.core.networks import OUTPUTS, SOLVERS
 from lenn_ros.core.structure import Identifier, ModelStructure
 
 
+class ConfigError(ValueError):
+    """A params file or parameter value the user must fix (the command line prints it as one line)."""
+
+
 @dataclass(frozen=True)
 class Parameter:
     """One ROS parameter: name, default, why it exists, allowed range."""
@@ -155,7 +159,20 @@ def identifier_parameters(example: int, network: str, parameters: str = "calibra
 
 
 def build_identifier(values: dict[str, Any], network: str) -> Identifier:
-    """An :class:`Identifier` from parameter values (node, params file or CLI)."""
+    """An :class:`Identifier` from parameter values (node, params file or CLI).
+
+    The values are the user's, so what the model's own checks refuse (a term list that
+    does not parse, a solver that needs a linear output) is a :class:`ConfigError`.
+    """
+    try:
+        return _build_identifier(values, network)
+    except ConfigError:
+        raise
+    except ValueError as error:
+        raise ConfigError(str(error)) from error
+
+
+def _build_identifier(values: dict[str, Any], network: str) -> Identifier:
     structure = ModelStructure(
         y_lags=int(values["y_lags"]),
         u_lags=int(values["u_lags"]),
@@ -186,7 +203,7 @@ def build_identifier(values: dict[str, Any], network: str) -> Identifier:
         terms = [str(t) for t in values.get("terms", [""]) if str(t).strip()]
         exponents = parse_terms(terms, structure.y_lags, structure.u_lags).tolist() if terms else None
         if exponents is not None and structure.separate:
-            raise ValueError("terms select one combiner over all inputs: set separate: false")
+            raise ConfigError("terms select one combiner over all inputs: set separate: false")
         model = FunctionalLinkNetwork(
             exponents=exponents,
             order=int(values["order"]),
@@ -198,7 +215,7 @@ def build_identifier(values: dict[str, Any], network: str) -> Identifier:
             **common,
         )
     else:
-        raise ValueError(f"unknown network {network!r}; use 'lenn' or 'mlp'")
+        raise ConfigError(f"unknown network {network!r}; use 'lenn' or 'mlp'")
     return Identifier(structure, model)
 
 
@@ -218,13 +235,13 @@ def read_params_file(path: str | Path, node_name: str = "identifier") -> dict[st
     try:
         document = yaml.safe_load(path.read_text())
     except FileNotFoundError:
-        raise ValueError(f"params file {path} does not exist") from None
+        raise ConfigError(f"params file {path} does not exist") from None
     except IsADirectoryError:
-        raise ValueError(f"params file {path} is a directory; pass the .yaml file in it") from None
+        raise ConfigError(f"params file {path} is a directory; pass the .yaml file in it") from None
     except yaml.YAMLError as error:
-        raise ValueError(f"params file {path} is not valid YAML: {str(error).splitlines()[0]}") from None
+        raise ConfigError(f"params file {path} is not valid YAML: {str(error).splitlines()[0]}") from None
     if not isinstance(document, dict):
-        raise ValueError(f"params file {path} must map node names to {{ros__parameters: ...}}")
+        raise ConfigError(f"params file {path} must map node names to {{ros__parameters: ...}}")
     merged: dict[str, Any] = {}
     found = False
     for key in sorted(document, key=lambda k: _specificity(str(k), node_name)):
@@ -235,7 +252,7 @@ def read_params_file(path: str | Path, node_name: str = "identifier") -> dict[st
             merged.update(_flatten(section["ros__parameters"]))
             found = True
     if not found:
-        raise ValueError(
+        raise ConfigError(
             f"params file {path} has no section for the node: start it with '/**:' (any node) "
             f"or '{node_name}:', then 'ros__parameters:'"
         )
@@ -277,7 +294,7 @@ def check_known(names: Any, known: Any, where: str = "params file") -> None:
             continue
         close = difflib.get_close_matches(str(name), known, n=1)
         hint = f"; did you mean {close[0]!r}?" if close else f"; known: {', '.join(known)}"
-        raise ValueError(f"unknown parameter {name!r} in the {where}{hint}")
+        raise ConfigError(f"unknown parameter {name!r} in the {where}{hint}")
 
 
 def resolve(values: dict[str, Any]) -> tuple[dict[str, Any], str]:
@@ -290,9 +307,9 @@ def resolve(values: dict[str, Any]) -> tuple[dict[str, Any], str]:
     network = str(values.get("network", "lenn"))
     parameter_set = str(values.get("parameters", "calibrated"))
     if network not in ("lenn", "mlp"):
-        raise ValueError(f"network must be 'lenn' or 'mlp', not {network!r}")
+        raise ConfigError(f"network must be 'lenn' or 'mlp', not {network!r}")
     if parameter_set not in PARAMETER_SETS:
-        raise ValueError(f"parameters must be one of {PARAMETER_SETS}, not {parameter_set!r}")
+        raise ConfigError(f"parameters must be one of {PARAMETER_SETS}, not {parameter_set!r}")
     if example:
         get_example(example)
     table = {p.name: p for p in identifier_parameters(example, network, parameter_set)}
@@ -305,7 +322,7 @@ def resolve(values: dict[str, Any]) -> tuple[dict[str, Any], str]:
             continue  # node-level parameters (topics, files...) are not the model's business
         problem = check_value(table[name], value)
         if problem:
-            raise ValueError(problem)
+            raise ConfigError(problem)
         result[name] = value
     return result, network
 

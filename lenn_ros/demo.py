@@ -18,8 +18,10 @@ import sys
 import time
 from datetime import datetime
 from pathlib import Path
+from typing import Any
 
 from lenn_ros.core.examples import get_example
+from lenn_ros.errors import UserError
 
 
 def _node(module: str, parameters: dict, env: dict, log: Path) -> subprocess.Popen:
@@ -57,6 +59,70 @@ def _stop(process: subprocess.Popen, timeout: float = 15.0) -> int:
     return process.wait()
 
 
+class DemoError(UserError):
+    """A node of the demo stopped or hung: one line naming the log that says why."""
+
+
+def _environment() -> dict[str, str]:
+    """A private domain, discovery kept on this machine (unless the caller chose otherwise)."""
+    env = dict(os.environ)
+    env.setdefault("ROS_DOMAIN_ID", str(random.randint(30, 99)))
+    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+    return env
+
+
+def _start_nodes(
+    run_dir: Path, example: int, network: str, samples: tuple[int, int], seed: int, rate: float
+) -> tuple[dict[str, subprocess.Popen], Path]:
+    """recorder, identifier, plant_simulator (in that order), and the identifier's params file."""
+    env = _environment()
+    # the identifier holds its first outputs until the recorder and the simulator have matched them
+    identifier_params = {
+        "example": example,
+        "network": network,
+        "seed": seed,
+        "wait_for_y_hat_subscribers": 2,  # the recorder and the simulator (lockstep)
+        "wait_for_error_subscribers": 1,  # the recorder
+    }
+    params_file = run_dir / "identifier.yaml"
+    params_file.write_text(json.dumps({"identifier": {"ros__parameters": identifier_params}}))
+    simulator_params = {
+        "example": example,
+        "seed": seed,
+        "train_samples": samples[0],
+        "test_samples": samples[1],
+        "rate_hz": rate,
+        "wait_for_subscribers": 2,
+        "exit_when_done": True,
+    }
+    nodes = {
+        "recorder": _node("recorder", {"output": str(run_dir / "bag")}, env, run_dir / "recorder.log"),
+        "identifier": _node("identifier", identifier_params, env, run_dir / "identifier.log"),
+        "plant_simulator": _node("plant_simulator", simulator_params, env, run_dir / "plant_simulator.log"),
+    }
+    return nodes, params_file
+
+
+def _wait_for_simulator(nodes: dict[str, subprocess.Popen], run_dir: Path, budget: float) -> list[tuple[float, int]]:
+    """Until the simulator exits: the identifier's memory over time; a stopped or hung node is a DemoError."""
+    started = time.monotonic()
+    simulator, identifier = nodes["plant_simulator"], nodes["identifier"]
+    rss: list[tuple[float, int]] = []
+    while simulator.poll() is None:
+        kb = _rss_kb(identifier.pid)
+        if kb is not None:
+            rss.append((round(time.monotonic() - started, 1), kb))
+        for name in ("identifier", "recorder"):
+            if nodes[name].poll() is not None:
+                raise DemoError(f"the {name} stopped early; see {run_dir / (name + '.log')}")
+        if time.monotonic() - started > budget:
+            raise DemoError(f"no end after {budget:.0f} s; see the logs in {run_dir}")
+        time.sleep(0.2)
+    if simulator.returncode != 0:
+        raise DemoError(f"plant_simulator failed; see {run_dir / 'plant_simulator.log'}")
+    return rss
+
+
 def run_demo(
     example: int = 1,
     network: str = "lenn",
@@ -73,72 +139,19 @@ def run_demo(
     run_dir = Path(output) / datetime.now().strftime("run-%Y%m%d-%H%M%S")
     run_dir.mkdir(parents=True, exist_ok=True)
     bag = run_dir / "bag"
-    env = dict(os.environ)
-    env.setdefault("ROS_DOMAIN_ID", str(random.randint(30, 99)))
-    env.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
-    # the identifier holds its first outputs until the recorder and the simulator have matched them
-    identifier_params = {
-        "example": example,
-        "network": network,
-        "seed": seed,
-        "wait_for_y_hat_subscribers": 2,  # the recorder and the simulator (lockstep)
-        "wait_for_error_subscribers": 1,  # the recorder
-    }
-    params_file = run_dir / "identifier.yaml"
-    params_file.write_text(json.dumps({"identifier": {"ros__parameters": identifier_params}}))
     total = train_samples + test_samples
     started = time.monotonic()
-    recorder = _node("recorder", {"output": str(bag)}, env, run_dir / "recorder.log")
-    identifier = _node("identifier", identifier_params, env, run_dir / "identifier.log")
-    simulator = _node(
-        "plant_simulator",
-        {
-            "example": example,
-            "seed": seed,
-            "train_samples": train_samples,
-            "test_samples": test_samples,
-            "rate_hz": rate,
-            "wait_for_subscribers": 2,
-            "exit_when_done": True,
-        },
-        env,
-        run_dir / "plant_simulator.log",
-    )
+    nodes, params_file = _start_nodes(run_dir, example, network, (train_samples, test_samples), seed, rate)
     try:
-        budget = 120.0 + (total / rate if rate > 0 else total / 200.0)
-        deadline = time.monotonic() + budget
-        rss: list[tuple[float, int]] = []
-        while simulator.poll() is None:
-            kb = _rss_kb(identifier.pid)
-            if kb is not None:
-                rss.append((round(time.monotonic() - started, 1), kb))
-            for name, process in (("identifier", identifier), ("recorder", recorder)):
-                if process.poll() is not None:
-                    raise RuntimeError(f"the {name} stopped early; see {run_dir / (name + '.log')}")
-            if time.monotonic() > deadline:
-                raise RuntimeError(f"no end after {budget:.0f} s; see the logs in {run_dir}")
-            time.sleep(0.2)
-        if simulator.returncode != 0:
-            raise RuntimeError(f"plant_simulator failed; see {run_dir / 'plant_simulator.log'}")
+        rss = _wait_for_simulator(nodes, run_dir, budget=120.0 + (total / rate if rate > 0 else total / 200.0))
     finally:
-        for process in (simulator, identifier, recorder):
-            _stop(process)
+        for name in ("plant_simulator", "identifier", "recorder"):
+            _stop(nodes[name])
     live = _last_status(run_dir / "identifier.log")
     if live is None:
-        raise RuntimeError(f"the identifier printed no final status; see {run_dir / 'identifier.log'}")
+        raise DemoError(f"the identifier printed no final status; see {run_dir / 'identifier.log'}")
     offline = evaluate_bag(str(bag), str(params_file))
-    plot = run_dir / "identification.png"
-    from lenn_ros.plotting import plot_identification
-
-    e = offline.evaluation
-    plot_identification(
-        plot,
-        e.y_test,
-        e.y_hat_test,
-        f"Example {example}, {network.upper()}: online identification, test phase "
-        f"(NMSE {live['phase_nmse_db']:.2f} dB)",
-        e.y_free_test,
-    )
+    plot = _plot(run_dir / "identification.png", offline.evaluation, example, network, live["phase_nmse_db"])
     return {
         "example": example,
         "network": network,
@@ -152,6 +165,14 @@ def run_demo(
         "plot": str(plot),
         "identifier_rss_kb": rss,
     }
+
+
+def _plot(path: Path, evaluation: Any, example: int, network: str, live_nmse_db: float) -> Path:
+    from lenn_ros.plotting import plot_identification
+
+    title = f"Example {example}, {network.upper()}: online identification, test phase (NMSE {live_nmse_db:.2f} dB)"
+    plot_identification(path, evaluation.y_test, evaluation.y_hat_test, title, evaluation.y_free_test)
+    return path
 
 
 def main(args) -> int:

@@ -131,3 +131,33 @@ def test_import_csv_then_evaluate(tmp_path: Path) -> None:
 
     expected = train_and_test(identifier_from_params(str(params))[0], series)
     assert json.loads(result.stdout)["nmse_db"] == pytest.approx(expected.nmse_db, abs=1e-9)
+
+
+def test_a_bug_shows_a_traceback_not_a_user_error() -> None:
+    """A ValueError / RuntimeError from a defect is not the user's: it must not become a one-line error."""
+    for bug in ("ValueError('a defect')", "RuntimeError('a defect')"):
+        code = (
+            "import sys\n"
+            "from lenn_ros import cli, evaluate\n"
+            "def broken(args):\n"
+            f"    raise {bug}\n"
+            "evaluate.main = broken\n"
+            "sys.exit(cli.main(['evaluate', 'bags/example1']))\n"
+        )
+        result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO)
+        assert result.returncode == 1, result.stderr
+        assert "Traceback" in result.stderr and "in broken" in result.stderr
+
+
+def test_params_file_errors_are_still_one_line(tmp_path: Path) -> None:
+    """Config problems are ConfigError (the user's): unknown name, bad term list."""
+    for body, message in [
+        ("identifier:\n  ros__parameters:\n    alhpa: 0.1\n", "unknown parameter 'alhpa'"),
+        ("identifier:\n  ros__parameters:\n    terms: ['y(k-9)^2']\n", "y(k-9)"),
+    ]:
+        params = tmp_path / "bad.yaml"
+        params.write_text(body)
+        result = lenn_ros("evaluate", "bags/example1", "--params", str(params))
+        assert result.returncode == 2, result.stderr
+        assert message in result.stderr and "Traceback" not in result.stderr
+        assert len(result.stderr.strip().splitlines()) == 1

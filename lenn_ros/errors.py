@@ -1,0 +1,42 @@
+"""Which exceptions are the user's to fix (one line, exit status 2) and which are bugs (a traceback).
+
+A ``ValueError`` or ``RuntimeError`` in general means a bug: catching those broadly
+would print a real defect as a one-line "user error" and hide where it happened. So
+only dedicated types count as user errors: :class:`UserError` (raised by the command
+line's own modules), the error type of each layer that checks user input (bags,
+params files, weights files, plant formulas, field paths, evaluate), and ``OSError``
+(a path that does not exist or cannot be written, named in the message).
+"""
+
+from __future__ import annotations
+
+import sys
+
+
+class UserError(Exception):
+    """A problem the user can fix: printed as one line, exit status 2."""
+
+
+#: (module, class) of each layer's own user-error type. Looked up only in modules already
+#: imported: an exception of that type can only come from a module that is loaded, and the
+#: command line need not import the bag reader (rosbags) just to know its error type.
+LAYER_ERRORS = (
+    ("lenn_ros.bag.errors", "BagError"),
+    ("lenn_ros.config", "ConfigError"),
+    ("lenn_ros.evaluate", "EvaluateError"),
+    ("lenn_ros.fit", "FitError"),
+    ("lenn_ros.core.networks", "ModelFileError"),
+    ("lenn_ros.core.expression", "ExpressionError"),
+    ("lenn_ros.core.fields", "FieldError"),
+)
+
+
+def user_error_types() -> tuple[type[BaseException], ...]:
+    """The exception types to report as one line: the dedicated ones, never plain ValueError."""
+    types: list[type[BaseException]] = [UserError, OSError]
+    for module_name, class_name in LAYER_ERRORS:
+        module = sys.modules.get(module_name)
+        error_type = getattr(module, class_name, None) if module is not None else None
+        if isinstance(error_type, type) and issubclass(error_type, BaseException):
+            types.append(error_type)
+    return tuple(types)

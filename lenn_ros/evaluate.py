@@ -99,15 +99,27 @@ def _session(identifier: Identifier, values: dict[str, Any]) -> Session:
 
 
 def _recorded_samples(path: str) -> tuple[np.ndarray, ...] | None:
-    rows = [message.message.data for message in bags.iter_messages(path, [topics.SAMPLES])]
-    if not rows:
+    """The identifier's own samples, sorted by index (a repeated index: the first, as live)."""
+    samples = bags.read_samples(path)
+    if samples is None or samples.index.size == 0:
         return None
-    table = np.array([list(row)[: len(topics.SAMPLE_LABELS)] for row in rows], dtype=np.float64)
-    order = np.argsort(table[:, 0], kind="stable")
-    table = table[order]
-    keep = np.r_[True, np.diff(table[:, 0]) > 0]  # a repeated index: the first one, as live
-    table = table[keep]
-    return table[:, 0].astype(np.int64), table[:, 2], table[:, 3], table[:, 4] > 0.5
+    learn = samples.learn if samples.learn is not None else np.ones(samples.index.size, dtype=bool)
+    order = np.argsort(samples.index, kind="stable")
+    index = samples.index[order]
+    keep = np.r_[True, np.diff(index) > 0]
+    pick = order[keep]
+    return samples.index[pick], samples.u[pick], samples.y_p[pick], learn[pick]
+
+
+def _raw_losses(path: str) -> dict[str, int]:
+    """Messages of u / y_p missing from the recording, from gaps in their sequence numbers."""
+    info = bags.bag_info(path)["topics"]
+    losses = {}
+    for topic, entry in info.items():
+        name = topic.rstrip("/").rsplit("/", 1)[-1]
+        if name in (topics.U, topics.Y_P) and entry.get("missing"):
+            losses[topic] = int(entry["missing"])
+    return losses
 
 
 def _pair_raw(path: str, session: Session, values: dict[str, Any]) -> tuple[np.ndarray, ...]:
@@ -129,6 +141,8 @@ def _pair_raw(path: str, session: Session, values: dict[str, Any]) -> tuple[np.n
                 f"{path}: no sequence numbers recorded and u has {counts[0]} messages, y_p {counts[1]}: pairing "
                 "by order would shift every later pair; record with lenn_ros's recorder (it stores indices)"
             )
+    if values["pairing"] == "sequence" and not by_order:
+        messages = _in_index_order(messages, names)
     session.holding = True  # collect the pairs; they are learnt in one batch below
     seen = {U: 0, Y: 0}
     for message in messages:
@@ -148,6 +162,25 @@ def _pair_raw(path: str, session: Session, values: dict[str, Any]) -> tuple[np.n
     pairs = session.release_pairs()
     index = np.array([pair.index for pair in pairs], dtype=np.int64)
     return index, np.array([p.u for p in pairs]), np.array([p.y for p in pairs]), by_order
+
+
+def _in_index_order(messages: list, names: dict[str, str]) -> list:
+    """Undo reordering in the recording: by publisher run (a restart begins at 1), then index.
+
+    Live, the node can only wait a while for a late half; offline the whole recording is
+    known, so a message that arrived late still meets its partner.
+    """
+    epochs: dict[str, int] = {}
+    highest: dict[str, int] = {}
+    keyed = []
+    for position, message in enumerate(messages):
+        channel = names[message.topic]
+        if message.sequence == 1 and highest.get(channel, 0) > 1:
+            epochs[channel] = epochs.get(channel, 0) + 1
+            highest[channel] = 0
+        highest[channel] = max(highest.get(channel, 0), message.sequence)
+        keyed.append((epochs.get(channel, 0), message.sequence, position, message))
+    return [item[-1] for item in sorted(keyed, key=lambda item: item[:3])]
 
 
 def evaluate_bag(path: str, params: str | None = None, test_from: int | None = None) -> BagEvaluation:
@@ -176,6 +209,8 @@ def evaluate_bag(path: str, params: str | None = None, test_from: int | None = N
     evaluation = _score(identifier, index, u, y, y_hat, start)
     counters = session.all_counters()
     notices = sorted({f"{n.kind}: {n.text}" for n in session.take_notices() if n.kind != "phase"})
+    for topic, lost in _raw_losses(path).items():
+        notices.append(f"recording: {lost} {topic} messages missing (gaps in their sequence numbers)")
     missing = int(np.sum(np.clip(np.diff(index) - 1, 0, None))) + int(index[0] - 1)
     rejected = int(np.count_nonzero(~(np.isfinite(u) & np.isfinite(y))))
     unpaired = sum(counters.get(name, 0) for name in ("unpaired", "dropped_u", "dropped_y"))

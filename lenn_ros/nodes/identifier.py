@@ -88,8 +88,10 @@ def _stamp(seconds: float) -> Any:
 class IdentifierNode(Node):
     """Learns a LeNN or MLP model of the plant online, sample by sample."""
 
-    def __init__(self) -> None:
-        super().__init__("identifier", automatically_declare_parameters_from_overrides=False)
+    def __init__(self, node_name: str = "identifier", **node_options: Any) -> None:
+        """``node_options`` go to rclpy's Node (namespace, parameter_overrides, context...),
+        so several identifiers can share one process (a fleet)."""
+        super().__init__(node_name, automatically_declare_parameters_from_overrides=False, **node_options)
         self._started = time.monotonic()
         self.values = self._declare_all()
         self.u_name = self.resolve_topic_name(topics.U)

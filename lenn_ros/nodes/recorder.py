@@ -31,9 +31,12 @@ metadata.yaml).
 SIGKILL cannot be caught. What it loses: the messages written since the last flush
 (at most ``flush_period`` plus a quarter of it, see :mod:`lenn_ros.bag.writer`) **plus**
 what DDS had received but the recorder had not yet taken, which is small when the
-recorder keeps up. Measured (``bench/recorder_kill.py``, 1 kHz u + y_p from a separate
-process, ``flush_period`` 0.5 s, SIGKILL at a random moment, 8 runs): see the README
-section "Recording"; the test asserts loss <= rate x (1.25 x flush_period + 0.25 s).
+recorder keeps up. Measured at the publisher (``bench/recorder_kill.py``: u + y_p at 1 kHz
+from another process, SIGKILL at a random moment while sending, counted after repair, on
+a shared 2-core machine): ``flush_period`` 0.5 s: 288 ± 124 samples lost, max 489, over 16
+runs (one run of an earlier 8 under heavy load: 1146, i.e. ~0.5 s of recorder lag on top
+of the tail); ``flush_period`` 0.1 s: 44 ± 38, max 94, over 8 runs. The test asserts
+loss <= rate x (1.25 x flush_period + 1 s).
 ``lenn-ros bag-repair`` rebuilds such a bag.
 """
 

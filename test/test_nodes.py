@@ -171,6 +171,11 @@ def test_live_parameters_are_validated_and_applied(tmp_path: Path, domain: int) 
         refused = set_parameter("out_of_range", "ignore")
         assert not refused.successful and "reject" in refused.reason
         assert set_parameter("alpha", 0.02).successful
+        assert set_parameter("alpha", 1).successful  # an integer for a double, as `ros2 param set` sends it
+        refused = set_parameter("alpha", 100)
+        assert not refused.successful and "alpha must be <=" in refused.reason
+        refused = set_parameter("alpha", "fast")
+        assert not refused.successful and "number" in refused.reason
         assert set_parameter("learning", False).successful
     finally:
         node.destroy_node()
@@ -234,3 +239,31 @@ def test_sigterm_saves_weights_atomically(tmp_path: Path, domain: int) -> None:
 
     assert OnlineRegressor.load(weights).n_weights == 15
     assert not list(tmp_path.glob(".weights.npz.*"))  # no temporary left behind
+
+
+def test_status_is_strict_json_and_autosave_runs_on_its_own_period(tmp_path: Path, domain: int) -> None:
+    """Autosave every 0.3 s with a status every 5 s; NaN (no errors yet) must not reach the JSON."""
+    import time
+
+    weights = tmp_path / "auto.npz"
+    identifier = start_node("identifier", f"weights_out:={weights}", "autosave_period:=0.3", "status_period:=5.0")
+    try:
+        deadline = time.monotonic() + 30
+        while not weights.exists() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        first_seen = time.monotonic()
+        assert weights.exists(), "no autosave within 30 s"
+        stamps = set()
+        while time.monotonic() - first_seen < 2.0:
+            stamps.add(weights.stat().st_mtime_ns)
+            time.sleep(0.05)
+    finally:
+        _, err = stop(identifier)
+    assert len(stamps) >= 3  # saved again and again within 2 s, though status comes every 5 s
+
+    def refuse(constant: str):
+        raise AssertionError(f"non-JSON constant {constant} in the status line")
+
+    line = next(line for line in err.splitlines() if line.startswith("identifier: {"))
+    status = json.loads(line.split(": ", 1)[1], parse_constant=refuse)
+    assert status["phase_nmse_db"] is None and status["counters"]["samples"] == 0

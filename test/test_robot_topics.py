@@ -242,3 +242,22 @@ def test_stamped_vector_topics_pair_by_stamp_and_outputs_carry_the_sample_time(g
     assert len(stamps) > 250
     assert all(any(abs(s - t) < 1e-6 for t in sent) for s in stamps)
     assert graph.stamped[0].name == ["/robot/joint_states"]
+
+
+def test_each_kind_of_warning_has_its_own_throttle(graph: Graph) -> None:
+    """NaN on u and u arriving alone, with a 60 s throttle: each said once, neither hides the other."""
+    from std_msgs.msg import Float64
+
+    identifier = start_node("identifier", "status_period:=0.2", "lone_timeout:=1.0", "warn_period:=60.0")
+    publisher = graph.node("controller").create_publisher(Float64, topics.U, topics.data_qos())
+    graph.listen()
+    graph.spin()
+    try:
+        graph.wait(lambda s: True)
+        publish_for(3.0, 50, lambda k: publisher.publish(Float64(data=float("nan"))))
+        graph.wait(lambda s: s["counters"]["lone_u"] > 10 and s["counters"]["nan"] > 50, timeout=20)
+    finally:
+        _, err = stop(identifier)
+    nan_lines = [line for line in err.splitlines() if "u = nan" in line]
+    lone_lines = [line for line in err.splitlines() if "arriving alone" in line]
+    assert len(nan_lines) == 1 and len(lone_lines) == 1, err

@@ -44,6 +44,10 @@ MIN_VALIDATION = 50
 REFINE_ITERATIONS = 20
 
 
+class FitError(ValueError):
+    """Data or options ``fit`` cannot work with; the message names the fix."""
+
+
 @dataclass
 class Data:
     u: np.ndarray
@@ -55,7 +59,7 @@ def load_data(path: str | Path, u_column: str | None = None, y_column: str | Non
     """u and y from a bag (directory or .mcap) or a CSV file (columns by name or 0-based index)."""
     path = Path(path)
     if not path.exists():
-        raise ValueError(f"{path} does not exist (expected a CSV file or a bag directory)")
+        raise FitError(f"{path} does not exist (expected a CSV file or a bag directory)")
     if path.is_dir() or path.suffix == ".mcap":
         from lenn_ros.bag import read_run
 
@@ -69,7 +73,7 @@ def _load_csv(path: Path, u_column: str | None, y_column: str | None) -> Data:
     with path.open(newline="") as stream:
         rows = [row for row in csv.reader(stream) if row and any(cell.strip() for cell in row)]
     if not rows:
-        raise ValueError(f"{path} is empty")
+        raise FitError(f"{path} is empty")
     header = None if all(_is_number(cell) for cell in rows[0]) else [cell.strip() for cell in rows[0]]
     body = rows[1:] if header else rows
     width = len(rows[0])
@@ -80,7 +84,7 @@ def _load_csv(path: Path, u_column: str | None, y_column: str | None) -> Data:
             u_column, y_column = u_column or "0", y_column or "1"
         else:
             shown = ", ".join(header) if header else f"{width} unnamed columns"
-            raise ValueError(f"{path} has columns {shown}: pass --u COL --y COL (name or 0-based index)")
+            raise FitError(f"{path} has columns {shown}: pass --u COL --y COL (name or 0-based index)")
     iu, iy = _column(header, u_column, width, path), _column(header, y_column, width, path)
     u, y = np.empty(len(body)), np.empty(len(body))
     for n, row in enumerate(body):
@@ -88,7 +92,7 @@ def _load_csv(path: Path, u_column: str | None, y_column: str | None) -> Data:
             u[n], y[n] = float(row[iu]), float(row[iy])
         except (ValueError, IndexError):
             line = n + (2 if header else 1)
-            raise ValueError(f"{path}, line {line}: not a number in column {u_column} or {y_column}: {row}") from None
+            raise FitError(f"{path}, line {line}: not a number in column {u_column} or {y_column}: {row}") from None
     names = (header[iu], header[iy]) if header else (str(iu), str(iy))
     return Data(u, y, f"CSV {path}: u = column {names[0]}, y = column {names[1]}")
 
@@ -107,18 +111,18 @@ def _column(header: list[str] | None, column: str, width: int, path: Path) -> in
     if column.lstrip("-").isdigit() and 0 <= int(column) < width:
         return int(column)
     shown = ", ".join(header) if header else f"indices 0..{width - 1}"
-    raise ValueError(f"{path}: no column {column!r}; columns are {shown}")
+    raise FitError(f"{path}: no column {column!r}; columns are {shown}")
 
 
 def check_split(n: int, test_from: int) -> int:
     """0-based index of the first test sample from the 1-based ``--test-from``."""
     if test_from is None:
-        raise ValueError("pass --test-from K: the 1-based index of the first test sample (samples before K build)")
+        raise FitError("pass --test-from K: the 1-based index of the first test sample (samples before K build)")
     if not 2 <= test_from <= n:
-        raise ValueError(f"--test-from {test_from} is outside the data's samples 2..{n} (1-based)")
+        raise FitError(f"--test-from {test_from} is outside the data's samples 2..{n} (1-based)")
     start = test_from - 1
     if start < 100:
-        raise ValueError(f"only {start} samples before --test-from {test_from}; a model needs at least 100 to build on")
+        raise FitError(f"only {start} samples before --test-from {test_from}; a model needs at least 100 to build on")
     return start
 
 
@@ -158,6 +162,7 @@ def fit(
     *,
     refine: bool = True,
     max_lag: int = 10,
+    refit_all: bool = False,
     progress: Any = None,
 ) -> dict[str, Any]:
     """The whole procedure; returns the report (also what ``--json`` prints) and the identifier."""
@@ -166,17 +171,20 @@ def fit(
     u, y = data.u, data.y
     if not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
         bad = int(np.count_nonzero(~(np.isfinite(u) & np.isfinite(y))))
-        raise ValueError(f"{bad} samples hold NaN/inf: remove or interpolate them before fitting")
+        raise FitError(f"{bad} samples hold NaN/inf: remove or interpolate them before fitting")
     start = check_split(len(y), test_from)
     u_train, y_train = u[:start], y[:start]
-    scaling = Scaling.from_training(u_train, y_train)
+    try:
+        scaling = Scaling.from_training(u_train, y_train)
+    except ValueError as error:
+        raise FitError(str(error)) from None
     validation_start = start - max(MIN_VALIDATION, round(VALIDATION_FRACTION * start))
     say(f"selecting a structure on samples 1..{validation_start}, judged by free run on the rest up to {start}")
     candidates = select_structure(u_train, y_train, validation_start, scaling, max_lag=max_lag)
     usable = [c for c in candidates if c.model is not None]
     if not usable:
         reasons = sorted({c.rejected for c in candidates})
-        raise ValueError(f"no candidate structure simulates stably on the held-out tail ({'; '.join(reasons)})")
+        raise FitError(f"no candidate structure simulates stably on the held-out tail ({'; '.join(reasons)})")
     chosen = usable[0]
     model = chosen.model
     refinement: dict[str, Any] = {"done": False}
@@ -188,15 +196,14 @@ def fit(
         )  # fmt: skip
         refinement = {"done": True, "on_estimation_part": held_out.as_dict()}
         model = TermModel(model.y_lags, model.u_lags, scaling, model.exponents, model.basis, weights)
-    # all training samples: least squares, then the refinement's number of iterations
-    final = TermModel(model.y_lags, model.u_lags, scaling, model.exponents, model.basis)
-    features, targets = final.regression(u_train, y_train)
-    final.weights = np.linalg.lstsq(features, targets, rcond=None)[0]
-    if refine and refinement["on_estimation_part"]["iterations"]:
-        _, _, diverged_at = final.free_run(u_train, y_train, final.warm_up)
-        if diverged_at < 0:
+    final = model
+    if refit_all:  # all training samples: least squares, then the refinement's number of iterations
+        final = TermModel(model.y_lags, model.u_lags, scaling, model.exponents, model.basis)
+        features, targets = final.regression(u_train, y_train)
+        final.weights = np.linalg.lstsq(features, targets, rcond=None)[0]
+        if refine and refinement["on_estimation_part"]["best_iteration"]:
             weights, whole = refine_simulation_error(
-                final, u_train, y_train, refinement["on_estimation_part"]["iterations"]
+                final, u_train, y_train, refinement["on_estimation_part"]["best_iteration"]
             )
             final.weights = weights
             refinement["on_all_training"] = whole.as_dict()
@@ -375,7 +382,8 @@ def format_report(report: dict[str, Any], dt: float | None = None) -> str:
     if refinement.get("done"):
         r = refinement["on_estimation_part"]
         lines.append(
-            f"  refined on simulation error: {r['iterations']} iterations, held-out free-run RMSE "
+            f"  refined on simulation error: best of {r['iterations']} iterations: {r['best_iteration']}, "
+            "held-out free-run RMSE "
             f"{r['rmse_validation_before']:.5g} -> {r['rmse_validation_after']:.5g}"
         )
     lines.append(f"  live: RLS, forgetting {m['live']['forgetting']:.6g}")

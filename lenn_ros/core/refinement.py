@@ -20,6 +20,7 @@ class Refinement:
     """What the refinement did (reported by ``fit``)."""
 
     iterations: int
+    best_iteration: int  # the iteration whose weights were kept (0: the starting weights)
     rmse_before: float  # free-run RMSE over the fitted segment
     rmse_after: float
     rmse_validation_before: float | None = None
@@ -60,7 +61,7 @@ def refine_simulation_error(
 
     best_val = held_out(weights) if validation else None
     best_weights, val_before = weights.copy(), best_val
-    damping, done = 1e-3, 0
+    damping, done, best_iteration = 1e-3, 0, 0
     for _ in range(iterations):
         jacobian = np.empty((len(residual), len(weights)))
         usable = True
@@ -97,11 +98,11 @@ def refine_simulation_error(
         if validation:
             value = held_out(weights)
             if value < best_val:
-                best_val, best_weights = value, weights.copy()
+                best_val, best_weights, best_iteration = value, weights.copy(), done
         else:
-            best_weights = weights.copy()
+            best_weights, best_iteration = weights.copy(), done
         if len(residual) and abs(cost) < 1e-300:
             break
     final = _simulation_residual(model, u, y, best_weights)
     after = math.sqrt(float(final @ final) / len(final)) if final is not None else math.inf
-    return best_weights, Refinement(done, start_rmse, after, val_before, best_val)
+    return best_weights, Refinement(done, best_iteration, start_rmse, after, val_before, best_val)

@@ -27,6 +27,8 @@ from lenn_ros.core.structure import FREE_RUN_DIVERGENCE_BOUND, ModelStructure
 
 #: a candidate whose held-out free run clips more than this fraction of inputs is rejected
 MAX_CLIPPED_FRACTION = 0.01
+#: relative held-out error a term must buy to be kept (see :func:`evaluate_prefixes`)
+PARSIMONY = 0.01
 
 
 @dataclass
@@ -181,36 +183,53 @@ def candidate_grid(n_train: int, max_lag: int = 10) -> list[tuple[int, int, int]
 def evaluate_prefixes(
     model: TermModel,
     ranked: list[int],
-    gram: np.ndarray,
-    moment: np.ndarray,
-    u: np.ndarray,
-    y: np.ndarray,
-    validation_start: int,
+    folds: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]],
     dictionary: np.ndarray,
 ) -> tuple[int, float, np.ndarray, str]:
-    """Best number of ranked terms by held-out simulation error: (terms, rmse, weights, why-none)."""
+    """Best number of ranked terms by held-out simulation error: (terms, rmse, weights, why-none).
+
+    Each fold is (gram, moment, u, y, start): the least-squares system of its estimation
+    samples over the ranked columns, and the series whose samples from ``start`` on it
+    simulates. The score is the RMS over all folds' held-out samples; the weights
+    returned are those of the first fold.
+    """
     best = (0, math.inf, np.zeros(0))
     reasons: list[str] = []
-    y_val = y[validation_start:]
+    scores: list[tuple[int, float, np.ndarray]] = []
     for m in range(1, len(ranked) + 1):
-        index = ranked[:m]
-        try:
-            weights = np.linalg.solve(gram[np.ix_(index, index)], moment[index])
-        except np.linalg.LinAlgError:
+        squared, count, first_weights, failed = 0.0, 0, None, ""
+        for gram, moment, u, y, start in folds:
+            try:
+                weights = np.linalg.solve(gram[:m, :m], moment[:m])
+            except np.linalg.LinAlgError:
+                failed = "singular"
+                break
+            trial = TermModel(model.y_lags, model.u_lags, model.scaling, dictionary[ranked[:m]], model.basis, weights)
+            y_sim, clipped, diverged_at = trial.free_run(u, y, start)
+            if diverged_at >= 0:
+                failed = "diverged"
+                break
+            if clipped > MAX_CLIPPED_FRACTION * len(y_sim) * (model.y_lags + model.u_lags):
+                failed = "left the training range"
+                break
+            squared += float(np.sum((y_sim - y[start:]) ** 2))
+            count += len(y_sim)
+            first_weights = weights if first_weights is None else first_weights
+        if failed:
+            reasons.append(failed)
             continue
-        trial = TermModel(model.y_lags, model.u_lags, model.scaling, dictionary[index], model.basis, weights)
-        y_sim, clipped, diverged_at = trial.free_run(u, y, validation_start)
-        if diverged_at >= 0:
-            reasons.append("diverged")
-            continue
-        if clipped > MAX_CLIPPED_FRACTION * len(y_val) * (model.y_lags + model.u_lags):
-            reasons.append("left the training range")
-            continue
-        error = float(np.sqrt(np.mean((y_sim - y_val) ** 2)))
-        if error < best[1]:
-            best = (m, error, weights)
+        scores.append((m, math.sqrt(squared / count), first_weights))
+    if scores:
+        lowest = min(score for _, score, _ in scores)
+        # parsimony: the fewest terms within PARSIMONY of the lowest error (extra terms that
+        # buy less than that fit the held-out noise, not the plant)
+        best = next(entry for entry in scores if entry[1] <= lowest * (1.0 + PARSIMONY))
     why = "" if best[0] else (f"every prefix {sorted(set(reasons))[0]}" if reasons else "no usable term")
     return best[0], best[1], best[2], why
+
+
+def _normal_equations(features: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return features.T @ features + 1e-10 * np.eye(features.shape[1]), features.T @ targets
 
 
 def select_structure(
@@ -221,15 +240,20 @@ def select_structure(
     bases: tuple[str, ...] = ("legendre",),
     max_terms: int = 40,
     max_lag: int = 10,
+    two_fold: bool = True,
 ) -> list[Candidate]:
     """Try every candidate structure; returns them all, best (lowest held-out free-run RMSE) first.
 
     ``u``/``y`` are the training data; samples from ``validation_start`` on are the
     held-out tail, simulated from the measured outputs just before it. Terms are
-    ranked and fitted on the samples before it only.
+    ranked by FROLS on the samples before it. With ``two_fold``, each candidate is
+    also estimated on the last part and simulated over the first part of the same
+    length, and the two held-out errors are pooled: one short tail alone is a noisy
+    judge on small data sets.
     """
     u = np.asarray(u, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
+    head = len(y) - validation_start
     candidates = []
     for lags, degree, nonlinear_lags in candidate_grid(validation_start, max_lag):
         nonlinear = list(range(nonlinear_lags)) + [lags + i for i in range(nonlinear_lags)]
@@ -244,14 +268,11 @@ def select_structure(
             if not ranked:
                 candidate.rejected = "no usable term"
                 continue
-            chosen = features[:, ranked]
-            gram = np.zeros((len(dictionary), len(dictionary)))
-            moment = np.zeros(len(dictionary))
-            gram[np.ix_(ranked, ranked)] = chosen.T @ chosen + 1e-10 * np.eye(len(ranked))
-            moment[ranked] = chosen.T @ targets
-            terms, error, weights, why = evaluate_prefixes(
-                model, ranked, gram, moment, u, y, validation_start, dictionary
-            )
+            folds = [(*_normal_equations(features[:, ranked], targets), u, y, validation_start)]
+            if two_fold and head > 2 * lags:
+                tail_features, tail_targets = model.regression(u[head - lags :], y[head - lags :], dictionary[ranked])
+                folds.append((*_normal_equations(tail_features, tail_targets), u[:head], y[:head], lags))
+            terms, error, weights, why = evaluate_prefixes(model, ranked, folds, dictionary)
             if not terms:
                 candidate.rejected = why
                 continue

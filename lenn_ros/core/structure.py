@@ -373,6 +373,7 @@ class Identifier:
         return int(clipped), int(diverged_at)
 
 
-#: a free-run output further than this many scale units from the offset is divergence
-#: (the network's inputs span one unit each side; a hundred is far beyond any plant it saw)
-FREE_RUN_DIVERGENCE_BOUND = 100.0
+#: a free-run output further than this many scale units from the offset is divergence:
+#: the network's inputs span one unit each side, so ten is far beyond any output it was
+#: built for (a model that only saturates at the clipped inputs shows as clipped inputs)
+FREE_RUN_DIVERGENCE_BOUND = 10.0

@@ -1,0 +1,189 @@
+"""``lenn-ros fit`` against SysIdentPy's FROLS polynomial NARX on every shared data set.
+
+Both get the same protocol, in the same run, on the same splits:
+- only the samples before the test start build the model;
+- the structure is chosen on the last 20 % of those samples by free-run RMSE
+  (FROLS: a grid of lags and polynomial degrees, terms chosen by FROLS with AIC, as a
+  competent user would; grid limited to dictionaries of <= 60 candidate terms, since
+  SysIdentPy's FROLS takes minutes beyond that on the Silverbox), then refitted on all
+  of them;
+- the score is the free-run (simulation) RMSE on the test part, the free run starting
+  from the measured outputs just before it (a live switch from series-parallel to
+  parallel); a diverged run scores nan;
+- wall time is measured around each whole procedure (selection included).
+
+    pip install -e .[bench]                 # sysidentpy
+    python bench/peer_narx.py               # all sets, ~10 minutes on 2 cores
+    python bench/peer_narx.py --quick       # the small sets only
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+import time
+import warnings
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lenn_ros.fit import Data, fit
+
+DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
+VALIDATION_FRACTION = 0.2
+FROLS_GRID = [(lag, degree) for lag in (1, 2, 3, 4, 6, 8, 10) for degree in (1, 2, 3)]
+FROLS_MAX_DICTIONARY = 60
+
+
+@dataclass
+class Split:
+    name: str
+    u: np.ndarray
+    y: np.ndarray
+    test_from: int  # 1-based, as lenn-ros fit --test-from
+    note: str
+
+
+def _csv(name: str, u: str, y: str) -> tuple[np.ndarray, np.ndarray]:
+    table = np.genfromtxt(DATA / name, delimiter=",", names=True)
+    return np.asarray(table[u], float), np.asarray(table[y], float)
+
+
+def splits(quick: bool) -> list[Split]:
+    """The shared data sets with the splits their README gives."""
+    result = []
+    for name, u, y in (
+        ("daisy_robot-arm.csv", "u", "y"),
+        ("daisy_ball-and-beam.csv", "u", "y"),
+        ("daisy_exchanger.csv", "q", "th"),
+    ):
+        uu, yy = _csv(name, u, y)
+        build = len(yy) * 2 // 3
+        result.append(Split(name.removesuffix(".csv"), uu, yy, build + 1, "first 2/3 build"))
+    u_id, y_id = _csv("buck_converter_id.csv", "input", "y")
+    u_va, y_va = _csv("buck_converter_valid.csv", "input", "y")
+    result.append(
+        Split("buck_converter", np.r_[u_id, u_va], np.r_[y_id, y_va], len(y_id) + 1, "build _id, test _valid")
+    )
+    if quick:
+        return result
+    u, y = _csv("silverbox_multisine.csv", "u", "y")
+    result.append(Split("silverbox_multisine", u, y, 65_063, "README split"))
+    u, y = _csv("silverbox_arrow.csv", "u", "y")
+    result.append(Split("silverbox_arrow (first 32 000 test)", u[: 65_062 + 32_000], y[: 65_062 + 32_000], 65_063,
+                        "test rows inside the build amplitudes"))  # fmt: skip
+    result.append(Split("silverbox_arrow (all test)", u, y, 65_063, "end extrapolates beyond the build amplitudes"))
+    return result
+
+
+def _rmse(y: np.ndarray, y_hat: np.ndarray) -> float:
+    return float(np.sqrt(np.mean((y - y_hat) ** 2))) if np.all(np.isfinite(y_hat)) else math.nan
+
+
+def frols_model(lag: int, degree: int, u: np.ndarray, y: np.ndarray):
+    from sysidentpy.basis_function import Polynomial
+    from sysidentpy.model_structure_selection import FROLS
+    from sysidentpy.parameter_estimation import LeastSquares
+
+    dictionary = math.comb(2 * lag + degree, degree)
+    model = FROLS(
+        order_selection=True,
+        n_info_values=min(30, dictionary - 1),
+        ylag=lag,
+        xlag=lag,
+        info_criteria="aic",
+        estimator=LeastSquares(),
+        basis_function=Polynomial(degree=degree),
+    )
+    model.fit(X=u[:, None], y=y[:, None])
+    return model
+
+
+def frols_free_run(model, u: np.ndarray, y: np.ndarray, start: int) -> np.ndarray:
+    """SysIdentPy's simulation, seeded with the measured outputs just before ``start``."""
+    lag = model.max_lag
+    with np.errstate(all="ignore"):
+        y_hat = model.predict(X=u[start - lag :, None], y=y[start - lag :, None])
+    return np.asarray(y_hat, float).ravel()[lag:]
+
+
+def run_frols(split: Split) -> dict:
+    began = time.perf_counter()
+    start = split.test_from - 1
+    u, y = split.u[:start], split.y[:start]
+    validation = start - max(50, round(VALIDATION_FRACTION * start))
+    tried = []
+    for lag, degree in FROLS_GRID:
+        if math.comb(2 * lag + degree, degree) > FROLS_MAX_DICTIONARY or 40 * lag > validation:
+            continue
+        try:
+            model = frols_model(lag, degree, u[:validation], y[:validation])
+            score = _rmse(y[validation:], frols_free_run(model, u, y, validation))
+        except (ValueError, np.linalg.LinAlgError, FloatingPointError):
+            score = math.nan
+        tried.append((score if math.isfinite(score) else math.inf, lag, degree))
+    _, lag, degree = min(tried)
+    model = frols_model(lag, degree, u, y)
+    y_free = frols_free_run(model, split.u, split.y, start)
+    return {
+        "rmse_free_run": _rmse(split.y[start:], y_free),
+        "seconds": time.perf_counter() - began,
+        "model": f"lags {lag}/{lag}, degree {degree}, {len(model.final_model)} terms",
+    }
+
+
+def run_lenn(split: Split) -> dict:
+    began = time.perf_counter()
+    result = fit(Data(split.u, split.y, split.name), split.test_from)
+    report = result["report"]
+    m = report["model"]
+    return {
+        "rmse_free_run": report["rmse_free_run"],
+        "seconds": time.perf_counter() - began,
+        "model": f"lags {m['structure']['y_lags']}/{m['structure']['u_lags']}, "
+        f"degree {m['expansion']['degree']}, {m['n_terms']} terms",
+        "clipped": report["free_run"]["clipped_inputs"],
+    }
+
+
+def _fmt(value: float) -> str:
+    return "diverged" if not math.isfinite(value) else f"{value:.4g}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="the small data sets only")
+    parser.add_argument("--json", action="store_true")
+    args = parser.parse_args(argv)
+    warnings.filterwarnings("ignore")  # SysIdentPy warns per candidate (overflow in diverging simulations)
+    # compile the LeNN kernels once, outside the timed runs
+    rng = np.random.default_rng(0)
+    u0 = rng.uniform(-1, 1, 400)
+    fit(Data(u0, np.convolve(u0, [0.0, 0.5, 0.2])[:400], "warm-up"), 301, max_lag=2)
+    rows = []
+    for split in splits(args.quick):
+        lenn, frols = run_lenn(split), run_frols(split)
+        rows.append({"data": split.name, "split": split.note, "test_samples": len(split.y) - split.test_from + 1,
+                     "lenn": lenn, "frols": frols})  # fmt: skip
+        print(f"done {split.name}", file=sys.stderr, flush=True)
+    if args.json:
+        print(json.dumps(rows, indent=1))
+        return 0
+    print("| data (test samples) | lenn-ros fit: free-run RMSE | SysIdentPy FROLS: free-run RMSE | ratio | "
+          "lenn-ros fit: time (s) | FROLS: time (s) | lenn-ros model | FROLS model |")  # fmt: skip
+    print("|---|---|---|---|---|---|---|---|")
+    for row in rows:
+        lenn, frols = row["lenn"], row["frols"]
+        ratio = lenn["rmse_free_run"] / frols["rmse_free_run"] if math.isfinite(frols["rmse_free_run"]) else math.nan
+        print(
+            f"| {row['data']} ({row['test_samples']}) | {_fmt(lenn['rmse_free_run'])} | {_fmt(frols['rmse_free_run'])} "
+            f"| {_fmt(ratio)} | {lenn['seconds']:.1f} | {frols['seconds']:.1f} | {lenn['model']} | {frols['model']} |"
+        )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,211 @@
+"""``lenn-ros fit``: structure selection, compiled free run, params/weights round trip, user mistakes.
+
+Synthetic data come from a known NARX plant with a cubic stiffness (a small
+Silverbox), so the test can check that the selection finds what matters; one test
+runs on a slice of the real Silverbox recording.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from lenn_ros.config import ConfigError, build_identifier, read_params_file, resolve
+from lenn_ros.core.evaluation import free_run_problems
+from lenn_ros.core.examples import get_example
+from lenn_ros.core.expansions import format_terms, parse_terms
+from lenn_ros.core.scaling import Scaling
+from lenn_ros.core.selection import TermModel, forward_regression
+from lenn_ros.core.structure import Identifier
+from lenn_ros.fit import Data, fit
+
+SILVERBOX = Path(__file__).resolve().parents[2] / "shared" / "data" / "silverbox_multisine.csv"
+
+
+def cubic_plant(n: int, seed: int, noise: float = 0.002) -> tuple[np.ndarray, np.ndarray]:
+    """y(k) = 1.5 y(k-1) - 0.7 y(k-2) + 0.35 u(k-1) - 0.4 y(k-1)^3, plus output noise."""
+    rng = np.random.default_rng(seed)
+    u = np.convolve(rng.uniform(-1, 1, n), np.ones(3) / 3, mode="same") + 0.3
+    y = np.zeros(n)
+    for k in range(2, n):
+        y[k] = 1.5 * y[k - 1] - 0.7 * y[k - 2] + 0.35 * u[k - 1] - 0.4 * y[k - 1] ** 3
+    return u, y + noise * rng.standard_normal(n)
+
+
+def linear_arx_free_run(u: np.ndarray, y: np.ndarray, start: int) -> float:
+    """Free-run RMSE of a least-squares ARX(2, 2) on the same split: the bar to clear."""
+    k = np.arange(2, start)
+    regressors = np.c_[y[k - 1], y[k - 2], u[k - 1], u[k - 2], np.ones(len(k))]
+    theta = np.linalg.lstsq(regressors, y[k], rcond=None)[0]
+    sim = y.copy()
+    for j in range(start, len(y)):
+        sim[j] = theta @ [sim[j - 1], sim[j - 2], u[j - 1], u[j - 2], 1.0]
+    return float(np.sqrt(np.mean((sim[start:] - y[start:]) ** 2)))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_fit_finds_the_cubic_term_and_beats_linear_arx(seed: int) -> None:
+    u, y = cubic_plant(3000, seed)
+    result = fit(Data(u, y, "synthetic"), 2001)
+    report = result["report"]
+    assert report["samples"] == 1000
+    assert "y1^3" in report["model"]["expansion"]["terms"] or "y1^2" in report["model"]["expansion"]["terms"]
+    assert report["rmse_free_run"] < 0.5 * linear_arx_free_run(u, y, 2000)
+    assert report["rmse_free_run"] < 0.01  # noise is 0.002; the output spans about +-1
+    assert report["warnings"] == []
+    assert report["free_run"]["diverged"] is False
+    chosen = report["choices"]["candidates"][report["choices"]["chosen"]]
+    assert chosen["rmse_free_run_validation"] == min(
+        c["rmse_free_run_validation"] for c in report["choices"]["candidates"] if c["rmse_free_run_validation"]
+    )
+
+
+def test_cli_json_params_and_weights_rebuild_the_same_model(tmp_path: Path) -> None:
+    u, y = cubic_plant(2500, 3)
+    data = tmp_path / "log.csv"
+    np.savetxt(data, np.c_[np.arange(len(u)), u, y], delimiter=",", header="t,input,output", comments="")
+    out = tmp_path / "model"
+    done = subprocess.run(
+        [sys.executable, "-m", "lenn_ros.cli", "fit", str(data), "--u", "input", "--y", "2", "--test-from", "2001",
+         "--json", "-o", str(out), "--plot", str(tmp_path / "fit.png")],
+        capture_output=True, text=True, timeout=300, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    for key in ("rmse", "rmse_free_run", "nmse_db", "nmse_free_run_db", "samples", "model", "choices"):
+        assert key in report
+    assert report["samples"] == 500
+    assert {"structure", "expansion", "n_terms", "solver"} <= set(report["model"])
+    assert (tmp_path / "fit.png").stat().st_size > 0
+    document = yaml.safe_load((out / "params.yaml").read_text())
+    assert list(document) == ["/**"]
+    values = read_params_file(out / "params.yaml")
+    resolved, network = resolve(values)
+    identifier = build_identifier(resolved, network)
+    identifier.model.load_state(out / "weights.npz")
+    y_free = identifier.free_run(u, y, 2000)
+    rmse = float(np.sqrt(np.mean((y_free - y[2000:]) ** 2)))
+    assert rmse == pytest.approx(report["rmse_free_run"], rel=1e-9)
+    # live: RLS keeps adapting from the fitted weights without losing the model
+    identifier.learning = True
+    before = identifier.model.weights_.copy()
+    errors = [identifier.step(k, float(u[k]), float(y[k])).error for k in range(2000, 2500)]
+    errors = np.array([e for e in errors if e is not None])
+    assert not np.array_equal(before, identifier.model.weights_)
+    assert np.sqrt(np.mean(errors**2)) < 0.01
+
+
+def test_compiled_free_run_equals_the_python_loop_and_counts_clipping() -> None:
+    example = get_example(1)
+    rng = np.random.default_rng(5)
+    u = rng.uniform(-1.5, 1.5, 600)  # beyond the scale: inputs get clipped
+    y = np.sin(np.arange(600) / 7.0)
+    identifier = Identifier(example.structure, example.make_network("lenn", 0))
+    compiled = identifier.free_run(u, y, 100)
+    window, y_model, clipped = example.structure.warm_up, y.copy(), 0
+    for k in range(99, 599):
+        x, linear = example.structure.regressors(u[k - window + 1 : k + 1], y_model[k - window + 1 : k + 1])
+        clipped += int(np.count_nonzero(np.abs(x[-1]) > 1.0))
+        y_model[k + 1] = linear[-1] + identifier.model.predict(np.clip(x[-1:], -1.0, 1.0))[0]
+    assert np.allclose(compiled, y_model[100:], rtol=0, atol=1e-12)
+    assert clipped > 0
+    assert identifier.last_free_run["clipped_inputs"] == clipped
+    assert identifier.counters["clipped_free_run"] == clipped
+
+
+def test_unstable_free_run_is_flagged_not_printed_as_a_number() -> None:
+    scaling = Scaling(0.0, 1.0, 0.0, 1.0)
+    u, y = np.ones(200), np.zeros(200)
+    exploding = TermModel(1, 1, scaling, parse_terms(["y1", "u1"], 1, 1), weights=np.array([30.0, 1.0]))
+    y_sim, clipped, diverged_at = exploding.free_run(u, y, 10)
+    assert diverged_at > 10 and np.isnan(y_sim[-1])
+    problems = free_run_problems(y[10:] + np.sin(np.arange(190)), y_sim, {"diverged": True, "diverged_at": 11})
+    assert "free run diverged at sample 12" in problems[0]
+    # an unstable model that only saturates (inputs clipped at +-1) is reported by its clipping
+    saturating = TermModel(1, 1, scaling, parse_terms(["y1", "u1"], 1, 1), weights=np.array([1.5, 1.0]))
+    y_sim, clipped, diverged_at = saturating.free_run(u, y, 10)
+    assert diverged_at == -1 and clipped > 150
+    problems = free_run_problems(np.sin(np.arange(190)), y_sim, {"clipped_inputs": clipped})
+    assert any("worse than predicting the mean" in p for p in problems)
+    assert any(f"{clipped} free-run network inputs" in p for p in problems)
+
+
+def test_forward_regression_ranks_the_true_terms_first() -> None:
+    rng = np.random.default_rng(0)
+    features = rng.uniform(-1, 1, (2000, 8))
+    targets = 2.0 * features[:, 3] - 1.0 * features[:, 6] + 0.01 * rng.standard_normal(2000)
+    order, ratios = forward_regression(features, targets, 4)
+    assert order[:2] == [3, 6]
+    assert ratios[0] > ratios[1] > ratios[2]
+
+
+def test_term_names_round_trip() -> None:
+    rows = np.array([[0, 0, 0, 0], [3, 0, 0, 0], [1, 0, 0, 2], [0, 1, 1, 0]])
+    names = format_terms(rows, 2)
+    assert names == ["1", "y1^3", "y1*u2^2", "y2*u1"]
+    assert np.array_equal(parse_terms(names, 2, 2), rows)
+    with pytest.raises(ValueError, match="y_lags=2"):
+        parse_terms(["y3"], 2, 2)
+
+
+def test_params_file_keys_and_typos(tmp_path: Path) -> None:
+    for key in ("/**", "/**/identifier", "identifier", "/robot/identifier"):
+        path = tmp_path / "p.yaml"
+        path.write_text(yaml.safe_dump({key: {"ros__parameters": {"y_lags": 2}}}))
+        assert read_params_file(path)["y_lags"] == 2
+    path.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"y_lag": 2, "u_type": "std_msgs/msg/Float64"}}}))
+    with pytest.raises(ConfigError, match=r"'y_lag'.*did you mean 'y_lags'"):
+        resolve(read_params_file(path))
+    path.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"uscale": 2.0}}}))
+    with pytest.raises(ConfigError, match=r"'uscale'.*'u_scale'"):
+        resolve(read_params_file(path))
+
+
+@pytest.mark.parametrize(
+    ("arguments", "message"),
+    [
+        (["--test-from", "5"], "at least 100"),
+        (["--test-from", "9999"], "outside the data's samples"),
+        (["--u", "speed", "--test-from", "500"], "no column 'speed'; columns are u, y, z"),
+        (["--y", "z", "--test-from", "500"], "constant"),
+    ],
+)
+def test_new_user_mistakes_get_one_line_naming_the_fix(tmp_path: Path, arguments: list[str], message: str) -> None:
+    u, y = cubic_plant(1000, 0)
+    data = tmp_path / "log.csv"
+    np.savetxt(data, np.c_[u, y, np.ones(1000)], delimiter=",", header="u,y,z", comments="")
+    done = subprocess.run(
+        [sys.executable, "-m", "lenn_ros.cli", "fit", str(data), *arguments],
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert done.returncode == 2
+    assert message in done.stderr
+    assert len(done.stderr.strip().splitlines()) == 1
+    assert "Traceback" not in done.stderr
+
+
+def test_three_columns_without_names_ask_for_them(tmp_path: Path) -> None:
+    data = tmp_path / "log.csv"
+    np.savetxt(data, np.random.default_rng(0).normal(size=(300, 3)), delimiter=",")
+    done = subprocess.run(
+        [sys.executable, "-m", "lenn_ros.cli", "fit", str(data), "--test-from", "200"],
+        capture_output=True, text=True, timeout=120, check=False,
+    )  # fmt: skip
+    assert done.returncode == 2 and "pass --u COL --y COL" in done.stderr
+
+
+@pytest.mark.skipif(not SILVERBOX.exists(), reason="shared Silverbox data not present")
+def test_silverbox_slice_beats_linear_and_polynomial_narx_level() -> None:
+    """Real data (a slice, to stay fast): the cubic spring must be found and simulated."""
+    table = np.loadtxt(SILVERBOX, delimiter=",", skiprows=1, max_rows=30_000)
+    u, y = table[:, 1], table[:, 2]
+    report = fit(Data(u, y, "silverbox slice"), 24_001)["report"]
+    assert report["rmse_free_run"] < 0.5 * linear_arx_free_run(u, y, 24_000)
+    assert report["rmse_free_run"] < 0.002  # FROLS reaches ~0.0043 on the full split
+    assert any("^3" in term or "^2" in term for term in report["model"]["expansion"]["terms"])

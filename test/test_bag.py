@@ -552,3 +552,57 @@ def test_repair_keeps_sequence_and_publish_time(tmp_path: Path) -> None:
     messages = list(iter_messages(cut))
     assert [m.sequence for m in messages] == list(range(1, len(messages) + 1))
     assert all(m.publish_time_ns == m.log_time_ns + 3 for m in messages)
+
+
+@pytest.mark.parametrize("compression", ["ZSTD", "LZ4", "NONE"])
+def test_bag_from_another_writer(tmp_path: Path, compression: str) -> None:
+    """An .mcap written by mcap_ros2's writer (compressed chunks): same series through the fast path."""
+    from mcap.writer import CompressionType
+    from mcap_ros2.writer import Writer as Ros2Writer
+
+    from lenn_ros.bag.reader import read_summary
+    from lenn_ros.bag.scalars import _bulk
+
+    bag = tmp_path / "other"
+    bag.mkdir()
+    with (bag / "other.mcap").open("wb") as f:
+        writer = Ros2Writer(f, chunk_size=512, compression=CompressionType[compression])
+        schema = writer.register_msgdef("std_msgs/msg/Float64", "float64 data\n")
+        for k in range(100):
+            writer.write_message("/u", schema, {"data": k / 4}, log_time=k, publish_time=k, sequence=k + 1)
+            writer.write_message("/y_p", schema, {"data": -k / 4}, log_time=k, publish_time=k, sequence=k + 1)
+        writer.finish()
+    run = read_run(bag)  # no metadata.yaml: the single .mcap is read
+    assert run.u.tolist() == [k / 4 for k in range(100)] and run.y_p_sequence.tolist() == list(range(1, 101))
+    file, summary = read_summary(bag)
+    channel = next(c for c in summary.channels.values() if c.topic == "/u")
+    fast = _bulk(file, summary, channel.id, "std_msgs/msg/Float64")  # raises rather than taking the slow path
+    assert fast.values.tolist() == run.u.tolist()
+    assert bag_info(bag)["topics"]["/y_p"]["missing"] == 0
+
+
+def test_unchunked_file_takes_the_general_path(tmp_path: Path) -> None:
+    from mcap.writer import Writer
+
+    bag = tmp_path / "flat"
+    bag.mkdir()
+    with (bag / "flat.mcap").open("wb") as f:
+        writer = Writer(f, use_chunking=False)
+        writer.start(profile="ros2")
+        schema = writer.register_schema("std_msgs/msg/Float64", "ros2msg", b"float64 data\n")
+        channels = {name: writer.register_channel(name, "cdr", schema) for name in ("/u", "/y_p")}
+        for k in range(10):
+            for name, sign in (("/u", 1), ("/y_p", -1)):
+                writer.add_message(channels[name], k, b"\x00\x01\x00\x00" + np.float64(sign * k).tobytes(), k, k + 1)
+        writer.finish()
+    run = read_run(bag)
+    assert run.y_p.tolist() == [-float(k) for k in range(10)] and run.u_sequence.tolist() == list(range(1, 11))
+
+
+def test_sqlite_bag_is_refused_with_the_fix(tmp_path: Path) -> None:
+    bag = tmp_path / "old"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    (bag / "old_0.db3").write_bytes(b"SQLite format 3\x00")
+    with pytest.raises(BagError, match=r"sqlite3 storage.*ros2 bag convert"):
+        read_run(bag)

@@ -56,7 +56,10 @@ class FaultyPlant:
     def second_publisher_u(self, values: list[float]) -> None:
         """A second writer on u: its sequence numbers collide with old samples."""
         self.second_u = self.second_u or self.node.create_publisher(Float64, topics.U, topics.data_qos())
-        time.sleep(0.5)  # let it match
+        deadline = time.monotonic() + 20
+        while self.second_u.get_subscription_count() < self.u.get_subscription_count():
+            assert time.monotonic() < deadline, "the second u publisher did not match the identifier"
+            time.sleep(0.05)
         for value in values:
             self.second_u.publish(Float64(data=value))
 
@@ -78,7 +81,9 @@ def run_identifier(tmp_path: Path, domain: int, inject: bool) -> tuple[np.ndarra
             plant.pair(1e9, 0.1)  # absurd u (u_limit 1000)
             plant.pair(0.3, -5e3)  # absurd y_p (y_limit 100)
             expected += 4
-            plant.second_publisher_u([0.5, 0.6, 0.7])  # indices 1, 2, 3 again: stale
+            # every genuine pair taken first: then indices 1, 2, 3 again can only be stale
+            listener.wait_status(lambda s: s["counters"]["paired"] == expected, 60)
+            plant.second_publisher_u([0.5, 0.6, 0.7])
         status = listener.wait_status(
             lambda s: s["counters"]["paired"] == expected and (not inject or s["counters"]["stale"] == 3), 60
         )
@@ -94,7 +99,7 @@ def test_injected_faults_leave_the_weights_exactly_unchanged(tmp_path: Path, dom
     clean_weights, clean = run_identifier(tmp_path, domain, inject=False)
     faulty_weights, faulty = run_identifier(tmp_path, domain, inject=True)
     assert clean["counters"]["learned"] == faulty["counters"]["learned"] > 300
-    assert np.array_equal(clean_weights, faulty_weights)
+    assert np.array_equal(clean_weights, faulty_weights), (clean["counters"], faulty["counters"])
     counters = faulty["counters"]
     assert counters["nan"] == 2 and counters["out_of_range"] == 2 and counters["rejected"] == 4
     assert counters["stale"] == 3 and counters["restarts"] == 0

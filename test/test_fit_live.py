@@ -1,0 +1,90 @@
+"""From offline to online: the identifier node starts from ``lenn-ros fit -o DIR`` and keeps adapting.
+
+A real identifier process over DDS, configured only by the params file and weights
+``fit`` wrote; its live predictions must equal the same model stepped offline
+(RLS adapting from the fitted weights), and the weights it saves must have moved.
+"""
+
+from __future__ import annotations
+
+import signal
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytestmark = [pytest.mark.ros, pytest.mark.timeout(180)]
+
+rclpy = pytest.importorskip("rclpy")
+
+from rosutil import Listener, Talker, final_status, start_node, stop  # noqa: E402
+from test_fit import cubic_plant  # noqa: E402
+
+from lenn_ros.config import build_identifier, read_params_file, resolve  # noqa: E402
+from lenn_ros.core.networks import OnlineRegressor  # noqa: E402
+from lenn_ros.fit import Data, fit, write_outputs  # noqa: E402
+
+
+class SeriesTalker(Talker):
+    """Publishes given (u, y_p) pairs, u then y_p, from one node (sequence pairing)."""
+
+    def wait_subscribers(self, count: int, timeout: float = 30) -> bool:
+        """Both topics matched by ``count`` subscribers (the listener and the identifier)."""
+        deadline = time.monotonic() + timeout
+        while min(p.get_subscription_count() for p in self.pubs) < count:
+            if time.monotonic() > deadline:
+                return False
+            time.sleep(0.05)
+        return True
+
+    def publish_series(self, u: np.ndarray, y: np.ndarray) -> None:
+        for a, b in zip(u, y, strict=True):
+            self.pubs[0].publish(self.msg(data=float(a)))
+            self.pubs[1].publish(self.msg(data=float(b)))
+            self.sent += 1
+
+
+def test_node_starts_from_the_fitted_model_and_keeps_adapting(tmp_path: Path, domain: int) -> None:
+    u, y = cubic_plant(2600, 7)
+    result = fit(Data(u, y, "synthetic"), 2001)
+    files = write_outputs(tmp_path / "model", result, u[:2000], y)
+    live_u, live_y = u[2000:], y[2000:]
+    listener = Listener(domain)
+    talker = SeriesTalker(domain)
+    identifier = start_node(
+        "identifier",
+        f"weights_in:={files['weights']}",
+        f"weights_out:={tmp_path / 'after.npz'}",
+        "wait_for_y_hat_subscribers:=1",
+        params_file=Path(files["params"]),
+    )
+    try:
+        assert talker.wait_subscribers(2), "identifier never subscribed"
+        talker.publish_series(live_u, live_y)
+        assert talker.acked(20)
+        listener.wait_status(lambda s: s["counters"]["samples"] == len(live_u), timeout=60)
+    finally:
+        _, err = stop(identifier, signal.SIGINT)
+        talker.close()
+        listener.close()
+    assert identifier.returncode == 0, err[-2000:]
+    counters = final_status(err)["counters"]
+    assert counters["learned"] == len(live_u) - result["identifier"].structure.warm_up
+    assert counters["model_clipped"] == 0  # the network inputs the Identifier clipped (none here)
+    # offline: the same files, the same samples, stepped with learning on
+    resolved, network = resolve(read_params_file(files["params"]))
+    offline = build_identifier(resolved, network)
+    offline.model.load_state(files["weights"])
+    offline.mark_healthy()
+    expected = [r.y_hat_next for k in range(len(live_u)) if (r := offline.step(k, live_u[k], live_y[k])).y_hat_next]
+    got = listener.values["y_hat"]
+    assert len(got) == len(expected)
+    assert np.allclose(got, expected, rtol=0, atol=1e-9)
+    # the model kept adapting and is still a good simulator of the plant
+    fitted = OnlineRegressor.load(files["weights"]).weights_
+    after = OnlineRegressor.load(tmp_path / "after.npz")
+    assert not np.array_equal(fitted, after.weights_)
+    offline.model.set_state(after.state())
+    y_free = offline.free_run(u, y, 2000)
+    assert np.sqrt(np.mean((y_free - y[2000:]) ** 2)) < 2.0 * result["report"]["rmse_free_run"] + 1e-3

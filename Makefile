@@ -1,11 +1,17 @@
 # Two commands a new user needs: `make demo` and `make test`. Both set up .venv first.
-PYTHON ?= python3.11
+# The rclpy wheels exist for CPython 3.11-3.13: take the first of them on PATH (or pass PYTHON=...).
+PYTHON ?= $(firstword $(foreach candidate,python3.11 python3.12 python3.13,$(shell command -v $(candidate) 2>/dev/null)))
 VENV ?= .venv
 BIN := $(VENV)/bin
 
 .PHONY: setup demo test reproduce bench lint clean
 
 $(BIN)/lenn-ros: setup.py setup.cfg
+	@if [ -z "$(PYTHON)" ]; then \
+		echo "make: no python3.11, python3.12 or python3.13 on PATH (the rclpy wheels need one of them):" \
+			"install one (Ubuntu 24.04: apt install python3.12-venv) or pass PYTHON=/path/to/python3.1x" >&2; \
+		exit 1; \
+	fi
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
 	$(BIN)/pip install --quiet -e '.[ros,test]'

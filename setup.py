@@ -14,6 +14,7 @@ setup(
         ("share/ament_index/resource_index/packages", [f"resource/{PACKAGE}"]),
         (f"share/{PACKAGE}", ["package.xml"]),
         (f"share/{PACKAGE}/config", sorted(glob("config/*.yaml"))),
+        (f"share/{PACKAGE}/launch", sorted(glob("launch/*.launch.py"))),
     ],
     python_requires=">=3.11",
     install_requires=[
@@ -37,6 +38,9 @@ setup(
             "ros-jazzy-rmw-fastrtps-cpp",
             "ros-jazzy-domain-coordinator",
         ],
+        # peer comparison only (bench/peer_narx.py): SysIdentPy's FROLS polynomial NARX.
+        # It pins numpy < 2.4 (pip downgrades numpy when this extra is installed).
+        "bench": ["sysidentpy>=0.9"],
         "test": [
             "pytest>=8",
             "pytest-timeout>=2.3",

@@ -41,8 +41,16 @@ def main() -> None:
                 f"#   ros2 run lenn_ros identifier --ros-args --params-file config/{name}   (or: identifier ...)\n"
                 f"#   ros2 run lenn_ros plant_simulator --ros-args --params-file config/{name}\n"
                 f"#   lenn-ros evaluate BAG --params config/{name}\n"
+                f"# Keys '/**/identifier' apply in any namespace; a node renamed with -r __node:=NAME\n"
+                f"# needs its own key ('/**/NAME') or '/**' (all nodes).\n"
             )
-            document = {"identifier": {"ros__parameters": params}, "plant_simulator": {"ros__parameters": simulator}}
+            # "/**/name": that node in any namespace (ros2 run ... -r __ns:=/robot1 still reads it). Not "/**"
+            # alone: the recorder's `output` (bag directory) and the identifier's `output` (tanh/linear)
+            # share a name, so parameters for every node would leak between nodes started with this file.
+            document = {
+                "/**/identifier": {"ros__parameters": params},
+                "/**/plant_simulator": {"ros__parameters": simulator},
+            }
             (CONFIG / name).write_text(header + yaml.safe_dump(document, sort_keys=False))
 
 

@@ -328,3 +328,43 @@ def test_replay_loop_restarts_the_stream(tmp_path: Path, domain: int) -> None:
     one_pass = [(k + 1, float(k)) for k in range(n)]
     assert received[: 3 * n] == one_pass * 3, received
     assert len(starts) >= 3 and set(starts) == {4}
+
+
+@pytest.mark.timeout(120)
+def test_replay_loop_identifier_learns_every_pass(tmp_path: Path, domain: int) -> None:
+    """The real identifier on a looping replay: pass 2 is a restarted run that learns like pass 1.
+
+    Before the fix every pass-2 index lay past test_start (frozen, nothing learnt); with new
+    publishers but without waiting for the identifier to catch up, ~1000 halves of pass 2
+    arrived while the other topic still held pass 1 and were dropped as stale.
+    """
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    node = rclpy.create_node("samples_listener", context=ctx)
+    rows: list[list[float]] = []
+    two_passes = threading.Event()
+
+    def on_sample(msg: object) -> None:
+        rows.append(list(msg.data))
+        if len(rows) >= 2 * 3600:
+            two_passes.set()
+
+    node.create_subscription(topics.message_class(topics.FLOAT64_ARRAY), topics.SAMPLES, on_sample, topics.data_qos())
+    executor = SingleThreadedExecutor(context=ctx)
+    executor.add_node(node)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    identifier = start_node("identifier", params_file=REPO / "config" / "example1_lenn.yaml")
+    replay = start_node("replay", f"bag:={REPO / 'bags' / 'example1'}", "loop:=true", "rate:=0.0")
+    try:
+        assert two_passes.wait(45), f"{len(rows)} samples from the identifier"
+    finally:
+        stop(replay)
+        _out, ident_err = stop(identifier)
+        executor.shutdown()
+        node.destroy_node()
+        ctx.try_shutdown()
+    index = [int(r[0]) for r in rows[: 2 * 3600]]
+    assert index == list(range(1, 3601)) * 2, "pass 2 is not samples 1..3600 again"
+    learnt = [sum(r[4] for r in rows[p * 3600 : (p + 1) * 3600]) for p in (0, 1)]
+    assert learnt[1] == learnt[0] > 2900, learnt  # the training phase (3000) minus the lags, both passes
+    assert "dropped" not in ident_err

@@ -25,7 +25,8 @@ Before exiting, replay waits until every subscriber has acknowledged every sampl
 Looping (``loop``): each pass is a new stream, as if the run were recorded again. Replay
 waits until the last pass is acknowledged, then publishes through *new* publishers, so
 the DDS publication sequence numbers (the sample index the identifier pairs by) start
-at 1 again, and it re-publishes ``test_start``. Counting on instead would make the
+at 1 again, re-publishes ``test_start``, and holds sample 2 until every reader has
+acknowledged sample 1 (so both of a subscriber's readers know the new writers). Counting on instead would make the
 identifier take pass 2 as samples N+1.. of one history: past ``test_start``, so learning
 would stay frozen for every later pass.
 """
@@ -119,14 +120,43 @@ class Replay(Node):
         self.pub_u = self.create_publisher(self._msg, topics.U, topics.data_qos())
         self.pub_y = self.create_publisher(self._msg, topics.Y_P, topics.data_qos())
 
-    def _restart_stream(self) -> None:
+    def _restart_stream(self, executor: SingleThreadedExecutor) -> None:
         acked = self.wait_acked()
         if not acked:
             self.get_logger().warning("previous pass not acknowledged by every subscriber before restarting")
+        self._wait_identifier_idle(executor)
         self.destroy_publisher(self.pub_u)
         self.destroy_publisher(self.pub_y)
         self._open_stream()
         self.get_logger().info(f"pass {self.passes + 1}: new publishers, sample indices restart at 1")
+
+    def _wait_identifier_idle(self, executor: SingleThreadedExecutor, quiet: float = 0.3) -> None:
+        """With an identifier on the graph: wait until its y_hat stops coming (it has caught up).
+
+        Acknowledged is not processed: a lagging identifier still holds the end of the last
+        pass in its queues, and taking new u halves before old y_p halves would make them
+        look like old indices. Bounded by ``wait_timeout``.
+        """
+        if self.count_publishers(topics.Y_HAT) == 0:
+            return
+        end = time.monotonic() + (float(self._param("wait_timeout")) or 30.0)
+        last, calm_until = self.y_hat_count, time.monotonic() + quiet
+        while not self.stop.is_set() and time.monotonic() < min(calm_until, end):
+            executor.spin_once(timeout_sec=0.02)
+            if self.y_hat_count != last:
+                last, calm_until = self.y_hat_count, time.monotonic() + quiet
+
+    def _settle_new_stream(self) -> None:
+        """Hold sample 2 until every reader has acknowledged sample 1 of a new pass.
+
+        A publisher counts a subscription as soon as *it* has discovered it, but the reader
+        may discover the new writer later; the writer's history then re-sends what it
+        missed, yet a subscriber's u and y_p readers catch up in any order. The identifier
+        would see, say, y_p 1..2000 before u 1: all but sample 1 look like old indices of
+        the previous pass. An acknowledgement comes from a reader that knows the writer.
+        """
+        if not self.wait_acked(timeout=float(self._param("wait_timeout")) or 30.0):
+            self.get_logger().warning("sample 1 of the new pass not acknowledged by every subscriber")
 
     def _declare(self, name: str, default: Any, description: str, **ranges: Any) -> None:
         self.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=True, **ranges))
@@ -161,7 +191,7 @@ class Replay(Node):
         self._identifier_seen = False
         while not self.stop.is_set():
             if self.passes:
-                self._restart_stream()
+                self._restart_stream(executor)
             self._wait_for_subscribers(executor)
             if self.pub_start is not None:
                 self.pub_start.publish(topics.message_class(topics.INT64)(data=int(self.test_start)))
@@ -197,6 +227,8 @@ class Replay(Node):
             self.pub_u.publish(self._msg(data=float(self.u[k])))
             self.pub_y.publish(self._msg(data=float(self.y_p[k])))
             self.published += 1
+            if k == 0 and self.passes:
+                self._settle_new_stream()
 
     def _wait_for_progress(self, executor: SingleThreadedExecutor, window: int, timeout: float) -> bool:
         """Block while ``window`` samples are unanswered; False (give up feedback) after ``timeout``."""

@@ -124,6 +124,13 @@ def identifier_parameters(example: int, network: str, parameters: str = "calibra
         Parameter(
             "u_offset", structure.u_offset, "centre of u: the network sees (u - u_offset) / u_scale", -1e12, 1e12
         ),
+        Parameter(
+            "output_offset",
+            structure.output_offset,
+            "known constant in y^: the network learns y - output_offset (fit sets it for the MLP)",
+            -1e12,
+            1e12,
+        ),
         Parameter("separate", structure.separate, "Model 3 structure: N1[y] + N2[u] instead of one network"),
         Parameter(
             "order", int(net.get("order", 4)), "LeNN: polynomial degree per input (paper's terms / inputs)", 1, 30
@@ -183,6 +190,7 @@ def _build_identifier(values: dict[str, Any], network: str) -> Identifier:
         separate=bool(values["separate"]),
         y_offset=float(values.get("y_offset", 0.0)),
         u_offset=float(values.get("u_offset", 0.0)),
+        output_offset=float(values.get("output_offset", 0.0)),
     )
     common = {
         "n_inputs": structure.n_inputs,

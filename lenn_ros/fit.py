@@ -163,6 +163,7 @@ def fit(
     refine: bool = True,
     max_lag: int = 10,
     refit_all: bool = False,
+    network: str = "lenn",
     progress: Any = None,
 ) -> dict[str, Any]:
     """The whole procedure; returns the report (also what ``--json`` prints) and the identifier."""
@@ -209,13 +210,18 @@ def fit(
             refinement["on_all_training"] = whole.as_dict()
     forgetting = live_forgetting(start)
     identifier = build_identifier(final, u_train, y_train, forgetting)
+    described = describe_model(final, chosen, forgetting)
+    if network == "mlp":
+        say(f"training an MLP on lags {final.y_lags}/{final.u_lags} by epochs, early-stopped on the held-out tail")
+        identifier, epochs = fit_mlp(final, u_train, y_train, validation_start)
+        described = describe_mlp(identifier, epochs)
     report = score(identifier, u, y, start)
     report.update(
         {
             "data": data.source,
             "test_from": test_from,
             "train_samples": start,
-            "model": describe_model(final, chosen, forgetting),
+            "model": described,
             "choices": {
                 "scaling": {
                     "from": f"training samples 1..{start}",
@@ -285,10 +291,81 @@ def describe_model(model: TermModel, chosen: Any, forgetting: float) -> dict[str
     }
 
 
+#: MLP learning rate on the normalised target (y - offset) / scale; divided by scale^2 for y itself
+MLP_ALPHA = 0.03
+MLP_HIDDEN = [20, 10]
+
+
+def fit_mlp(selected: TermModel, u: np.ndarray, y: np.ndarray, validation_start: int):
+    """An MLP on the selected lags, trained by epochs with early stopping (SGD with momentum).
+
+    The target is centred by ``output_offset`` and the tanh output spans the y scale, so
+    one learning rate (on the normalised target) suits any units.
+    """
+    from lenn_ros.core.networks import MLP
+    from lenn_ros.core.structure import ModelStructure
+    from lenn_ros.core.training import train_epochs
+
+    s = selected.scaling
+    structure = ModelStructure(
+        y_lags=selected.y_lags,
+        u_lags=selected.u_lags,
+        y_scale=s.y_scale,
+        u_scale=s.u_scale,
+        y_offset=s.y_offset,
+        u_offset=s.u_offset,
+        output_offset=s.y_offset,
+    )
+    network = MLP(
+        n_inputs=structure.n_inputs,
+        hidden=MLP_HIDDEN,
+        output="tanh",
+        output_scale=s.y_scale,
+        alpha=MLP_ALPHA / s.y_scale**2,
+        beta=0.5,
+    )
+    identifier = Identifier(structure, network, learning=False)
+    epochs = train_epochs(identifier, u, y, validation_start, max_epochs=100, patience=10)
+    return identifier, epochs
+
+
+def describe_mlp(identifier: Identifier, epochs: Any) -> dict[str, Any]:
+    m = identifier.model
+    return {
+        "network": "mlp",
+        "structure": {"y_lags": identifier.structure.y_lags, "u_lags": identifier.structure.u_lags},
+        "expansion": {"hidden": list(m.hidden), "output": f"tanh x {m.output_scale:.6g} + output_offset"},
+        "n_terms": m.n_weights,
+        "solver": f"sgd with momentum, alpha {m.alpha:.6g}, by epochs (lags from the LeNN selection)",
+        "epochs": epochs.as_dict(),
+        "live": {"solver": "sgd", "alpha": m.alpha, "beta": m.beta},
+    }
+
+
 def params_values(identifier: Identifier, model: TermModel, forgetting: float, u: np.ndarray, y: np.ndarray):
     """``ros__parameters`` for the identifier node (and ``evaluate --params``)."""
     s = identifier.structure
     limit = float(10.0 ** math.ceil(math.log10(max(1e3, 10.0 * float(max(np.abs(u).max(), np.abs(y).max()))))))
+    if identifier.model._kind == "mlp":
+        m = identifier.model
+        return {
+            "example": 0,
+            "network": "mlp",
+            "y_lags": s.y_lags,
+            "u_lags": s.u_lags,
+            "y_scale": float(s.y_scale),
+            "u_scale": float(s.u_scale),
+            "y_offset": float(s.y_offset),
+            "u_offset": float(s.u_offset),
+            "output_offset": float(s.output_offset),
+            "hidden": [int(h) for h in m.hidden],
+            "output": m.output,
+            "output_scale": float(m.output_scale),
+            "alpha": float(m.alpha),
+            "beta": float(m.beta),
+            "u_limit": limit,
+            "y_limit": limit,
+        }
     return {
         "example": 0,
         "network": "lenn",
@@ -319,7 +396,7 @@ def write_outputs(directory: str | Path, result: dict[str, Any], u: np.ndarray, 
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     identifier, model = result["identifier"], result["model"]
-    forgetting = result["report"]["model"]["live"]["forgetting"]
+    forgetting = result["report"]["model"]["live"].get("forgetting", 1.0)
     weights = directory / "weights.npz"
     identifier.model.save(weights)
     values = params_values(identifier, model, forgetting, u, y)
@@ -342,7 +419,8 @@ def main(args: Any) -> int:
 
     data = load_data(args.data, args.u, args.y)
     progress = None if args.json else (lambda text: print(text, file=sys.stderr, flush=True))
-    result = fit(data, args.test_from, refine=not args.no_refine, progress=progress)
+    network = getattr(args, "network", "lenn") or "lenn"
+    result = fit(data, args.test_from, refine=not args.no_refine, network=network, progress=progress)
     report = result["report"]
     if args.output:
         report["files"] = write_outputs(args.output, result, data.u[: report["train_samples"]], data.y)
@@ -376,8 +454,13 @@ def format_report(report: dict[str, Any], dt: float | None = None) -> str:
             f"   {mark} lags {candidate['y_lags']}/{candidate['u_lags']}, degree {candidate['degree']}, "
             f"{candidate['basis']}: {candidate['terms']} of {candidate['dictionary']} terms, {shown}"
         )
-    terms = " + ".join(m["expansion"]["terms"])
-    lines.append(f"  model: LeNN ({m['expansion']['basis']}), {m['n_terms']} terms: {terms}")
+    if m["network"] == "mlp":
+        e = m["epochs"]
+        lines.append(f"  model: MLP {m['structure']} hidden {m['expansion']['hidden']}, {m['n_terms']} weights")
+        lines.append(f"  trained by epochs: {e['epochs']} run, best {e['best_epoch']} ({e['stopped']})")
+    else:
+        terms = " + ".join(m["expansion"]["terms"])
+        lines.append(f"  model: LeNN ({m['expansion']['basis']}), {m['n_terms']} terms: {terms}")
     refinement = c["refinement"]
     if refinement.get("done"):
         r = refinement["on_estimation_part"]
@@ -386,7 +469,12 @@ def format_report(report: dict[str, Any], dt: float | None = None) -> str:
             "held-out free-run RMSE "
             f"{r['rmse_validation_before']:.5g} -> {r['rmse_validation_after']:.5g}"
         )
-    lines.append(f"  live: RLS, forgetting {m['live']['forgetting']:.6g}")
+    live = m["live"]
+    lines.append(
+        f"  live: RLS, forgetting {live['forgetting']:.6g}"
+        if live["solver"] == "rls"
+        else f"  live: SGD, alpha {live['alpha']:.6g}, beta {live['beta']:.3g}"
+    )
     lines.append(f"  test part ({report['samples']} samples):")
     lines.append(f"    one-step: RMSE {report['rmse']:.5g}, NMSE {report['nmse_db']:.2f} dB")
     free = report["free_run"]

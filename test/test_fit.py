@@ -209,3 +209,19 @@ def test_silverbox_slice_beats_linear_and_polynomial_narx_level() -> None:
     assert report["rmse_free_run"] < 0.5 * linear_arx_free_run(u, y, 24_000)
     assert report["rmse_free_run"] < 0.002  # FROLS reaches ~0.0043 on the full split
     assert any("^3" in term or "^2" in term for term in report["model"]["expansion"]["terms"])
+
+
+def test_epochs_with_early_stopping_beat_one_pass_on_small_data() -> None:
+    """SGD on 1 500 samples: more passes help, and the kept weights are the held-out best."""
+    from lenn_ros.core.networks import FunctionalLinkNetwork
+    from lenn_ros.core.training import held_out_rmse, train_epochs
+
+    u, y = cubic_plant(1500, 4)
+    scaling = Scaling.from_training(u, y)
+    structure = TermModel(2, 2, scaling, parse_terms(["1"], 2, 2)).structure
+    network = FunctionalLinkNetwork(n_inputs=4, order=3, output="linear", alpha=0.05, beta=0.5, random_state=0)
+    identifier = Identifier(structure, network, learning=False)
+    report = train_epochs(identifier, u, y, 1200, max_epochs=40, patience=5)
+    assert report.epochs > 1
+    assert min(report.validation_rmse) < 0.8 * report.validation_rmse[0]
+    assert held_out_rmse(identifier, u, y, 1200) == pytest.approx(min(report.validation_rmse))

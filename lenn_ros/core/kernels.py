@@ -308,6 +308,7 @@ def free_run_functional_link(
     y_scale: float,
     u_offset: float,
     u_scale: float,
+    constant: float,
     known_a: np.ndarray,
     known_b: np.ndarray,
     exponents: np.ndarray,
@@ -361,6 +362,7 @@ def free_run_functional_link(
         out = 0.0
         for b in range(n_branches):
             out += output_scale * math.tanh(sums[b]) if tanh_output else sums[b]
+        out += constant
         for i in range(len(known_a)):
             out += known_a[i] * y_out[k - i]
         for i in range(len(known_b)):

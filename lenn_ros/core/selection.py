@@ -86,6 +86,7 @@ class TermModel:
             s.y_scale,
             s.u_offset,
             s.u_scale,
+            0.0,
             np.zeros(0),
             np.zeros(0),
             np.ascontiguousarray(self.exponents, dtype=np.int64),

@@ -27,6 +27,8 @@ class ModelStructure:
       so its inputs lie in [-1, 1] (a Legendre requirement).
     - ``y_offset`` / ``u_offset``: centring, the network sees (y - y_offset) / y_scale;
       real signals rarely sit symmetric about 0 (``lenn-ros fit`` takes both from the data).
+    - ``output_offset``: a known constant in y^(k+1), so a gradient-trained network
+      learns the deviation from the operating point rather than climbing to it.
     - ``separate``: Model 3's N1[y] + N2[u], two networks summed, rather than one.
     """
 
@@ -39,6 +41,7 @@ class ModelStructure:
     separate: bool = False
     y_offset: float = 0.0
     u_offset: float = 0.0
+    output_offset: float = 0.0
 
     def __post_init__(self) -> None:
         if self.y_lags < 0 or self.u_lags < 0 or self.y_lags + self.u_lags == 0:
@@ -84,7 +87,7 @@ class ModelStructure:
         columns = [(y[k - i] - self.y_offset) / self.y_scale for i in range(self.y_lags)]
         columns += [(u[k - i] - self.u_offset) / self.u_scale for i in range(self.u_lags)]
         x = np.stack(columns, axis=1) if len(k) else np.empty((0, self.n_inputs))
-        linear = np.zeros(len(k))
+        linear = np.full(len(k), float(self.output_offset))
         for i, a in enumerate(self.known_a):
             linear = linear + a * y[k - i]
         for i, b in enumerate(self.known_b):
@@ -358,6 +361,7 @@ class Identifier:
             float(structure.y_scale),
             float(structure.u_offset),
             float(structure.u_scale),
+            float(structure.output_offset),
             np.asarray(structure.known_a, dtype=np.float64),
             np.asarray(structure.known_b, dtype=np.float64),
             exponents,

@@ -123,6 +123,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--plot", metavar="FILE", help="write plant vs model (one-step and free run) on the test part")
     p.add_argument("-o", "--output", metavar="DIR", help="write DIR/params.yaml and DIR/weights.npz")
     p.add_argument("--no-refine", action="store_true", help="skip the simulation-error refinement")
+    p.add_argument(
+        "--network",
+        choices=["lenn", "mlp"],
+        default="lenn",
+        help="lenn (default: selected Legendre terms, least squares + simulation-error refinement, RLS live) "
+        "or mlp (same lags, SGD by epochs with early stopping)",
+    )
     p.set_defaults(handler=_fit)
 
     p = commands.add_parser("import-csv", help="make a bag (u, y_p) from a logged CSV file")

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 #: headroom beyond the training range, as a fraction of its half-width
-DEFAULT_MARGIN = 0.25
+DEFAULT_MARGIN = 1.0
 
 
 @dataclass(frozen=True)

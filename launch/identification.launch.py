@@ -18,9 +18,9 @@ from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument, EmitEvent, RegisterEventHandler
 from launch.event_handlers import OnProcessExit
 from launch.events import Shutdown
-from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
+from launch.substitutions import LaunchConfiguration
 from launch_ros.actions import Node
-from launch_ros.parameter_descriptions import ParameterValue
+from launch_ros.parameter_descriptions import ParameterFile, ParameterValue
 from launch_ros.substitutions import FindPackageShare
 
 ARGUMENTS = {
@@ -35,8 +35,9 @@ ARGUMENTS = {
 def generate_launch_description() -> LaunchDescription:
     """The three nodes; the launch shuts down when the simulator has sent its last sample."""
     arg = LaunchConfiguration
-    params_file = PathJoinSubstitution(
-        [FindPackageShare("lenn_ros"), "config", ["example", arg("example"), "_", arg("network"), ".yaml"]]
+    # share/lenn_ros/config/example{N}_{network}.yaml: the substitutions of a list are concatenated
+    params_file = ParameterFile(
+        [FindPackageShare("lenn_ros"), "/config/example", arg("example"), "_", arg("network"), ".yaml"]
     )
     recorder = Node(
         package="lenn_ros",

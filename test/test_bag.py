@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import shutil
 from collections import Counter
 from pathlib import Path
@@ -442,6 +443,16 @@ def test_type_from_an_installed_msg_file(tmp_path: Path, monkeypatch: pytest.Mon
         decoded = [d for *_rest, d in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages()]
     assert decoded[0].inner.gain == 2.5 and list(decoded[0].values) == [1.0, 2.0]
     assert next(iter_messages(tmp_path / "custom")).message.inner.label == "x"
+    # A fresh process without the package: the type comes from the bag's own schema text.
+    import subprocess
+    import sys
+
+    code = "import sys; from lenn_ros.bag import iter_messages; m = next(iter_messages(sys.argv[1])).message; "
+    code += "print(m.inner.label, m.values.tolist(), m.header.stamp.sec)"
+    env = {k: v for k, v in os.environ.items() if k != "AMENT_PREFIX_PATH"}
+    command = [sys.executable, "-c", code, str(tmp_path / "custom")]
+    out = subprocess.run(command, capture_output=True, text=True, env=env, cwd=Path(__file__).parents[1])
+    assert out.stdout.split() == ["x", "[1.0,", "2.0]", "1"], out.stderr
     with pytest.raises(BagError, match=r"'lenn_test_msgs/msg/Nope' is unknown.*install its message package"):
         BagWriter(tmp_path / "other").open().add_topic("/x", "lenn_test_msgs/msg/Nope")
 

@@ -216,3 +216,10 @@ def test_ros2_launch_runs_simulator_identifier_and_recorder(ros2_env: dict[str, 
     final = [line.split("identifier: ", 1)[1] for line in output.splitlines() if "identifier: {" in line]
     assert final, output[-4000:]
     assert json.loads(final[-1])["counters"]["paired"] == 500, final[-1]
+
+
+def test_the_command_line_is_reachable_through_ros2_run(ros2_env: dict[str, str]) -> None:
+    """After colcon, ``lenn-ros`` is in lib/lenn_ros (not on PATH): ``ros2 run lenn_ros lenn-ros`` reaches it."""
+    result = ros2(ros2_env, "run", "lenn_ros", "lenn-ros", "--help")
+    assert result.returncode == 0, result.stdout + result.stderr
+    assert "reproduce" in result.stdout and "evaluate" in result.stdout

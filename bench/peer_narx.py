@@ -149,6 +149,27 @@ def run_lenn(split: Split) -> dict:
     }
 
 
+def free_run_speed(steps: int = 1_000_000) -> dict:
+    """Free-run steps per second of the paper's Example-1 LeNN: compiled kernel vs the per-sample loop."""
+    from lenn_ros.core.examples import get_example
+    from lenn_ros.core.structure import Identifier
+
+    example = get_example(1)
+    identifier = Identifier(example.structure, example.make_network("lenn", 0))
+    u = np.random.default_rng(0).uniform(-1, 1, steps + 10)
+    identifier.free_run(u[:100], np.zeros(100), 10)  # compile
+    began = time.perf_counter()
+    identifier.free_run(u, np.zeros(len(u)), 10)
+    compiled = steps / (time.perf_counter() - began)
+    window, y_model, loop_steps = example.structure.warm_up, np.zeros(2010), 2000
+    began = time.perf_counter()
+    for k in range(9, 9 + loop_steps):
+        x, linear = example.structure.regressors(u[k - window + 1 : k + 1], y_model[k - window + 1 : k + 1])
+        y_model[k + 1] = linear[-1] + identifier.model.predict(np.clip(x[-1:], -1.0, 1.0))[0]
+    loop = loop_steps / (time.perf_counter() - began)
+    return {"compiled_steps_per_s": compiled, "python_loop_steps_per_s": loop, "ratio": compiled / loop}
+
+
 def _fmt(value: float) -> str:
     return "diverged" if not math.isfinite(value) else f"{value:.4g}"
 
@@ -157,12 +178,21 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--quick", action="store_true", help="the small data sets only")
     parser.add_argument("--json", action="store_true")
+    parser.add_argument("--speed-only", action="store_true", help="only the free-run speed")
     args = parser.parse_args(argv)
     warnings.filterwarnings("ignore")  # SysIdentPy warns per candidate (overflow in diverging simulations)
     # compile the LeNN kernels once, outside the timed runs
     rng = np.random.default_rng(0)
     u0 = rng.uniform(-1, 1, 400)
     fit(Data(u0, np.convolve(u0, [0.0, 0.5, 0.2])[:400], "warm-up"), 301, max_lag=2)
+    speed = free_run_speed()
+    print(
+        f"free run, Example-1 LeNN: {speed['compiled_steps_per_s'] / 1e6:.2f} M steps/s compiled, "
+        f"{speed['python_loop_steps_per_s']:.0f} steps/s per-sample Python loop ({speed['ratio']:.0f}x)",
+        file=sys.stderr if args.json else sys.stdout,
+    )
+    if args.speed_only:
+        return 0
     rows = []
     for split in splits(args.quick):
         lenn, frols = run_lenn(split), run_frols(split)

@@ -8,7 +8,7 @@ score one-step (series-parallel) and free-run (parallel) over the test samples.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -43,6 +43,8 @@ class Evaluation:
     y_hat_test: np.ndarray
     y_free_test: np.ndarray
     train_errors: np.ndarray  # a-priori error e(k) during training (learning curve)
+    free_run: dict = field(default_factory=dict)  # Identifier.last_free_run: clipped inputs, diverged
+    free_run_warnings: list[str] = field(default_factory=list)  # free_run_problems(): [] when healthy
 
     def as_dict(self) -> dict[str, float | int]:
         return {
@@ -53,6 +55,9 @@ class Evaluation:
             "samples": self.samples,
             "trained": self.trained,
             "skipped": self.skipped,
+            "free_run_clipped_inputs": int(self.free_run.get("clipped_inputs", 0)),
+            "free_run_diverged": bool(self.free_run.get("diverged", False)),
+            "free_run_warnings": list(self.free_run_warnings),
         }
 
 
@@ -100,6 +105,8 @@ def train_and_test(identifier: Identifier, series: Series) -> Evaluation:
         y_hat_test=y_hat_test,
         y_free_test=y_free,
         train_errors=(series.y - y_hat)[train_mask],
+        free_run=dict(identifier.last_free_run),
+        free_run_warnings=free_run_problems(y_test, y_free, identifier.last_free_run),
     )
 
 

@@ -1,10 +1,34 @@
-"""Figures in the style of the paper's Figs. 4-7: plant, model and error over k."""
+"""Figures in the style of the paper's Figs. 4-7: plant, model and error over k.
+
+Figures are ``matplotlib.figure.Figure`` objects drawn by the Agg canvas directly: no
+pyplot, no ``matplotlib.use``. A program that imports lenn_ros keeps its own backend
+(an interactive session, a GUI), and nothing is left in pyplot's figure registry.
+"""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import numpy as np
+from matplotlib.axes import Axes
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+
+
+def new_figure(width: float = 8.0, height: float = 3.6, dpi: int = 110) -> tuple[Figure, Axes]:
+    """One figure with one axis, bound to its own Agg canvas."""
+    figure = Figure(figsize=(width, height), dpi=dpi)
+    FigureCanvasAgg(figure)
+    return figure, figure.add_subplot()
+
+
+def save(figure: Figure, path: str | Path) -> Path:
+    """Write the figure as PNG (creating the directory)."""
+    figure.tight_layout()
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    figure.savefig(path)
+    return path
 
 
 def plot_identification(
@@ -15,15 +39,10 @@ def plot_identification(
     y_free_run: np.ndarray | None = None,
 ) -> Path:
     """Write a PNG of plant output, model output and error (one-step), as in the paper."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     y_plant = np.asarray(y_plant)
     y_model = np.asarray(y_model)
     k = np.arange(len(y_plant))
-    figure, axis = plt.subplots(figsize=(8, 3.6), dpi=110)
+    figure, axis = new_figure()
     axis.plot(k, y_plant, color="black", linewidth=1.4, label="plant")
     axis.plot(k, y_model, color="tab:red", linestyle="--", linewidth=1.2, label="model (one step)")
     if y_free_run is not None:
@@ -34,9 +53,4 @@ def plot_identification(
     axis.set_title(title, fontsize=10)
     axis.grid(alpha=0.3)
     axis.legend(loc="upper right", fontsize=8, ncol=2)
-    figure.tight_layout()
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path)
-    plt.close(figure)
-    return path
+    return save(figure, path)

@@ -94,6 +94,18 @@ class ModelStructure:
             linear = linear + b * u[k - i]
         return x, linear
 
+    def training_pairs(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Series-parallel pairs: inputs x(k), targets y(k+1) - lin(k), and lin(k).
+
+        Row r is k = warm_up - 1 + r and predicts y(k+1) = lin(k) + network(x(k)); the
+        last regressor row has no y(k+1) yet and is left out. The one place this
+        one-sample offset is written, so batch training, the learning curves and the
+        benchmarks cannot disagree about which output a row predicts.
+        """
+        x, linear = self.regressors(u, y)
+        targets = np.asarray(y, dtype=np.float64)[self.warm_up :] - linear[:-1]
+        return x[:-1], targets, linear[:-1]
+
 
 @dataclass
 class StepResult:

@@ -1,0 +1,109 @@
+"""The package's layout: no import cycles, no benchmarks inside it, figures that leave the backend alone."""
+
+from __future__ import annotations
+
+import ast
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lenn_ros.core.examples import EXAMPLES
+
+REPO = Path(__file__).resolve().parents[1]
+PACKAGE = REPO / "lenn_ros"
+
+
+def _modules() -> dict[str, Path]:
+    modules = {}
+    for path in PACKAGE.rglob("*.py"):
+        parts = path.relative_to(REPO).with_suffix("").parts
+        modules[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+    return modules
+
+
+def _imports(path: Path, modules: dict[str, Path] | None = None) -> set[str]:
+    """lenn_ros modules a file imports, at module level or inside functions.
+
+    ``from pkg import sub`` is an edge to ``pkg.sub`` when that is a module, else to ``pkg``.
+    """
+    modules = _modules() if modules is None else modules
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("lenn_ros"):
+            for alias in node.names:
+                sub = f"{node.module}.{alias.name}"
+                names.add(sub if sub in modules else node.module)
+        elif isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names if alias.name.startswith("lenn_ros"))
+    return names
+
+
+def _module_graph() -> dict[str, set[str]]:
+    """Edges between lenn_ros modules; a submodule's own parent packages are left out (Python
+    runs a package's __init__ before any of its submodules, whoever imports them)."""
+    modules = _modules()
+    return {
+        name: {m for m in _imports(path, modules) if m in modules and m != name and not name.startswith(m + ".")}
+        for name, path in modules.items()
+    }
+
+
+def test_no_import_cycles_in_the_package() -> None:
+    """Lazy imports count too: cli -> bench -> cli was such a cycle."""
+    graph = _module_graph()
+    state: dict[str, int] = {}
+
+    def visit(name: str, trail: list[str]) -> None:
+        state[name] = 1
+        for target in sorted(graph[name]):
+            if state.get(target) == 1:
+                cycle = [*trail[trail.index(target) :], target] if target in trail else [name, target]
+                pytest.fail("import cycle: " + " -> ".join(cycle))
+            if target not in state:
+                visit(target, [*trail, target])
+        state[name] = 2
+
+    for name in sorted(graph):
+        if name not in state:
+            visit(name, [name])
+
+
+def test_benchmarks_live_outside_the_installed_package() -> None:
+    assert not (PACKAGE / "bench.py").exists() and not (PACKAGE / "benchmarks").exists()
+    assert (REPO / "bench" / "speed.py").is_file()
+    assert not any("bench" in m for m in _imports(PACKAGE / "cli.py"))
+
+
+@pytest.mark.parametrize("number", [1, 2, 3, 4])
+def test_training_pairs_are_the_series_parallel_offset(number: int) -> None:
+    """Row r: x(k), k = warm_up - 1 + r, predicts y(k+1); the target is y(k+1) - lin(k)."""
+    structure = EXAMPLES[number].structure
+    rng = np.random.default_rng(number)
+    u, y = rng.uniform(-1, 1, 40), rng.uniform(-1, 1, 40)
+    inputs, targets, linear = structure.training_pairs(u, y)
+    x, lin = structure.regressors(u, y)
+    assert len(inputs) == len(targets) == len(linear) == len(y) - structure.warm_up
+    for r in (0, len(targets) - 1):
+        k = structure.warm_up - 1 + r
+        assert np.array_equal(inputs[r], x[r]) and linear[r] == lin[r]
+        assert targets[r] == y[k + 1] - lin[r]
+
+
+def test_figures_do_not_switch_the_callers_matplotlib_backend(tmp_path: Path) -> None:
+    """A caller that chose a backend keeps it after lenn_ros draws (matplotlib.use('Agg') switched it)."""
+    png = tmp_path / "figure.png"
+    code = (
+        "import matplotlib, numpy as np\n"
+        "matplotlib.use('svg')\n"
+        "from lenn_ros.plotting import plot_identification\n"
+        f"plot_identification({str(png)!r}, np.sin(np.arange(50) / 5), np.zeros(50), 'test', np.ones(50))\n"
+        "import matplotlib.pyplot as plt\n"
+        "print(matplotlib.get_backend(), len(plt.get_fignums()))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["svg", "0"]
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

@@ -188,12 +188,21 @@ def full_exponents(n_inputs: int, order: int, cross_degree: int = 0) -> np.ndarr
     return np.array(rows, dtype=np.int64).reshape(len(rows), n_inputs)
 
 
-def dictionary_exponents(n_inputs: int, degree: int, nonlinear_inputs: list[int] | None = None) -> np.ndarray:
+def dictionary_exponents(
+    n_inputs: int,
+    degree: int,
+    nonlinear_inputs: list[int] | None = None,
+    pure_degree: int = 0,
+    pure_inputs: list[int] | None = None,
+) -> np.ndarray:
     """Every term of total degree <= ``degree``: the candidate dictionary of term selection.
 
     Linear terms cover all inputs; terms of degree >= 2 only involve
     ``nonlinear_inputs`` (default: all), which keeps the dictionary small when long
     lags are wanted for the linear dynamics but the nonlinearity sits in a few recent samples.
+    ``pure_degree`` adds single-input terms P_d(x_i) of degree ``degree`` < d <= pure_degree
+    for the ``pure_inputs`` (default: the nonlinear ones): the paper's high-order per-input
+    expansion, for a strongly curved static nonlinearity.
     """
     nonlinear = list(range(n_inputs)) if nonlinear_inputs is None else list(nonlinear_inputs)
     rows = [[0] * n_inputs]
@@ -204,6 +213,11 @@ def dictionary_exponents(n_inputs: int, degree: int, nonlinear_inputs: list[int]
     for total in range(2, degree + 1):
         for combo in combinations_with_replacement(nonlinear, total):
             rows.append([combo.count(i) for i in range(n_inputs)])
+    for i in nonlinear if pure_inputs is None else pure_inputs:
+        for d in range(degree + 1, pure_degree + 1):
+            row = [0] * n_inputs
+            row[i] = d
+            rows.append(row)
     return np.array(rows, dtype=np.int64).reshape(len(rows), n_inputs)
 
 

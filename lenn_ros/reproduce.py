@@ -14,11 +14,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from lenn_ros.core.evaluation import Evaluation, least_squares_floor, simulate, train_and_test
 from lenn_ros.core.examples import EXAMPLES, TEST_SAMPLES, TRAIN_SAMPLES, get_example
 from lenn_ros.core.structure import Identifier
+from lenn_ros.experiments import report
 
 
 @dataclass
@@ -45,30 +44,15 @@ class Row:
             "beta": params["beta"],
             "seeds": self.seeds,
             "nmse_db": self.nmse,
-            "nmse_db_mean": _mean(self.nmse),
-            "nmse_db_std": _std(self.nmse),
+            "nmse_db_mean": report.mean(self.nmse),
+            "nmse_db_std": report.std(self.nmse),
             "nmse_free_run_db": self.nmse_free_run,
-            "nmse_free_run_db_mean": _mean(self.nmse_free_run),
-            "nmse_free_run_db_std": _std(self.nmse_free_run),
-            "least_squares_floor_db_mean": _mean(self.floor),
+            "nmse_free_run_db_mean": report.mean(self.nmse_free_run),
+            "nmse_free_run_db_std": report.std(self.nmse_free_run),
+            "least_squares_floor_db_mean": report.mean(self.floor),
             "paper_nmse_db": example.paper_nmse_db[self.network],
             "complexity": example.complexity(self.network).as_dict(),
         }
-
-
-def _finite(values: list[float]) -> np.ndarray:
-    array = np.asarray(values, dtype=float)
-    return array[np.isfinite(array)]
-
-
-def _mean(values: list[float]) -> float | None:
-    array = _finite(values)
-    return round(float(array.mean()), 3) if len(array) == len(values) and len(array) else None
-
-
-def _std(values: list[float]) -> float | None:
-    array = _finite(values)
-    return round(float(array.std(ddof=1)), 3) if len(array) == len(values) and len(array) > 1 else None
 
 
 def run(
@@ -83,7 +67,7 @@ def run(
     """All requested runs; the data of one seed is shared by both networks."""
     rows = {(e, n): Row(e, n, parameters, list(range(seeds))) for e in examples for n in networks}
     jobs = [(e, s) for e in examples for s in range(seeds)]
-    bar = _progress(len(jobs) * len(networks), progress)
+    bar = report.progress(len(jobs) * len(networks), progress, "reproduce")
     for number, seed in jobs:
         example = EXAMPLES[number]
         series = simulate(example.plant(), example.noise_db, seed, iterations, test_samples)
@@ -101,16 +85,8 @@ def run(
     return list(rows.values())
 
 
-def _progress(total: int, enabled: bool):
-    from tqdm import tqdm
-
-    return tqdm(total=total, disable=not enabled, unit="run", desc="reproduce", file=sys.stderr)
-
-
-def _fmt(mean: float | None, std: float | None) -> str:
-    if mean is None:
-        return "diverged"
-    return f"{mean:7.2f} ± {std:4.2f}" if std is not None else f"{mean:7.2f}"
+def _cell(mean: float | None, std: float | None) -> str:
+    return report.mean_std(mean, std, padded=True)
 
 
 def format_table(rows: list[Row]) -> str:
@@ -125,8 +101,8 @@ def format_table(rows: list[Row]) -> str:
         c = d["complexity"]
         lines.append(
             f"| {d['example']} | {d['network']} | {d['alpha']:g} | {d['beta']:g} "
-            f"| {_fmt(d['nmse_db_mean'], d['nmse_db_std'])} "
-            f"| {_fmt(d['nmse_free_run_db_mean'], d['nmse_free_run_db_std'])} "
+            f"| {_cell(d['nmse_db_mean'], d['nmse_db_std'])} "
+            f"| {_cell(d['nmse_free_run_db_mean'], d['nmse_free_run_db_std'])} "
             f"| {d['paper_nmse_db']:.2f} | {d['least_squares_floor_db_mean']:.2f} "
             f"| {c['weights']} | {c['multiplications']} | {c['additions']} | {c['tanh']} |"
         )

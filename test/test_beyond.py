@@ -14,7 +14,6 @@ from contextlib import redirect_stdout
 import numpy as np
 import pytest
 
-from lenn_ros import beyond
 from lenn_ros.core import kernels
 from lenn_ros.core.evaluation import simulate, train_and_test
 from lenn_ros.core.examples import EXAMPLES
@@ -23,6 +22,7 @@ from lenn_ros.core.networks import FunctionalLinkNetwork
 from lenn_ros.core.plants import example4_f
 from lenn_ros.core.signals import noise_std
 from lenn_ros.core.structure import Identifier
+from lenn_ros.experiments import candidates, convergence, tracking
 
 CHUNK = 100_000
 
@@ -50,9 +50,8 @@ def _example4_data(n: int, seed: int, rest: slice | None = None) -> tuple[np.nda
     for k in range(n - 1):
         y[k + 1] = example4_f(y0, y1, y2, a[k], u1)
         y0, y1, y2, u1 = y[k + 1], y0, y1, a[k]
-    x, linear = example.structure.regressors(u, np.array(y))
-    first = example.structure.warm_up - 1
-    return x[:-1], np.array(y)[first + 1 :] - linear[:-1]
+    inputs, targets, _ = example.structure.training_pairs(u, np.array(y))
+    return inputs, targets
 
 
 def _assert_healthy(weights: np.ndarray, covariance: np.ndarray) -> None:
@@ -144,39 +143,41 @@ def test_learning_curve_ends_at_train_and_test_nmse():
     """The checkpointed training sees exactly the samples train_and_test learns from."""
     example = EXAMPLES[1]
     series = simulate(example.plant(), example.noise_db, 0, train_samples=3000)
-    candidate = beyond.candidates(1)[0]
+    candidate = candidates.candidates(1)[0]
     evaluation = train_and_test(Identifier(example.structure, candidate.make(example, 0)), series)
-    curve = beyond.learning_curve(example.structure, candidate.make(example, 0), series, beyond.checkpoints(3000))
-    assert beyond.checkpoints(3000) == [250, 500, 1000, 2000, 3000]
+    curve = convergence.learning_curve(
+        example.structure, candidate.make(example, 0), series, convergence.checkpoints(3000)
+    )
+    assert convergence.checkpoints(3000) == [250, 500, 1000, 2000, 3000]
     assert curve[-1] == pytest.approx(evaluation.nmse_db, abs=1e-9)
     assert curve[0] > curve[-1]
 
 
 def test_samples_to_within_counts_from_where_the_curve_stays():
     at = [250, 500, 1000, 2000, 4000]
-    assert beyond.samples_to_within(at, [-10.0, -20.0, -20.5, -21.0, -20.8]) == 500
-    assert beyond.samples_to_within(at, [-21.0, -10.0, -20.5, -21.0, -20.8]) == 1000  # early luck not credited
-    assert beyond.samples_to_within(at, [-5.0, -10.0, -15.0, -18.0, -22.0]) == 4000
-    assert beyond.samples_to_within(at, [np.nan, -10.0, -15.0, -18.0, -22.0]) is None
+    assert convergence.samples_to_within(at, [-10.0, -20.0, -20.5, -21.0, -20.8]) == 500
+    assert convergence.samples_to_within(at, [-21.0, -10.0, -20.5, -21.0, -20.8]) == 1000  # early luck not credited
+    assert convergence.samples_to_within(at, [-5.0, -10.0, -15.0, -18.0, -22.0]) == 4000
+    assert convergence.samples_to_within(at, [np.nan, -10.0, -15.0, -18.0, -22.0]) is None
 
 
 def test_rls_lenn_example1_within_1db_of_final_in_2000_samples():
     """RLS on the paper's LeNN features (Legendre, order 14), full 50 000-sample protocol."""
     example = EXAMPLES[1]
-    candidate = beyond.candidates(1)[0]
+    candidate = candidates.candidates(1)[0]
     assert (candidate.solver, candidate.basis, candidate.order) == ("rls", "legendre", example.lenn["order"])
-    at = beyond.checkpoints(50_000)
+    at = convergence.checkpoints(50_000)
     for seed in (0, 4):  # 4: the slowest of seeds 0..4 in the report
         series = simulate(example.plant(), example.noise_db, seed)
-        curve = beyond.learning_curve(example.structure, candidate.make(example, seed), series, at)
-        assert beyond.samples_to_within(at, curve) <= 2000, (seed, curve)
+        curve = convergence.learning_curve(example.structure, candidate.make(example, seed), series, at)
+        assert convergence.samples_to_within(at, curve) <= 2000, (seed, curve)
 
 
 # -- (c) tracking a changing plant --------------------------------------------------------------
 def test_recovery_uses_whole_windows_after_the_change():
     squared = np.full(3000, 0.1)
     squared[1001:1301] = 1.0  # 300 bad samples right after the change at 1000
-    recovery, level = beyond.recovery_samples(squared, 1000, reference=500)
+    recovery, level = tracking.recovery_samples(squared, 1000, reference=500)
     assert level == pytest.approx(-10.0)
     # the window ending at 1000 + r holds 500 - r bad samples; within 1 dB of 0.1 allows
     # b of them with 0.9 b / 200 <= 0.1 (10^0.1 - 1), i.e. b <= 5, so r = 495
@@ -193,13 +194,13 @@ def test_rls_with_forgetting_recovers_within_500_samples_after_plant_change():
     this length: 395-539), while 0.99 stays near 300 on every seed.
     """
     example = EXAMPLES[1]
-    rls = beyond.candidates(1)[0]
+    rls = candidates.candidates(1)[0]
     for seed in (0, 1, 2):
-        u, y = beyond.simulate_change(seed, 15_000, 10_000)
-        result = beyond.track(lambda s=seed: rls.with_params(forgetting=0.99).make(example, s), u, y, 10_000)
+        u, y = tracking.simulate_change(seed, 15_000, 10_000)
+        result = tracking.track(lambda s=seed: rls.with_params(forgetting=0.99).make(example, s), u, y, 10_000)
         assert result.frozen_jump_db > 5.0  # the change is large for a model that stops learning
         assert result.recovery is not None and result.recovery <= 500, (seed, result.recovery)
-        stuck = beyond.track(lambda s=seed: rls.make(example, s), u, y, 10_000)
+        stuck = tracking.track(lambda s=seed: rls.make(example, s), u, y, 10_000)
         assert stuck.recovery is None or stuck.recovery > 2000  # without forgetting it does not track
 
 
@@ -208,7 +209,7 @@ def test_cross_term_rls_beats_paper_lenn_by_5db_on_example2():
     """Mean one-step NMSE over seeds 0-2, 20 000 training samples, against both the
     paper's reported LeNN figure and our calibrated LeNN on the same data."""
     example = EXAMPLES[2]
-    best = beyond.winner(2)
+    best = candidates.winner(2)
     assert best.solver == "rls" and best.cross_degree >= 2
     ours, paper = [], []
     for seed in (0, 1, 2):

@@ -140,9 +140,8 @@ def training_pairs(example: PaperExample, samples: int) -> tuple[np.ndarray, np.
     """Network inputs x and targets d (what Identifier.run feeds the model), ``samples`` rows."""
     structure = example.structure
     u, y = example_series(example.number, samples + structure.warm_up)
-    x, linear = structure.regressors(u, y)
-    first = structure.warm_up - 1
-    return np.ascontiguousarray(x[:-1]), y[first + 1 :] - linear[:-1]
+    inputs, targets, _ = structure.training_pairs(u, y)
+    return np.ascontiguousarray(inputs), targets
 
 
 def fresh_network(example: PaperExample, kind: str, x: np.ndarray, d: np.ndarray) -> OnlineRegressor:

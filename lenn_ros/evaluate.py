@@ -192,6 +192,8 @@ def evaluate_bag(path: str, params: str | None = None, test_from: int | None = N
         index, u, y, learn = recorded
         source = "samples"
         start = test_from if test_from is not None else _last_phase_start(index, learn)
+        if start is None:  # the identifier learnt throughout: score from the recorded test_start
+            start = bags.read_run(path).test_start
         if test_from is not None:
             learn = learn & (index < test_from)
     else:

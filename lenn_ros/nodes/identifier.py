@@ -139,7 +139,9 @@ class IdentifierNode(Node):
         config_publisher.publish(String(data=json.dumps(json_safe({**self.values, "network": self.network}))))
         self._sim_time = bool(self.get_parameter("use_sim_time").value)
         self._subscribe(message_types)
-        self.create_subscription(Int64, topics.TEST_START, self._on_test_start, topics.latched_qos())
+        self._test_start_subscription = self.create_subscription(
+            Int64, topics.TEST_START, self._on_test_start, topics.latched_qos()
+        )
         self.create_timer(self.values["status_period"], self._on_status_timer)
         if self.values["pairing"] != "sequence":
             self.create_timer(min(0.05, self.values["sample_period"] or 0.05), self._on_poll_timer)
@@ -299,6 +301,10 @@ class IdentifierNode(Node):
         taken = True
         while taken:
             taken = False
+            with self._test_start_subscription.handle:  # the phase must switch before its sample
+                latched = self._test_start_subscription.handle.take_message(Int64, False)
+            if latched is not None:
+                self._on_test_start(latched[0])
             for other, subscription in self._data_subscriptions.items():
                 with subscription.handle:
                     waiting = subscription.handle.take_message(subscription.msg_type, False)

@@ -12,6 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Sequence
+from typing import Any
 
 from lenn_ros.core.examples import PARAMETER_SETS, TRAIN_SAMPLES
 from lenn_ros.errors import user_error_types
@@ -70,12 +71,23 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``lenn-ros`` parser: one sub-parser per command, each built by its own ``_add_*``."""
     parser = argparse.ArgumentParser(
         prog="lenn-ros",
         description="Online LeNN / MLP identification of nonlinear dynamic systems (ROS 2).",
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    _add_reproduce(commands)
+    _add_evaluate(commands)
+    _add_fit(commands)
+    _add_import_csv(commands)
+    _add_bag_info(commands)
+    _add_bag_repair(commands)
+    _add_demo(commands)
+    return parser
 
+
+def _add_reproduce(commands: Any) -> None:
     p = commands.add_parser("reproduce", help="the paper's four examples offline, over several seeds")
     p.add_argument("--example", type=int, choices=[1, 2, 3, 4], help="one example (default: all four)")
     p.add_argument("--network", choices=["lenn", "mlp"], help="one network (default: both)")
@@ -92,6 +104,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--beyond", action="store_true", help="RLS, cross terms and other expansions vs the paper")
     p.set_defaults(handler=_reproduce)
 
+
+def _add_evaluate(commands: Any) -> None:
     p = commands.add_parser("evaluate", help="run the identifier over a recorded bag, no ROS graph needed")
     p.add_argument("bag", help="rosbag2 directory (MCAP) with u and y_p")
     p.add_argument("--params", metavar="FILE", help="identifier params file (ros__parameters YAML)")
@@ -100,6 +114,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print a JSON object")
     p.set_defaults(handler=_evaluate)
 
+
+def _add_fit(commands: Any) -> None:
     p = commands.add_parser(
         "fit",
         help="build a LeNN model of logged data automatically (structure, terms, weights) and score it",
@@ -132,6 +148,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.set_defaults(handler=_fit)
 
+
+def _add_import_csv(commands: Any) -> None:
     p = commands.add_parser("import-csv", help="make a bag (u, y_p) from a logged CSV file")
     p.add_argument("file")
     p.add_argument("--u", required=True, help="column of the plant input (name or 0-based index)")
@@ -141,14 +159,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("-o", "--output", required=True, help="bag directory to create")
     p.set_defaults(handler=_import_csv)
 
+
+def _add_bag_info(commands: Any) -> None:
     p = commands.add_parser("bag-info", help="topics, types and message counts of a bag")
     p.add_argument("bag")
     p.set_defaults(handler=_bag_info)
 
+
+def _add_bag_repair(commands: Any) -> None:
     p = commands.add_parser("bag-repair", help="recover what a killed recorder left into a readable bag")
     p.add_argument("bag")
     p.set_defaults(handler=_bag_repair)
 
+
+def _add_demo(commands: Any) -> None:
     p = commands.add_parser("demo", help="plant simulator + identifier + recorder over DDS, example 1 by default")
     p.add_argument("--example", type=int, choices=[1, 2, 3, 4], default=1)
     p.add_argument("--network", choices=["lenn", "mlp"], default="lenn")
@@ -158,8 +182,6 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--rate", type=float, default=0.0, help="plant steps per second (0: as fast as kept up with)")
     p.add_argument("--output", default="demo_output", help="directory for the bag and the plot")
     p.set_defaults(handler=_demo)
-
-    return parser
 
 
 def _positive_int(text: str) -> int:

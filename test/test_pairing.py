@@ -42,7 +42,9 @@ def test_a_restarted_publisher_starts_a_new_stream_but_a_lone_index_1_does_not()
     assert pairer.counters["restarts"] == 0 and pairer.counters["stale"] == 2
     pairs = feed(pairer, [(Y, 1), (Y, 2)])  # now both halves of sample 1: a restart
     assert pairer.counters["restarts"] == 1
-    assert [p[0] for p in pairs] == [1]
+    # u's new stream ran ahead of y_p's: its sample 2 was kept, not lost as stale
+    assert [p[0] for p in pairs] == [1, 2] and pairer.counters["stale"] == 0
+    assert all(u == -y for _, u, y in pairs)
 
 
 def test_memory_stays_bounded_when_one_topic_is_silent() -> None:

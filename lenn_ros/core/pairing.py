@@ -16,6 +16,7 @@ a lone repeated index 1, like any other old index, is counted as stale.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 U, Y = "u", "y"
 
@@ -31,25 +32,14 @@ class Pairer:
 
     def __post_init__(self) -> None:
         self._pending: dict[str, dict[int, float]] = {U: {}, Y: {}}
-        self._restart_halves: dict[str, float] = {}
+        self._restart_halves: dict[str, Any] = {}
+        self._restart_waiting: dict[str, dict[int, Any]] = {U: {}, Y: {}}
         self._last_released = 0
 
     def add(self, topic: str, index: int, value: float) -> list[tuple[int, float, float]]:
         """Offer one half; returns the pairs (index, u, y) completed by it."""
         if index <= self._last_released:
-            if index != 1:
-                self.counters["stale"] += 1
-                return []
-            # Index 1 again: a restarted publisher, or a second one. Only when *both*
-            # halves of sample 1 come back is it taken as a restart (a new stream).
-            self._restart_halves[topic] = value
-            if len(self._restart_halves) < 2:
-                self.counters["stale"] += 1  # unless its partner shows up
-                return []
-            self.counters["stale"] -= 1
-            halves = (self._restart_halves[U], self._restart_halves[Y])
-            self._restart()
-            return [self._release(1, halves)]
+            return self._old_index(topic, index, value)
         pending, other = self._pending[topic], self._pending[U if topic == Y else Y]
         if index in pending:
             self.counters["duplicates"] += 1
@@ -62,6 +52,32 @@ class Pairer:
             return []
         partner = other.pop(index)
         return [self._release(index, (value, partner) if topic == U else (partner, value))]
+
+    def _old_index(self, topic: str, index: int, value: Any) -> list[tuple[int, Any, Any]]:
+        """An index already passed: stale, or part of a restarted stream.
+
+        Index 1 again means a restarted publisher, or a second one. Only when *both*
+        halves of sample 1 come back is it taken as a restart (a new stream). Halves of
+        a stream whose sample 1 came back are kept meanwhile (up to ``window``) and
+        replayed into the new stream, so a topic that restarts ahead of the other
+        loses nothing.
+        """
+        self.counters["stale"] += 1  # unless a restart claims it
+        if index == 1:
+            self._restart_halves[topic] = value
+        elif topic in self._restart_halves and len(self._restart_waiting[topic]) < self.window:
+            self._restart_waiting[topic][index] = value
+        if len(self._restart_halves) < 2:
+            return []
+        waiting = self._restart_waiting
+        self.counters["stale"] -= 2 + sum(len(halves) for halves in waiting.values())
+        halves = (self._restart_halves[U], self._restart_halves[Y])
+        self._restart()
+        released = [self._release(1, halves)]
+        for channel in (U, Y):
+            for later, later_value in sorted(waiting[channel].items()):
+                released += self.add(channel, later, later_value)
+        return released
 
     def _release(self, index: int, halves: tuple[float, float]) -> tuple[int, float, float]:
         self._last_released = index
@@ -76,6 +92,7 @@ class Pairer:
         """The publisher restarted (its sequence numbers began again at 1)."""
         self.counters["restarts"] += 1
         self._restart_halves = {}
+        self._restart_waiting = {U: {}, Y: {}}
         self._pending = {U: {}, Y: {}}
         self._last_released = 0
 

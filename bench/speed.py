@@ -155,15 +155,28 @@ def _table(header: list[str], rows: list[list[Any]]) -> list[str]:
 
 
 def markdown(report: dict[str, Any]) -> str:
-    out: list[str] = []
+    """The report as markdown: one section per part, then the targets."""
+    out = _machine_markdown(report)
+    out += _cost_markdown(report)
+    out += _throughput_markdown(report)
+    out += _equality_markdown(report)
+    out += ["", "### 4. Online through ROS (subprocess node, private domain, localhost discovery)", ""]
+    online = report["online"]
+    out += [f"Skipped ({online['skipped']})."] if "skipped" in online else _online_markdown(online)
+    out += _targets_markdown(report)
+    return "\n".join(out)
+
+
+def _machine_markdown(report: dict[str, Any]) -> list[str]:
+    """Where and how the figures were measured."""
     sizes = report["sizes"]
     m = report["machine_at_start"]
-    out.append(
+    out = [
         f"Machine: {m['cpus']} CPUs (shared), load average {m['load_average'][0]:.2f} at start, "
         f"{report['machine_at_end']['load_average'][0]:.2f} at end; Python {m['python']}, numpy {m['numpy']}, "
         f"numba {m['numba']}; {'quick' if report['quick'] else 'full'} sizes, medians of {sizes['repeats']} runs; "
         f"total {report['seconds']:.0f} s."
-    )
+    ]
     share = report["offline_clock"]["cpu_share"]
     out += [
         "",
@@ -171,7 +184,13 @@ def markdown(report: dict[str, Any]) -> str:
         f"during them the benchmark got {_num(share * 100 if share else None, 0)} % of a core "
         "(CPU time / wall time; 100 % = an idle core).",
     ]
+    return out
 
+
+def _cost_markdown(report: dict[str, Any]) -> list[str]:
+    """1. Cost per update, and the MLP / LeNN ratios next to Table I's."""
+    out: list[str] = []
+    sizes = report["sizes"]
     out += ["", "### 1. Cost per update (us per sample; Table I counts per training iteration)", ""]
     rows = []
     for row in report["cost_per_update"]:
@@ -222,7 +241,12 @@ def markdown(report: dict[str, Any]) -> str:
             for row in report["cost_per_update"]
         ],
     )
+    return out
 
+
+def _throughput_markdown(report: dict[str, Any]) -> list[str]:
+    """2. Offline throughput: compiled vs plain numpy, the MLP, Identifier.run, evaluate."""
+    out: list[str] = []
     t = report["offline_throughput"]
     lenn, mlp, ident, bag = t["lenn_ex1"], t["mlp_ex1"], t["identifier_run_ex4"], t["evaluate_bag"]
     out += ["", "### 2. Offline throughput (samples/s, one core)", ""]
@@ -272,7 +296,12 @@ def markdown(report: dict[str, Any]) -> str:
         f"The numpy loop and the compiled kernel implement the same rule: weights after "
         f"{lenn['numpy_loop_samples']} samples differ by at most {lenn['numpy_loop_max_abs_weight_difference']:.1e}."
     )
+    return out
 
+
+def _equality_markdown(report: dict[str, Any]) -> list[str]:
+    """3. Compiled kernels against their pure-Python versions."""
+    out: list[str] = []
     out += ["", "### 3. Compiled kernels vs their pure-Python `.py_func` (same inputs, same start state)", ""]
     out += _table(
         ["kernel", "samples", "max abs state difference", "max abs output difference", "py_func CPU time (s)"],
@@ -287,14 +316,12 @@ def markdown(report: dict[str, Any]) -> str:
             for name, e in report["kernel_equality"].items()
         ],
     )
+    return out
 
-    online = report["online"]
-    out += ["", "### 4. Online through ROS (subprocess node, private domain, localhost discovery)", ""]
-    if "skipped" in online:
-        out.append(f"Skipped ({online['skipped']}).")
-    else:
-        out += _online_markdown(online)
 
+def _targets_markdown(report: dict[str, Any]) -> list[str]:
+    """The project's targets, measured value, met or not."""
+    out: list[str] = []
     out += ["", "### Targets", ""]
     out += _table(
         ["target", "goal", "measured", "met"],
@@ -308,7 +335,7 @@ def markdown(report: dict[str, Any]) -> str:
             for r in report["targets"]
         ],
     )
-    return "\n".join(out)
+    return out
 
 
 def _target_value(row: dict[str, Any]) -> str:
@@ -325,6 +352,18 @@ def _target_value(row: dict[str, Any]) -> str:
 
 
 def _online_markdown(online: dict[str, Any]) -> list[str]:
+    """4. Rates, latency, all trials, memory, and where the identifier's time goes."""
+    return [
+        *_online_rates_markdown(online),
+        *_online_summary_markdown(online),
+        *_online_trials_markdown(online),
+        *_online_memory_markdown(online),
+        *_online_profile_markdown(online),
+    ]
+
+
+def _online_rates_markdown(online: dict[str, Any]) -> list[str]:
+    """Highest loss-free rate and latency of the echo nodes and the identifier."""
     out = [
         f"Trials of {online['trial_seconds']:g} s after 200 warm-up samples; a trial passes when every sample is "
         "answered once, the identifier's status says lost = duplicates = 0 and paired = sent, the last reply comes "
@@ -372,8 +411,13 @@ def _online_markdown(online: dict[str, Any]) -> list[str]:
         ],
         rows,
     )
-    fraction = online.get("identifier_fraction_of_echo")
+    return out
+
+
+def _online_summary_markdown(online: dict[str, Any]) -> list[str]:
+    """Identifier / echo rate and where the identifier's extra CPU per sample goes."""
     profile = online["callback_profile"]
+    fraction = online.get("identifier_fraction_of_echo")
 
     def cpu_at(name: str, rate: float) -> float | None:
         values = [t.get("node_cpu_us_per_sample") for t in online[name]["trials"] if t["rate_hz"] == rate]
@@ -390,7 +434,7 @@ def _online_markdown(online: dict[str, Any]) -> list[str]:
             "publications per pair). With transport as cheap as the echo's, the callbacks would allow "
             f"~{_num(online.get('predicted_identifier_max_hz'))} Hz."
         )
-    out += [
+    return [
         "",
         f"Identifier / echo loss-free rate: **{_num(fraction * 100 if fraction is not None else None, 0)} %**. "
         f"The identifier's own work per pair (its callbacks called in-process, no transport) is "
@@ -400,6 +444,10 @@ def _online_markdown(online: dict[str, Any]) -> list[str]:
         "All trials:",
         "",
     ]
+
+
+def _online_trials_markdown(online: dict[str, Any]) -> list[str]:
+    """Every online trial, passed or failed, with its problems."""
     rows = []
     for name in ("echo", "echo_waitset", "identifier"):
         for t in online[name]["trials"]:
@@ -420,7 +468,7 @@ def _online_markdown(online: dict[str, Any]) -> list[str]:
                     "; ".join(t.get("problems", [])),
                 ]
             )
-    out += _table(
+    return _table(
         [
             "node",
             "rate",
@@ -437,8 +485,12 @@ def _online_markdown(online: dict[str, Any]) -> list[str]:
         ],
         rows,
     )
+
+
+def _online_memory_markdown(online: dict[str, Any]) -> list[str]:
+    """The identifier's resident memory over a long run."""
     mem = online["memory"]
-    out += ["", "Identifier memory over a long run (VmRSS from /proc every 0.5 s):", ""]
+    out = ["", "Identifier memory over a long run (VmRSS from /proc every 0.5 s):", ""]
     out += _table(
         [
             "rate (Hz)",
@@ -463,7 +515,13 @@ def _online_markdown(online: dict[str, Any]) -> list[str]:
             ]
         ],
     )
-    out += [
+    return out
+
+
+def _online_profile_markdown(online: dict[str, Any]) -> list[str]:
+    """cProfile of the callbacks in-process, and of the real identifier process."""
+    profile = online["callback_profile"]
+    out = [
         "",
         f"Where the identifier's own time per pair goes (cProfile of its callbacks over {profile['pairs']} pairs, "
         f"scaled to the unprofiled {profile['us_per_pair']:.0f} us of CPU per pair; indented rows are part of the "

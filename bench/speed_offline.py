@@ -409,6 +409,10 @@ def offline_throughput(sizes: Sizes) -> dict[str, Any]:
     return result
 
 
+#: the identifier configuration the evaluated bag is run with (the bag holds no identifier_config)
+PARAMS_EXAMPLE1 = Path(__file__).resolve().parents[1] / "config" / "example1_lenn.yaml"
+
+
 def evaluate_throughput(sizes: Sizes) -> dict[str, Any]:
     """``lenn-ros evaluate BAG --json`` (in-process) on a bag of Ex. 1 data; skipped without lenn_ros.bag."""
     try:
@@ -437,7 +441,7 @@ def evaluate_throughput(sizes: Sizes) -> dict[str, Any]:
             output.seek(0)
             output.truncate()
             with contextlib.redirect_stdout(output):
-                code = cli.main(["evaluate", str(bag), "--json"])
+                code = cli.main(["evaluate", str(bag), "--params", str(PARAMS_EXAMPLE1), "--json"])
             if code != 0:
                 raise RuntimeError(f"lenn-ros evaluate failed with status {code}")
 

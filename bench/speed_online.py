@@ -79,9 +79,7 @@ def nodes_under_test(example: int = 1, network: str = "lenn") -> dict[str, NodeU
     python = sys.executable
     return {
         "echo": NodeUnderTest("echo", [python, str(BENCH / "echo_node.py")], 0, False),
-        "echo_waitset": NodeUnderTest(
-            "echo_waitset", [python, str(BENCH / "echo_node.py"), "--waitset"], 0, False
-        ),
+        "echo_waitset": NodeUnderTest("echo_waitset", [python, str(BENCH / "echo_node.py"), "--waitset"], 0, False),
         "identifier": NodeUnderTest(
             "identifier",
             [
@@ -460,15 +458,7 @@ def _judge(
     if driver.duplicate_replies or driver.out_of_range_replies:
         problems.append(f"{driver.duplicate_replies + driver.out_of_range_replies} unexpected replies")
     if node.has_status:
-        if not counters:
-            problems.append("no status received")
-        else:
-            if counters.get("lost", -1) != 0:
-                problems.append(f"status lost={counters.get('lost')}")
-            if counters.get("duplicates", -1) != 0:
-                problems.append(f"status duplicates={counters.get('duplicates')}")
-            if counters.get("paired", -1) != total:
-                problems.append(f"status paired={counters.get('paired')} != sent {total}")
+        problems += _status_problems(counters, total)
     if end_lag > MAX_END_LAG:
         problems.append(f"fell behind: last reply {end_lag:.3f} s after its sample")
     driver_limited = send_rate < MIN_SEND_FRACTION * rate
@@ -498,6 +488,20 @@ def _judge(
         "passed": not problems,
         "problems": problems,
     }
+
+
+def _status_problems(counters: dict[str, Any], total: int) -> list[str]:
+    """What the identifier's own status says went wrong (nothing lost or duplicated, all paired)."""
+    if not counters:
+        return ["no status received"]
+    problems = []
+    if counters.get("lost", -1) != 0:
+        problems.append(f"status lost={counters.get('lost')}")
+    if counters.get("duplicates", -1) != 0:
+        problems.append(f"status duplicates={counters.get('duplicates')}")
+    if counters.get("paired", -1) != total:
+        problems.append(f"status paired={counters.get('paired')} != sent {total}")
+    return problems
 
 
 def _memory_summary(memory: list[tuple[float, int, int, int]], warm_up: int) -> dict[str, Any]:

@@ -388,8 +388,20 @@ class FunctionalLinkNetwork(OnlineRegressor):
         """A-priori outputs for each sample, learning from each in turn if ``learn``."""
         if not self.is_initialised:
             self._initialise()
-        phi = self.features(x)
-        d = np.ascontiguousarray(np.broadcast_to(np.asarray(d, dtype=np.float64), (phi.shape[0],)))
+        return self.update_features(self.features(x), d, learn)
+
+    def update_features(self, phi: np.ndarray, d: np.ndarray | float, learn: bool = True) -> np.ndarray:
+        """:meth:`update` for patterns already expanded by :meth:`features`.
+
+        The live identifier expands each regressor once, to predict the next output,
+        and learns from the same pattern when that output arrives.
+        """
+        if not self.is_initialised:
+            self._initialise()
+        if isinstance(d, float) and phi.shape[0] == 1:
+            d = np.array([d])  # the live path: one sample, a plain float target
+        else:
+            d = np.ascontiguousarray(np.broadcast_to(np.asarray(d, dtype=np.float64), (phi.shape[0],)))
         y = np.empty(phi.shape[0])
         if self.solver == "sgd":
             done = kernels.functional_link_sgd(

@@ -94,6 +94,21 @@ class ModelStructure:
             linear = linear + b * u[k - i]
         return x, linear
 
+    def regressor_row(self, u_past: list[float], y_past: list[float]) -> tuple[np.ndarray, float]:
+        """The last row of :meth:`regressors` from histories kept newest first, for one sample.
+
+        The same arithmetic in the same order as the batch path (so live and offline
+        agree bit for bit), without building arrays of the whole history.
+        """
+        row = [(y_past[i] - self.y_offset) / self.y_scale for i in range(self.y_lags)]
+        row += [(u_past[i] - self.u_offset) / self.u_scale for i in range(self.u_lags)]
+        linear = float(self.output_offset)
+        for i, a in enumerate(self.known_a):
+            linear = linear + a * y_past[i]
+        for i, b in enumerate(self.known_b):
+            linear = linear + b * u_past[i]
+        return np.array([row], dtype=np.float64), linear
+
     def training_pairs(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Series-parallel pairs: inputs x(k), targets y(k+1) - lin(k), and lin(k).
 
@@ -186,10 +201,13 @@ class Identifier:
         self._last_index = index
         self.counters["samples"] += 1
         if self._pending is not None:
-            x_previous, linear_previous = self._pending
+            x_previous, linear_previous, phi_previous = self._pending
             learn = learn and not self.diverged
             try:
-                prior = float(self.model.update(x_previous, y - linear_previous, learn=learn)[0])
+                if phi_previous is None:
+                    prior = float(self.model.update(x_previous, y - linear_previous, learn=learn)[0])
+                else:
+                    prior = float(self.model.update_features(phi_previous, y - linear_previous, learn=learn)[0])
             except DivergenceError as error:
                 prior = float(error.predictions[0])
                 self._on_divergence()
@@ -206,10 +224,18 @@ class Identifier:
                     result.event = "diverged"
         self._push(u, y)
         if len(self._y_past) >= self.structure.warm_up:
-            x, linear = self.structure.regressors(np.array(self._u_past[::-1]), np.array(self._y_past[::-1]))
-            self.counters["clipped"] += int(np.count_nonzero(np.abs(x) > 1.0))
-            self._pending = (x, float(linear[-1]))
-            result.y_hat_next = float(linear[-1] + self.model.predict(x)[0])
+            x, linear = self.structure.regressor_row(self._u_past, self._y_past)
+            self.counters["clipped"] += sum(1 for value in x[0] if abs(value) > 1.0)
+            features = getattr(self.model, "features", None)
+            if features is None:  # no expansion to reuse (MLP)
+                self._pending = (x, linear, None)
+                result.y_hat_next = float(linear + self.model.predict(x)[0])
+            else:
+                if not self.model.is_initialised:
+                    self.model._initialise()
+                phi = features(x)
+                self._pending = (x, linear, phi)
+                result.y_hat_next = float(linear + self.model.update_features(phi, 0.0, learn=False)[0])
         return result
 
     def skip(self, index: int | None = None) -> None:

@@ -590,17 +590,16 @@ def find_max_rate(
 
 #: (label, file suffix, function name) of the per-message path, for the profile table.
 PROFILE_ROWS = (
-    ("Identifier.step (model work, total)", "core/structure.py", "step"),
-    ("  model.update, 1 sample (x2: learn + predict)", "core/networks.py", "update"),
-    ("    features: Legendre expansion, 1 sample (x2)", "core/networks.py", "features"),
-    ("    _check_inputs (x2)", "core/networks.py", "_check_inputs"),
-    ("  model.predict (the 2nd update)", "core/networks.py", "predict"),
-    ("  ModelStructure.regressors (numpy, 1 row)", "core/structure.py", "regressors"),
-    ("Publisher.publish (y_hat, error)", "rclpy/publisher.py", "publish"),
-    ("IdentifierNode._value (parameter reads)", "nodes/identifier.py", "_value"),
-    ("Pairer.add", "core/pairing.py", "add"),
-    ("screen", "core/pairing.py", "screen"),
-    ("RunningNMSE.add", "core/metrics.py", "add"),
+    ("IdentifierNode._offer (one message, total)", "nodes/identifier.py", "_offer"),
+    ("  Session.offer (screen, pair, model step)", "core/session.py", "offer"),
+    ("    Identifier.step (model work)", "core/structure.py", "step"),
+    ("      model.update_features (learn from the stored pattern)", "core/networks.py", "update_features"),
+    ("      model.features (expansion, 1 sample)", "core/networks.py", "features"),
+    ("    Pairer.add", "core/pairing.py", "add"),
+    ("    screen", "core/pairing.py", "screen"),
+    ("    RunningNMSE.add", "core/metrics.py", "add"),
+    ("  IdentifierNode._publish (y_hat, error, samples)", "nodes/identifier.py", "_publish"),
+    ("    Publisher.publish", "rclpy/publisher.py", "publish"),
     ("Float64() message construction", "msg/_float64.py", "__init__"),
 )
 
@@ -633,12 +632,12 @@ def profile_identifier_callbacks(pairs: int, repeats: int) -> dict[str, Any]:
 
         def feed(count: int) -> None:
             nonlocal cursor
-            on_half = node._on_half
+            offer = node._offer  # what the node does per message once it has taken it
             for k in range(cursor, cursor + count):
                 info = {"publication_sequence_number": k + 1}
                 message_u, message_y = messages[k]
-                on_half(U, message_u, info)
-                on_half(Y, message_y, info)
+                offer(U, message_u, info)
+                offer(Y, message_y, info)
             cursor += count
 
         feed(500)  # warm-up: kernels loaded, first NMSE report published
@@ -672,7 +671,7 @@ def profile_identifier_callbacks(pairs: int, repeats: int) -> dict[str, Any]:
             }
             for (file, line, name), entry in top
         ]
-        counters = node.identifier.counters
+        counters = dict(node.session.counters)
     finally:
         node.destroy_node()
         if own_init:

@@ -727,18 +727,18 @@ def profile_identifier_process(
     spin = cumulative("rclpy/executors.py", "spin_once") - compile_load
     wait = cumulative("rclpy/executors.py", "wait_for_ready_callbacks")
     take = cumulative("rclpy/executors.py", "_take_subscription")
-    callbacks = cumulative("nodes/identifier.py", "_on_half") - compile_load
-    timer = cumulative("nodes/identifier.py", "_on_timer")
+    callbacks = cumulative("nodes/identifier.py", "_on_message") - compile_load
+    timer = cumulative("nodes/identifier.py", "_on_status_timer") + cumulative("nodes/identifier.py", "_on_poll_timer")
     step = cumulative("core/structure.py", "step") - compile_load
     publish = cumulative("rclpy/publisher.py", "publish")
     parts = [
         ("rclpy executor: rebuild the wait set, wait, find ready entities", wait),
         ("rclpy executor: take + deserialise each message", take),
         ("rclpy executor: dispatch (handler, task, coroutine)", max(0.0, spin - wait - take - callbacks - timer)),
-        ("node callbacks (_on_half x2: all the identifier's own work)", callbacks),
+        ("node callbacks (_on_message: the identifier's own work, and the messages it takes itself)", callbacks),
         ("  of which Identifier.step (model)", step),
         ("  of which Publisher.publish (y_hat, error)", publish),
-        ("status timer", timer),
+        ("status and poll timers", timer),
     ]
     return {
         "rate_hz": rate,

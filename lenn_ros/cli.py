@@ -130,10 +130,10 @@ def _add_fit(commands: Any) -> None:
     p.add_argument(
         "--test-from",
         type=int,
-        required=True,
         metavar="K",
         help="1-based index of the first test sample: samples 1..K-1 build the model, K.. score it "
-        "(row K of the data, not counting a header; the same meaning as in evaluate and import-csv)",
+        "(row K of the data, not counting a header; the same meaning as in evaluate and import-csv). "
+        "Required for a CSV; a bag's recorded test start is the default",
     )
     p.add_argument("--json", action="store_true", help="print the report as a JSON object")
     p.add_argument("--plot", metavar="FILE", help="write plant vs model (one-step and free run) on the test part")

@@ -53,6 +53,7 @@ class Data:
     u: np.ndarray
     y: np.ndarray
     source: str  # what was read, for the report
+    test_start: int | None = None  # 1-based, recorded in a bag (its test_start topic)
 
 
 def load_data(path: str | Path, u_column: str | None = None, y_column: str | None = None) -> Data:
@@ -65,7 +66,8 @@ def load_data(path: str | Path, u_column: str | None = None, y_column: str | Non
 
         run = read_run(path)
         pairs = min(len(run.u), len(run.y_p))
-        return Data(np.asarray(run.u[:pairs], float), np.asarray(run.y_p[:pairs], float), f"bag {path}: u, y_p")
+        u, y = np.asarray(run.u[:pairs], float), np.asarray(run.y_p[:pairs], float)
+        return Data(u, y, f"bag {path}: u, y_p", getattr(run, "test_start", None))
     return _load_csv(path, u_column, y_column)
 
 
@@ -117,7 +119,9 @@ def _column(header: list[str] | None, column: str, width: int, path: Path) -> in
 def check_split(n: int, test_from: int) -> int:
     """0-based index of the first test sample from the 1-based ``--test-from``."""
     if test_from is None:
-        raise FitError("pass --test-from K: the 1-based index of the first test sample (samples before K build)")
+        raise FitError(
+            "pass --test-from K: the 1-based index of the first test sample (samples 1..K-1 build the model)"
+        )
     if not 2 <= test_from <= n:
         raise FitError(f"--test-from {test_from} is outside the data's samples 2..{n} (1-based)")
     start = test_from - 1
@@ -420,7 +424,8 @@ def main(args: Any) -> int:
     data = load_data(args.data, args.u, args.y)
     progress = None if args.json else (lambda text: print(text, file=sys.stderr, flush=True))
     network = getattr(args, "network", "lenn") or "lenn"
-    result = fit(data, args.test_from, refine=not args.no_refine, network=network, progress=progress)
+    test_from = args.test_from if args.test_from is not None else data.test_start
+    result = fit(data, test_from, refine=not args.no_refine, network=network, progress=progress)
     report = result["report"]
     if args.output:
         report["files"] = write_outputs(args.output, result, data.u[: report["train_samples"]], data.y)

@@ -63,6 +63,8 @@ setup(
             "plant_simulator = lenn_ros.nodes.plant_simulator:main",
             "recorder = lenn_ros.nodes.recorder:main",
             "replay = lenn_ros.nodes.replay:main",
+            "robot_controller = lenn_ros.nodes.robot_controller:main",
+            "robot_simulator = lenn_ros.nodes.robot_simulator:main",
         ],
     },
 )

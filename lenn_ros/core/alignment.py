@@ -10,9 +10,9 @@ different nodes, at their own rates and phases, so two other rules are offered:
   and a message that can no longer find a partner within ``slop`` is dropped.
 - :class:`GridSampler` (``pairing: sample``): a sampled-data identifier's view. At
   each grid time t_k = offset + k T the pair is the latest u and the latest y_p with
-  time <= t_k (zero-order hold). y_p must be a new measurement (not the one the
-  previous grid point used, unless younger than ``y_max_age``), or the sample is a
-  gap: a lost measurement never becomes a repeated one.
+  time <= t_k (zero-order hold). y_p must be a new measurement, taken after the
+  previous grid point (unless younger than ``y_max_age``), or the sample is a
+  gap: a lost or late measurement never becomes a repeated or shifted one.
 
 Both emit :class:`Pair` with an *index* that advances by the number of sample periods
 elapsed, so a lost sample shows as a gap to the identifier (which then restarts its
@@ -164,7 +164,9 @@ class GridSampler:
     def __post_init__(self) -> None:
         if not self.period > 0:
             raise ValueError("sample mode needs sample_period > 0 (seconds)")
-        self._epsilon = 1e-6 * self.period
+        # Not below 10 us: times are seconds since 1970 as doubles (resolution ~0.24 us), so
+        # a stamp exactly on a grid point may land a few ulp either side of it.
+        self._epsilon = max(1e-6 * self.period, 1e-5)
         self._delay = self.max_delay or max(2 * self.period, 0.05)
         self._y_age = self.y_max_age + self._epsilon if self.y_max_age else -math.inf
         self._u_age = self.u_max_age + self._epsilon if self.u_max_age else math.inf
@@ -221,7 +223,9 @@ class GridSampler:
             fresh = i_u >= 0 and i_y >= 0 and t_k - self._times[U][i_u] <= self._u_age
             if fresh:
                 y_time = self._times[Y][i_y]
-                fresh = y_time > self._last_y_time or t_k - y_time <= self._y_age
+                # new, and measured since the previous grid point (an older one closed late is not y(k))
+                new = y_time > self._last_y_time and y_time > t_k - self.period + self._epsilon
+                fresh = new or t_k - y_time <= self._y_age
             if fresh:
                 self._last_y_time = self._times[Y][i_y]
                 pairs.append(Pair(k - self._first_k + 1, t_k, self._values[U][i_u], self._values[Y][i_y]))

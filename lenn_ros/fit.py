@@ -414,8 +414,20 @@ def write_outputs(directory: str | Path, result: dict[str, Any], u: np.ndarray, 
 
 
 def _jsonable(report: dict[str, Any]) -> dict[str, Any]:
-    out = {k: v for k, v in report.items() if not k.endswith("_test")}
-    return json.loads(json.dumps(out, default=float, allow_nan=True))
+    """Strict JSON: the series left out, numpy scalars as numbers, NaN/inf as null (a diverged run)."""
+
+    def clean(value: Any) -> Any:
+        if isinstance(value, dict):
+            return {k: clean(v) for k, v in value.items()}
+        if isinstance(value, list | tuple):
+            return [clean(v) for v in value]
+        if isinstance(value, np.generic):
+            value = value.item()
+        if isinstance(value, float) and not math.isfinite(value):
+            return None
+        return value
+
+    return clean({k: v for k, v in report.items() if not k.endswith("_test")})
 
 
 def main(args: Any) -> int:
@@ -435,7 +447,7 @@ def main(args: Any) -> int:
         title = f"{Path(args.data).name}: free-run RMSE {report['rmse_free_run']:.4g} on the test part"
         plot_identification(args.plot, report["y_test"], report["y_hat_test"], title, report["y_free_test"])
     if args.json:
-        print(json.dumps(_jsonable(report), indent=1))
+        print(json.dumps(_jsonable(report), indent=1, allow_nan=False))
         return 0
     print(format_report(report, args.dt))
     return 0

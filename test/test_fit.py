@@ -77,7 +77,7 @@ def test_cli_json_params_and_weights_rebuild_the_same_model(tmp_path: Path) -> N
         capture_output=True, text=True, timeout=300, check=False,
     )  # fmt: skip
     assert done.returncode == 0, done.stderr
-    report = json.loads(done.stdout)
+    report = json.loads(done.stdout, parse_constant=lambda c: pytest.fail(f"non-JSON constant {c}"))
     for key in ("rmse", "rmse_free_run", "nmse_db", "nmse_free_run_db", "samples", "model", "choices"):
         assert key in report
     assert report["samples"] == 500

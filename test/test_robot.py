@@ -328,6 +328,8 @@ def test_sequence_pairing_on_the_robot_learns_nothing(probe: Probe, tmp_path: Pa
         stop(controller)
     assert driver_code == 0, driver_err
     plain_status, allowed_status = final_status(plain_err), final_status(allowed_err)
+    for name, err in (("RELIABLE", plain_err), ("best_effort", allowed_err)):
+        print(name, *sorted({line.split("]: ", 1)[-1] for line in err.splitlines() if "WARN" in line}), sep="\n  ")
     # RELIABLE (sequence mode's default) against the controller's BEST_EFFORT: the fix is named.
     assert plain_status["counters"]["qos_incompatible"] >= 1
     assert "qos_overrides./cmd.subscription.reliability:=best_effort" in plain_err

@@ -12,7 +12,6 @@ Seeds: ``LENN_ROBOT_SEEDS=0,1,2`` runs the lockstep comparison for each (default
 
 from __future__ import annotations
 
-import bisect
 import os
 import threading
 import time
@@ -57,11 +56,12 @@ def robot_identifier_params(period: float, pairing: str = "sample") -> list[str]
 def test_command_hold_and_robot_log_round_trip(tmp_path: Path) -> None:
     """Zero-order hold by receive time; the log keeps every step, published or not; seeded."""
     hold = CommandHold(initial=0.0)
-    assert hold.at(5) == 0.0
+    assert hold.at(5) == (0.0, -1)
     hold.add(10, 1.0)
     hold.add(30, 3.0)
     hold.add(20, 2.0)  # out of order: still held by time
-    assert [hold.at(t) for t in (9, 10, 19, 20, 29, 30, 99)] == [0.0, 1.0, 1.0, 2.0, 2.0, 3.0, 3.0]
+    held = [hold.at(t) for t in (9, 10, 19, 20, 29, 30, 99)]
+    assert held == [(0.0, -1), (1.0, 10), (1.0, 10), (2.0, 20), (2.0, 20), (3.0, 30), (3.0, 30)]
 
     def run(loss: float) -> RobotLog:
         robot = SimulatedRobot(get_example(1).plant(), 10, input_noise_db=-20.0, loss=loss, jitter_s=0.01, seed=3)
@@ -234,7 +234,8 @@ def test_robot_graph_behaves_like_a_robot(probe: Probe, tmp_path: Path) -> None:
     assert all(m.name == ["joint1"] for _, m in probe.joints)
     t0 = int(arrays["stamp_ns"][0])
     assert np.all(np.diff(arrays["stamp_ns"]) == period_ns)
-    assert np.all((stamps - t0) % period_ns == 0) and np.all(np.diff(stamps) > 0)
+    assert np.all((stamps - t0) % period_ns == 0), "a stamp off the driver's step times"
+    assert np.all(np.diff(stamps) > 0), "measurements out of order or repeated"
     assert t0 >= started_ns + delay * 1e9  # the first step waits for start_delay
     lost = 1.0 - arrays["published"].mean()
     assert 0.01 <= lost <= 0.12  # loss 0.05 of 400 steps
@@ -247,16 +248,25 @@ def test_robot_graph_behaves_like_a_robot(probe: Probe, tmp_path: Path) -> None:
     assert late.min() >= 0.005e9  # published after the step, never before its latency
     assert late.max() - late.min() >= 0.001e9  # and not at a fixed delay
 
-    # Zero-order hold: step k applied the latest command received before t_k (as the probe saw it).
-    received = [r for r, _ in probe.commands]
-    held = []
-    for stamp in arrays["stamp_ns"]:
-        i = bisect.bisect_right(received, stamp) - 1
-        held.append(values[i][0] if i >= 0 else 0.0)
-    commanded = arrays["stamp_ns"] > received[0] + 0.05e9
-    agree = np.isclose(np.array(held)[commanded], arrays["u"][commanded], rtol=0, atol=0)
-    print(f"zero-order hold: {agree.mean():.3f} of the steps applied the command the probe held")
-    assert commanded.sum() > 200 and agree.mean() >= 0.8  # the rest: a command arriving at a step's time
+    # Zero-order hold by the driver's receive times: step k applied the latest command received
+    # at or before t_k (the one taking over later came after t_k), never an older one, in the
+    # controller's order.
+    stamp_ns, applied = arrays["stamp_ns"], arrays["u_received_ns"]
+    commanded = applied >= 0
+    assert commanded.sum() > 200 and np.all(applied[commanded] <= stamp_ns[commanded])
+    assert np.all(np.diff(applied) >= 0)
+    takeovers = np.flatnonzero(np.diff(applied) > 0) + 1
+    stale = np.count_nonzero(applied[takeovers] <= stamp_ns[takeovers - 1])  # only after a stall > command_wait
+    print(f"zero-order hold: {stale} of {len(takeovers)} new commands taken over a step late")
+    assert len(takeovers) > 100 and stale <= 0.02 * len(takeovers), (stale, len(takeovers))
+    order = [sent.index(u) for u in arrays["u"][commanded]]
+    assert order == sorted(order)
+    # Those are receive times: each command's as the probe saw it, within the few ms two
+    # processes differ by (median: a loaded machine delays some deliveries far more).
+    probe_time = {message.data[0]: received for received, message in probe.commands}
+    seen = [(probe_time[u], t) for u, t in zip(arrays["u"], applied, strict=True) if t >= 0 and u in probe_time]
+    offsets = np.abs(np.diff(np.array(seen), axis=1))
+    assert len(seen) > 200 and np.median(offsets) < 2e6, np.median(offsets)
 
 
 def lockstep_reference(log: RobotLog, samples: np.ndarray, period_ns: int) -> tuple[float, float, float]:
@@ -275,13 +285,13 @@ def lockstep_reference(log: RobotLog, samples: np.ndarray, period_ns: int) -> tu
 
 @pytest.mark.parametrize("seed", SEEDS)
 def test_sample_pairing_on_the_robot_matches_lockstep(probe: Probe, tmp_path: Path, seed: int) -> None:
-    """Controller at 60 Hz, driver at 125 Hz with loss and jitter: within 3 dB of lockstep."""
+    """Controller at 40 Hz, driver at 125 Hz with loss and jitter: within 3 dB of lockstep."""
     period, steps = 0.008, 4000
     identifier = start_node("identifier", *robot_identifier_params(period), ros_args=IDENTIFIER_ON_ROBOT)
     (controller, driver), log_path, _ = start_robot(
         tmp_path,
         seed,
-        ["rate_hz:=60.0", f"duration:={steps * period + 15}"],
+        ["rate_hz:=40.0", f"duration:={steps * period + 15}"],
         [f"rate_hz:={1 / period}", "start_delay:=3.0", f"steps:={steps}", "loss:=0.02", "noise_db:=-20.0"],
     )
     try:

@@ -28,16 +28,17 @@ from lenn_ros.core.signals import noise_std
 from lenn_ros.core.structure import Identifier
 
 #: Arrays of a saved log, one entry per plant step.
-LOG_ARRAYS = ("stamp_ns", "u", "noise", "y", "y_measured", "published")
+LOG_ARRAYS = ("stamp_ns", "u", "u_received_ns", "noise", "y", "y_measured", "published")
 
 
 class CommandHold:
     """Zero-order hold of a command stream by receive time.
 
     Commands are kept in time order; :meth:`at` answers with the latest one received
-    at or before a time, and forgets what no later query can need (queries are
-    expected in increasing time, as plant steps are). Before the first command the
-    robot holds ``initial`` (a driver at rest commands nothing).
+    at or before a time (and when it was received), and forgets what no later query
+    can need (queries are expected in increasing time, as plant steps are). Before
+    the first command the robot holds ``initial`` (a driver at rest commands nothing),
+    received at -1.
     """
 
     def __init__(self, initial: float = 0.0) -> None:
@@ -45,32 +46,36 @@ class CommandHold:
         self._times: list[int] = []
         self._values: list[float] = []
         self.received = 0
+        self.latest_ns = -1  # receive time of the newest command
 
     def add(self, time_ns: int, value: float) -> None:
         position = bisect.bisect_right(self._times, time_ns)
         self._times.insert(position, time_ns)
         self._values.insert(position, value)
         self.received += 1
+        self.latest_ns = max(self.latest_ns, time_ns)
 
-    def at(self, time_ns: int) -> float:
+    def at(self, time_ns: int) -> tuple[float, int]:
+        """(command held at ``time_ns``, its receive time in ns)."""
         position = bisect.bisect_right(self._times, time_ns) - 1
         if position < 0:
-            return self.initial
-        value = self._values[position]
+            return self.initial, -1
+        value, received = self._values[position], self._times[position]
         if position:  # older commands can no longer be the latest one
             del self._times[:position]
             del self._values[:position]
-        return value
+        return value, received
 
 
 @dataclass
 class RobotLog:
-    """The plant's own series: per step its time, applied command, noise and outputs."""
+    """The plant's own series: per step its time, applied command (and when it came), noise, outputs."""
 
     period_ns: int
     example: int = 0
     stamp_ns: list[int] = field(default_factory=list)
     u: list[float] = field(default_factory=list)
+    u_received_ns: list[int] = field(default_factory=list)
     noise: list[float] = field(default_factory=list)
     y: list[float] = field(default_factory=list)
     y_measured: list[float] = field(default_factory=list)
@@ -83,6 +88,7 @@ class RobotLog:
         return {
             "stamp_ns": np.asarray(self.stamp_ns, dtype=np.int64),
             "u": np.asarray(self.u, dtype=np.float64),
+            "u_received_ns": np.asarray(self.u_received_ns, dtype=np.int64),
             "noise": np.asarray(self.noise, dtype=np.float64),
             "y": np.asarray(self.y, dtype=np.float64),
             "y_measured": np.asarray(self.y_measured, dtype=np.float64),
@@ -154,7 +160,7 @@ class SimulatedRobot:
         )
         self.log = RobotLog(self.period_ns, example)
 
-    def step(self, stamp_ns: int, u: float) -> tuple[float, bool, float]:
+    def step(self, stamp_ns: int, u: float, u_received_ns: int = -1) -> tuple[float, bool, float]:
         """Step k at ``stamp_ns`` with command ``u``: (y_p(k) as measured, published?, delay s).
 
         y_p(k) is what the plant shows at t_k, before u(k) acts (the paper's sample
@@ -169,6 +175,7 @@ class SimulatedRobot:
         log = self.log
         log.stamp_ns.append(int(stamp_ns))
         log.u.append(float(u))
+        log.u_received_ns.append(int(u_received_ns))
         log.noise.append(noise)
         log.y.append(y)
         log.y_measured.append(measured)

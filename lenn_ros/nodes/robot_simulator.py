@@ -6,15 +6,18 @@ another one, e.g. ``robot_controller``):
   BEST_EFFORT) and holds the latest command received (zero-order hold, by receive time);
 - steps the plant of paper example ``example`` every 1 / ``rate_hz`` s of its own clock,
   starting ``start_delay`` s after it starts; step k at t_k applies the latest command
-  received at or before t_k. A late timer catches up with the steps it owes, each with
-  the command current at its own t_k, so the plant is sampled exactly every period;
+  received at or before t_k. Step k is computed once a command received after t_k has
+  been taken (so none received before t_k can still wait in the executor's queue), or
+  ``command_wait`` s after t_k (a silent controller: the last command holds). A late
+  timer catches up with the steps it owes, each with the command current at its own
+  t_k, so the plant is sampled exactly every period;
 - publishes ``joint_states`` (``sensor_msgs/msg/JointState``, name ``[joint_name]``,
   ``position[0]`` = y_p(k), ``header.stamp`` = t_k) ``latency`` + U[0, ``jitter``] s after
   the step, in order; ``loss`` of the measurements are never published; optional
   plant-input noise (``noise_db``) and measurement noise (``measurement_noise``);
 - stops after ``steps`` steps or ``duration`` s (0 and 0: until stopped) and writes the
-  plant's own series to ``log`` (.npz: stamp_ns, u applied, noise, y, y_measured,
-  published; see :class:`~lenn_ros.core.robot.RobotLog`): the lockstep reference.
+  plant's own series to ``log`` (.npz: stamp_ns, u applied and when it was received,
+  noise, y, y_measured, published; see :class:`~lenn_ros.core.robot.RobotLog`): the lockstep reference.
 
 QoS of both topics can be set by parameters (``qos_overrides./cmd.subscription.*``,
 ``qos_overrides./joint_states.publisher.*``). Times are the ROS clock's.
@@ -63,6 +66,9 @@ class RobotSimulator(Node):
         declare("command_index", 0, describe("element of the command's data that drives the plant", 0, 10_000))
         declare("log", "", describe("write the plant's own series here at exit (.npz; '' = none)"))
         declare("depth", 100, describe("history depth of both topics", 1, 100_000))
+        declare(
+            "command_wait", 0.05, describe("seconds after t_k to wait for a later command before stepping", 0.0, 10.0)
+        )
         p = self.get_parameter
         rate = p("rate_hz").value
         self.period_ns = round(1e9 / rate)
@@ -83,6 +89,7 @@ class RobotSimulator(Node):
         self.command_index = p("command_index").value
         self.joint_name = p("joint_name").value
         self.latency_ns = round(p("latency").value * 1e9)
+        self.command_wait_ns = round(p("command_wait").value * 1e9)
         self.bad_commands = 0
         depth = p("depth").value
         overriding = QoSOverridingOptions.with_default_policies
@@ -127,6 +134,8 @@ class RobotSimulator(Node):
         if self.hold.received == 0:
             self.get_logger().info("first command received")
         self.hold.add(int(received) if received else self._now_ns(), float(message.data[self.command_index]))
+        if self._first_ns is not None:
+            self._advance(self._now_ns())
 
     def _tick(self) -> None:
         now = self._now_ns()
@@ -136,10 +145,7 @@ class RobotSimulator(Node):
             self._first_ns = now
             if self.hold.received == 0:
                 self.get_logger().warning(f"no command on {self.resolve_topic_name(CMD)} yet: holding 0")
-        while not self._finished() and self._first_ns + self.k * self.period_ns + self.latency_ns <= now:
-            self._step()
-        while self.pending and self.pending[0][0] <= now:
-            self.publisher.publish(self.pending.popleft()[1])
+        self._advance(now)
         if self._finished() and not self.pending:
             log = self.robot.log
             self.get_logger().info(
@@ -148,12 +154,24 @@ class RobotSimulator(Node):
             )
             raise SystemExit(0)
 
+    def _advance(self, now: int) -> None:
+        """Every step that is due and whose command is settled; every measurement that is due."""
+        while not self._finished():
+            t_k = self._first_ns + self.k * self.period_ns
+            if now < t_k + self.latency_ns:
+                break
+            if self.hold.latest_ns <= t_k and now < t_k + self.command_wait_ns:
+                break  # a command received before t_k may still be queued: wait for a later one
+            self._step()
+        while self.pending and self.pending[0][0] <= now:
+            self.publisher.publish(self.pending.popleft()[1])
+
     def _finished(self) -> bool:
         return self.max_steps is not None and self.k >= self.max_steps
 
     def _step(self) -> None:
         stamp_ns = self._first_ns + self.k * self.period_ns
-        y, published, delay = self.robot.step(stamp_ns, self.hold.at(stamp_ns))
+        y, published, delay = self.robot.step(stamp_ns, *self.hold.at(stamp_ns))
         self.k += 1
         if not published:
             return

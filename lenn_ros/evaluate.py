@@ -29,7 +29,7 @@ import numpy as np
 from lenn_ros import bag as bags
 from lenn_ros import topics
 from lenn_ros.config import NODE_PARAMETERS, build_identifier, read_params_file, resolve
-from lenn_ros.core.evaluation import Evaluation
+from lenn_ros.core.evaluation import Evaluation, free_run_problems
 from lenn_ros.core.fields import compile_path, stamp_seconds
 from lenn_ros.core.metrics import nmse_db, rmse
 from lenn_ros.core.pairing import U, Y
@@ -65,8 +65,8 @@ class BagEvaluation:
             "skipped": self.evaluation.skipped + self.unpaired + self.rejected,
             "source": self.source,
             "missing": self.missing,
-            "free_run_unstable": not math.isfinite(self.evaluation.nmse_free_run_db)
-            or self.evaluation.nmse_free_run_db > 0.0,
+            "free_run_unstable": bool(self.evaluation.free_run_warnings)
+            and not all("clipped" in w for w in self.evaluation.free_run_warnings),
             "counters": self.counters,
             "notices": self.notices,
         }
@@ -234,7 +234,10 @@ def _score(identifier: Identifier, index: np.ndarray, u: np.ndarray, y: np.ndarr
     y_free = identifier.free_run(u, y, first) if first >= identifier.structure.warm_up else np.full(test.sum(), np.nan)
     y_test = y[test]
     train = ~test & np.isfinite(y_hat)
+    free_run = dict(identifier.last_free_run)
     return Evaluation(
+        free_run=free_run,
+        free_run_warnings=free_run_problems(y_test, y_free, free_run),
         nmse_db=nmse_db(y[scored], y_hat[scored]) if scored.any() else math.nan,
         nmse_free_run_db=nmse_db(y_test, y_free) if np.all(np.isfinite(y_free)) else math.nan,
         rmse=rmse(y[scored], y_hat[scored]) if scored.any() else math.nan,
@@ -269,8 +272,8 @@ def main(args) -> int:
         value = d[key]
         shown = f"{value:8.3f} dB" if value is not None and math.isfinite(value) else str(value)
         print(f"  NMSE {label}: {shown}   RMSE {d[rmse_key]}")
-    if d["free_run_unstable"]:
-        print("  warning: the free run is unstable (NMSE above 0 dB or not finite): the model does not simulate")
+    for warning in d["free_run_warnings"]:
+        print(f"  warning: {warning}")
     for notice in d["notices"]:
         print(f"  note: {notice}")
     return 0

@@ -71,7 +71,7 @@ def test_node_starts_from_the_fitted_model_and_keeps_adapting(tmp_path: Path, do
     assert identifier.returncode == 0, err[-2000:]
     counters = final_status(err)["counters"]
     assert counters["learned"] == len(live_u) - result["identifier"].structure.warm_up
-    assert counters["model_clipped"] == 0  # the network inputs the Identifier clipped (none here)
+    assert counters["clipped_inputs"] == 0  # the network inputs the Identifier clipped (none here)
     # offline: the same files, the same samples, stepped with learning on
     resolved, network = resolve(read_params_file(files["params"]))
     offline = build_identifier(resolved, network)

@@ -231,22 +231,21 @@ class GridSampler:
                 pairs.append(Pair(k - self._first_k + 1, t_k, self._values[U][i_u], self._values[Y][i_y]))
                 self.counters["paired"] += 1
                 self._next_k = k + 1
-            else:
-                self._skip_to_data(k, now)
+            elif not self._skip_to_data(k):
+                break  # no y_p after t_k yet: wait for data (a quiet plant is not a stream of gaps)
             self._trim()
         return pairs
 
-    def _skip_to_data(self, k: int, now: float) -> None:
-        """Grid point k has no fresh data: a gap, up to where data resumes (or up to now)."""
+    def _skip_to_data(self, k: int) -> bool:
+        """Grid point k has no fresh data: a gap up to where y_p resumes (False: not yet known)."""
         t_k = self.grid_time(k)
         later = [t for t in self._times[Y] if t > t_k + self._epsilon]
-        if later:
-            resume = math.ceil((later[0] - self._offset) / self.period - 1e-6)
-        else:
-            resume = math.floor((now - self._delay - self._offset) / self.period) + 1
-        resume = max(resume, k + 1)
+        if not later:
+            return False
+        resume = max(math.ceil((later[0] - self._offset) / self.period - 1e-6), k + 1)
         self.counters["grid_gaps"] += resume - k
         self._next_k = resume
+        return True
 
     def _trim(self) -> None:
         """Keep only what a later grid point can still use (the held value and newer)."""

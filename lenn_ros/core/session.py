@@ -350,8 +350,9 @@ class Session:
         source = self.pairer.counters if self.pairer is not None else self.aligner.counters  # type: ignore[union-attr]
         for name, value in source.items():
             counters[f"pairing_{name}" if name in counters else name] = value
+        renamed = {"clipped": "clipped_inputs", "duplicates": "model_duplicates"}  # vs the session's own
         for name, value in self.identifier.counters.items():
-            counters[name if name not in counters else f"model_{name}"] = value
+            counters[renamed.get(name, name)] = value
         return counters
 
     def status(self) -> dict[str, Any]:

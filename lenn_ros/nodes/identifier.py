@@ -298,6 +298,11 @@ class IdentifierNode(Node):
         order in which u and y_p are taken (index, stamp or time decide).
         """
         self._offer(channel, message, info)
+        self._drain()
+        self._emit_notices()
+
+    def _drain(self) -> None:
+        """Take test_start, u and y_p messages already waiting, until none is left."""
         taken = True
         while taken:
             taken = False
@@ -311,7 +316,6 @@ class IdentifierNode(Node):
                 if waiting is not None:
                     self._offer(other, waiting[0], waiting[1])
                     taken = True
-        self._emit_notices()
 
     def _offer(self, channel: str, message: Any, info: dict) -> None:
         try:
@@ -337,6 +341,7 @@ class IdentifierNode(Node):
         self._publish(samples)
 
     def _on_poll_timer(self) -> None:
+        self._drain()  # what is queued is older than now: settle it before the clock closes grid points
         self._publish(self.session.poll(self._now()))
         self._emit_notices()
 
@@ -398,8 +403,9 @@ class IdentifierNode(Node):
                 self._log(Notice("type", text))
         if publishers[U] and publishers[Y]:
             self._graph_checked = True
-        if self.values["pairing"] != "sequence" or not (publishers[U] and publishers[Y]):
-            return
+        known = all(not name.startswith("_NODE_") for nodes in publishers.values() for _, name in nodes)
+        if self.values["pairing"] != "sequence" or not (publishers[U] and publishers[Y] and known):
+            return  # (node names read _NODE_NAME_UNKNOWN_ until discovery completes)
         if publishers[U].isdisjoint(publishers[Y]):
 
             def names(nodes: set) -> str:

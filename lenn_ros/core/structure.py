@@ -318,13 +318,13 @@ class Identifier:
         targets = y[first + 1 :] - linear[:-1]
         inputs, mask, outputs = x[:-1], learn_mask[first + 1 :], y[first + 1 :]  # outputs: y(k+1)
         y_hat = np.full(len(y), np.nan)
+        mask_changes = np.append(np.flatnonzero(mask[1:] != mask[:-1]) + 1, len(targets))
         start = 0
         while start < len(targets):
             learning = bool(mask[start]) and not self.diverged
-            stop = start + 1
             limit = start + (self.health_interval - len(self._block_errors) if learning else len(targets))
-            while stop < min(limit, len(targets)) and mask[stop] == mask[start]:
-                stop += 1
+            next_change = int(mask_changes[np.searchsorted(mask_changes, start, side="right")])
+            stop = max(start + 1, min(limit, len(targets), next_change))  # a run of equal flags, cut at the block
             try:
                 prior = self.model.update(inputs[start:stop], targets[start:stop], learn=learning)
             except DivergenceError as error:

@@ -88,7 +88,7 @@ NODE_PARAMETERS = [
         "y_max_age", 0.0, "sample: reuse a y_p this old when no new one came (0 = never: a gap)", 0.0, 3600.0
     ),
     Parameter(
-        "max_skew", 1.0, "sequence: refuse a pair whose halves were published further apart (s)", 0.0, 3600.0
+        "max_skew", 0.25, "sequence: refuse a pair whose halves were published further apart (s)", 0.0, 3600.0
     ),
     Parameter("use_header_stamp", True, "time a message by its header stamp when it has one (else receive time)"),
     Parameter("lone_timeout", 3.0, "warn when one input arrives alone this many seconds", 0.1, 3600.0),

@@ -52,7 +52,7 @@ class SessionConfig:
     sample_period: float = 0.0
     max_delay: float = 0.0  # stamp/sample: wait this long (receive time) for a late partner; 0 = auto
     y_max_age: float = 0.0  # sample: reuse an old y_p this long (0 = never: a lost y_p is a gap)
-    max_skew: float = 1.0  # sequence: the two halves of a pair published further apart are refused
+    max_skew: float = 0.25  # sequence: the two halves of a pair published further apart are refused
     lone_timeout: float = 3.0  # say so when one input arrives alone this long
     u_limit: float = 1.0e3
     y_limit: float = 1.0e3
@@ -189,6 +189,13 @@ class Session:
         self.holding = False
         held, self._held = self._held, []
         return self._process(held)
+
+    def discard_held(self) -> int:
+        """Drop the pairs held so far as refused (the caller found they are not samples)."""
+        dropped = len(self._held)
+        self.counters["refused"] += dropped
+        self._held = []
+        return dropped
 
     def release_pairs(self) -> list[Pair]:
         """Stop holding and hand the formed pairs over unprocessed (offline: learnt in one batch)."""

@@ -116,8 +116,12 @@ class IdentifierNode(Node):
                 )
                 + " has none: use pairing:=sample sample_period:=T"
             )
+        # Held until our outputs have readers and, in sequence mode, until the graph shows one
+        # lockstep publisher of both inputs (equal indices from two nodes are not one sample).
         self.session.holding = bool(
-            self.values["wait_for_y_hat_subscribers"] or self.values["wait_for_error_subscribers"]
+            self.values["wait_for_y_hat_subscribers"]
+            or self.values["wait_for_error_subscribers"]
+            or self.values["pairing"] == "sequence"
         )
         self._check_graph(at_start=True)
         self.add_on_set_parameters_callback(self._check_parameters)
@@ -346,7 +350,7 @@ class IdentifierNode(Node):
         self._emit_notices()
 
     def _publish(self, samples: list[Sample]) -> None:
-        if self.session.holding and self._outputs_matched():
+        if self.session.holding and self._outputs_matched() and self._publishers_vouched():
             samples = self.session.release() + samples
         for sample in samples:
             result = sample.result
@@ -383,7 +387,34 @@ class IdentifierNode(Node):
         )
 
     # -- the graph: types, publishers, QoS --------------------------------------------------------
-    _graph_checked = False
+    _graph_checked = False  # both inputs' publishers seen, with their node names
+    _graph_unverified_since: float | None = None
+
+    def _publishers_vouched(self) -> bool:
+        """Sequence mode learns only once the graph shows both inputs from one node.
+
+        Node names arrive with discovery, a moment after the first messages can; until
+        then pairs are held, not learnt. If the names never come (a publisher that left
+        before they did), the pairs are released after a grace period with a warning:
+        the skew check on source times still refuses halves published apart.
+        """
+        if self.values["pairing"] != "sequence" or self._graph_checked:
+            return True
+        now = time.monotonic()
+        if self._graph_unverified_since is None:
+            self._graph_unverified_since = now
+        if now - self._graph_unverified_since < _START_GRACE:
+            return False
+        self._log(
+            Notice(
+                "unverified",
+                f"the publishers of {self.u_name} and {self.y_name} could not be told from the graph within "
+                f"{_START_GRACE:.0f} s: pairing by sequence number unverified "
+                "(pairs published apart are still refused)",
+            )
+        )
+        self._graph_checked = True
+        return True
 
     def _check_graph(self, at_start: bool = False) -> None:
         """Compare what the graph offers on u / y_p with what we were told to expect."""
@@ -401,11 +432,12 @@ class IdentifierNode(Node):
                     raise SystemExit(f"identifier: {text}")  # discovery takes a moment: still "at start"
                 self.node_counters["type_mismatch"] += 1
                 self._log(Notice("type", text))
-        if publishers[U] and publishers[Y]:
-            self._graph_checked = True
         known = all(not name.startswith("_NODE_") for nodes in publishers.values() for _, name in nodes)
-        if self.values["pairing"] != "sequence" or not (publishers[U] and publishers[Y] and known):
+        if not (publishers[U] and publishers[Y] and known):
             return  # (node names read _NODE_NAME_UNKNOWN_ until discovery completes)
+        self._graph_checked = True
+        if self.values["pairing"] != "sequence":
+            return
         if publishers[U].isdisjoint(publishers[Y]):
 
             def names(nodes: set) -> str:
@@ -416,6 +448,7 @@ class IdentifierNode(Node):
                 "come from different nodes: pairing 'sequence' needs one lockstep publisher of both, nothing is "
                 "paired; use pairing:=sample sample_period:=T (or pairing:=stamp)"
             )
+            self.session.discard_held()
         else:
             self.session.refusal = None
 

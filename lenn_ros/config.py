@@ -267,6 +267,45 @@ def read_params_file(path: str | Path, node_name: str = "identifier") -> dict[st
     return merged
 
 
+def node_key_matches(key: str, fully_qualified_name: str) -> bool:
+    """Whether a params-file key addresses a node, by rcl's rules.
+
+    ``*`` stands for one name token, ``**`` for any number of them (none included); a
+    key without a leading ``/`` is taken from the root namespace.
+    """
+    pattern = [token for token in str(key).strip().split("/") if token]
+    name = [token for token in fully_qualified_name.split("/") if token]
+
+    def match(p: int, n: int) -> bool:
+        if p == len(pattern):
+            return n == len(name)
+        if pattern[p] == "**":
+            return any(match(p + 1, rest) for rest in range(n, len(name) + 1))
+        return n < len(name) and pattern[p] in ("*", name[n]) and match(p + 1, n + 1)
+
+    return match(0, 0)
+
+
+def unmatched_params_files(argv: list[str], fully_qualified_name: str) -> list[tuple[str, list[str]]]:
+    """The ``--params-file`` files in ``argv`` with no section for this node, and their keys.
+
+    rclpy applies such a file to no node and says nothing: the node would run on its
+    defaults while the user believes their file is in force.
+    """
+    unmatched = []
+    for position, argument in enumerate(argv[:-1]):
+        if argument != "--params-file":
+            continue
+        path = argv[position + 1]
+        try:
+            document = yaml.safe_load(Path(path).read_text())
+        except (OSError, yaml.YAMLError):
+            continue  # rclpy itself refuses a file it cannot read, with its own message
+        if isinstance(document, dict) and not any(node_key_matches(key, fully_qualified_name) for key in document):
+            unmatched.append((path, [str(key) for key in document]))
+    return unmatched
+
+
 def _specificity(key: str, node_name: str) -> int:
     """-1: the key does not address the node; else higher = more specific."""
     key = key.strip()

@@ -19,7 +19,7 @@ rclpy = pytest.importorskip("rclpy")
 from rclpy.context import Context  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
-from rosutil import final_status, start_node, stop  # noqa: E402
+from rosutil import REPO, final_status, start_node, stop  # noqa: E402
 
 from lenn_ros import topics  # noqa: E402
 
@@ -261,3 +261,48 @@ def test_each_kind_of_warning_has_its_own_throttle(graph: Graph) -> None:
     nan_lines = [line for line in err.splitlines() if "u = nan" in line]
     lone_lines = [line for line in err.splitlines() if "arriving alone" in line]
     assert len(nan_lines) == 1 and len(lone_lines) == 1, err
+
+
+def test_params_file_for_another_node_name_is_said(graph: Graph) -> None:
+    """The shipped files address /**/identifier: under -r __node:=ident3 they apply to nothing (rclpy is silent)."""
+    graph.listen()
+    graph.spin()
+    identifier = start_node(
+        "identifier",
+        "status_period:=0.2",
+        params_file=REPO / "config" / "example3_lenn.yaml",
+        ros_args=("-r", "__node:=ident3"),
+    )
+    try:
+        graph.wait(lambda status: status["counters"]["unknown_parameters"] >= 1)
+    finally:
+        _, err = stop(identifier)
+    assert "params file" in err and "has no section for this node (/ident3" in err, err
+    assert "'/**/ident3:'" in err
+    assert final_status(err)["counters"]["unknown_parameters"] >= 1
+
+
+def test_qos_overrides_take_durability_and_name_typos(graph: Graph) -> None:
+    from rclpy.qos import DurabilityPolicy
+
+    identifier = start_node(
+        "identifier",
+        "pairing:=sample",
+        "sample_period:=0.01",
+        "qos_overrides./u.subscription.durability:=transient_local",
+        "qos_overrides./uu.subscription.reliability:=best_effort",
+    )
+    probe = graph.node("probe")
+    graph.spin()
+    try:
+        deadline = time.monotonic() + 20
+        infos: list = []
+        while not infos and time.monotonic() < deadline:
+            infos = [i for i in probe.get_subscriptions_info_by_topic("/u") if i.node_name == "identifier"]
+            time.sleep(0.1)
+        assert infos, "the identifier's /u subscription never showed up"
+        assert infos[0].qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+    finally:
+        _, err = stop(identifier)
+    assert "unknown QoS override 'qos_overrides./uu.subscription.reliability' is ignored" in err, err
+    assert final_status(err)["counters"]["unknown_parameters"] == 1

@@ -33,14 +33,21 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.parameter import Parameter as RosParameter
-from rclpy.qos import QoSProfile, ReliabilityPolicy
+from rclpy.qos import QoSPolicyKind, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, Float64MultiArray, Int64, MultiArrayDimension, String
 
 from lenn_ros import topics
-from lenn_ros.config import NODE_PARAMETERS, Parameter, build_identifier, check_value, identifier_parameters
+from lenn_ros.config import (
+    NODE_PARAMETERS,
+    Parameter,
+    build_identifier,
+    check_value,
+    identifier_parameters,
+    unmatched_params_files,
+)
 from lenn_ros.core.fields import FieldError, check_path, compile_path, has_header, stamp_seconds
 from lenn_ros.core.networks import ModelFileError
 from lenn_ros.core.pairing import U, Y
@@ -51,6 +58,10 @@ from lenn_ros.nodes import run_node
 _FOREIGN_PARAMETERS = ("use_sim_time", "start_type_description_service", "qos_overrides.")
 #: Seconds after start in which a wrong message type on u / y_p stops the node (later: an error line).
 _START_GRACE = 5.0
+#: What ``qos_overrides./topic.subscription.*`` may set (rclpy's default set lacks durability).
+_QOS_OVERRIDES = QoSOverridingOptions(
+    policy_kinds=(QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY)
+)
 #: Notice kinds that are news, not trouble.
 _INFO_KINDS = ("phase",)
 
@@ -99,6 +110,7 @@ class IdentifierNode(Node):
         self._loggers: dict[str, Any] = {}
         self.node_counters = {"type_mismatch": 0, "qos_incompatible": 0, "field_errors": 0, "unknown_parameters": 0}
         self._warn_unknown_parameters()
+        self._warn_unmatched_params_files()
         message_types = {channel: self._message_class(channel) for channel in (U, Y)}
         self.identifier = self._build_model()
         self.session = Session(self.identifier, self._session_config())
@@ -143,6 +155,7 @@ class IdentifierNode(Node):
         config_publisher.publish(String(data=json.dumps(json_safe({**self.values, "network": self.network}))))
         self._sim_time = bool(self.get_parameter("use_sim_time").value)
         self._subscribe(message_types)
+        self._warn_unknown_qos_overrides()
         self._test_start_subscription = self.create_subscription(
             Int64, topics.TEST_START, self._on_test_start, topics.latched_qos()
         )
@@ -201,6 +214,27 @@ class IdentifierNode(Node):
             hint = f"; did you mean {close[0]!r}?" if close else ""
             self.get_logger().error(f"unknown parameter {name!r} is ignored{hint}")
 
+    def _warn_unmatched_params_files(self) -> None:
+        """A params file with no section for this node's name is applied to nothing: say so."""
+        name = self.get_fully_qualified_name()
+        for path, keys in unmatched_params_files(sys.argv, name):
+            self.node_counters["unknown_parameters"] += 1
+            self.get_logger().error(
+                f"params file {path} has no section for this node ({name}; its keys: {', '.join(keys)}), so none "
+                f"of its parameters apply: name the section '/**:' (any node) or '/**/{self.get_name()}:'"
+            )
+
+    def _warn_unknown_qos_overrides(self) -> None:
+        """``qos_overrides.`` names that no subscription declared (a typo, a wrong topic) are ignored: say so."""
+        for name in self._parameter_overrides:
+            if name.startswith("qos_overrides.") and not self.has_parameter(name):
+                self.node_counters["unknown_parameters"] += 1
+                self.get_logger().error(
+                    f"unknown QoS override {name!r} is ignored: this node takes "
+                    f"qos_overrides.{self.u_name}.subscription.* and qos_overrides.{self.y_name}.subscription.* "
+                    "(reliability, history, depth, durability)"
+                )
+
     def _message_class(self, channel: str) -> Any:
         type_key, field_key = ("u_type", "u_field") if channel == U else ("y_type", "y_field")
         try:
@@ -250,7 +284,7 @@ class IdentifierNode(Node):
                 lambda message, info, c=channel: self._on_message(c, message, info),
                 profile,
                 event_callbacks=events,
-                qos_overriding_options=QoSOverridingOptions.with_default_policies(),
+                qos_overriding_options=_QOS_OVERRIDES,
             )
 
     # -- parameters ----------------------------------------------------------------------------

@@ -6,16 +6,35 @@ publishes u(k) then y_p(k), once each, for every k. ``ros2 bag play`` (where ins
 keeps them aligned too when it plays both topics from the start, but cannot pace by the
 identifier's progress.
 
+What is published (``source``): sample k of the recording as the k-th u and y_p, so a
+lost or reordered message in the bag shifts nothing.
+
+* ``auto`` (default): the identifier's recorded ``samples`` topic when the bag has it
+  (the pairs it formed live, so the replayed run is the live one whatever the recorder
+  lost of u / y_p), else ``raw``;
+* ``samples``: that topic, or an error;
+* ``raw``: u and y_p paired by their recorded sequence numbers
+  (:func:`lenn_ros.bag.run.pair_raw`, as evaluate pairs them); a restart of the sequence
+  at 1 is a new stream, published through new publishers as a loop pass is. A bag without
+  sequence numbers is paired by order, and only when both counts match.
+
+A sample whose u or y_p is not in the recording (or an index neither holds) is still
+published, with NaN for the missing half: the identifier screens NaN (counted, the pair
+skipped, its history restarted there) instead of pairing later samples off by one. One
+log line says how many samples were incomplete.
+
 Pacing (``rate``):
 
-* ``rate > 0``: the recorded log-time spacing of ``u``, divided by ``rate``.
+* ``rate > 0``: the recorded spacing (log times of ``u``; from ``samples``, the sample
+  times), divided by ``rate``.
 * ``rate == 0``: as fast as possible *without loss*. Replay first waits for subscribers,
   publishes RELIABLE (``topics.data_qos``), and keeps every subscriber's queue of
   ``topics.DATA_DEPTH`` samples from overflowing in one of two ways:
 
   - once an identifier is seen (a publisher on ``y_hat``; looked up every 128 samples)
     and ``max_in_flight > 0``: back-pressure. At most ``max_in_flight`` (default
-    DATA_DEPTH / 2) samples are published ahead of the ``y_hat`` messages received.
+    DATA_DEPTH / 2) samples are published ahead of the ``y_hat`` messages received (or
+    of its ``samples`` messages, if more: a skipped NaN sample has no y_hat).
     If no ``y_hat`` arrives for ``wait_timeout`` seconds, replay falls back to:
   - a fixed cap of ``max_rate_hz`` samples per second (default 1000, the rate for which
     DATA_DEPTH gives a stalled subscriber 10 s before it loses anything).
@@ -50,6 +69,9 @@ from rclpy.signals import SignalHandlerOptions
 
 from lenn_ros import topics
 from lenn_ros.bag import BagError, read_run
+from lenn_ros.bag.run import RawPairs, pair_raw, read_samples
+
+SOURCES = ("auto", "samples", "raw")
 
 
 class Replay(Node):
@@ -65,6 +87,12 @@ class Replay(Node):
             floating_point_range=[FloatingPointRange(from_value=0.0, to_value=1000.0)],
         )
         self._declare("loop", False, "Start again from the first sample when done (until SIGINT).")
+        self._declare(
+            "source",
+            "auto",
+            "What to publish: 'samples' (the identifier's recorded pairs), 'raw' (u/y_p paired by sequence "
+            "number) or 'auto' (samples if the bag has them, else raw).",
+        )
         self._declare(
             "wait_for_subscribers",
             1,
@@ -94,15 +122,16 @@ class Replay(Node):
         if not bag:
             raise BagError("parameter 'bag' is empty; run with --ros-args -p bag:=PATH")
         run = read_run(bag)
-        n = min(len(run.u), len(run.y_p))
-        if len(run.u) != len(run.y_p):
-            self.get_logger().warning(f"u has {len(run.u)} samples, y_p {len(run.y_p)}: replaying the first {n}")
         self.bag = bag
-        self.u, self.y_p = run.u[:n], run.y_p[:n]
-        self.offsets = (run.u_t[:n] - run.u_t[0]) / 1e9 if n else np.empty(0)
+        self.pairs = self._pairs(run, str(self._param("source")))
+        self.u, self.y_p = self.pairs.u, self.pairs.y_p
+        times = self.pairs.time_ns
+        self.offsets = (times - times[0]) / 1e9 if times.size else np.empty(0)
+        self.stream_starts = {int(k) for k in np.flatnonzero(np.diff(self.pairs.stream)) + 1}
         self.test_start = run.test_start
         self.published = 0
         self.y_hat_count = 0
+        self.samples_count = 0
         self._feedback_allowed = False
         self._identifier_seen = False
         self._next_slot = 0.0
@@ -114,13 +143,53 @@ class Replay(Node):
             int_msg = topics.message_class(topics.INT64)
             self.pub_start = self.create_publisher(int_msg, topics.TEST_START, topics.latched_qos())
         self.create_subscription(self._msg, topics.Y_HAT, self._on_y_hat, topics.data_qos())
+        array = topics.message_class(topics.FLOAT64_ARRAY)
+        self.create_subscription(array, topics.SAMPLES, self._on_sample, topics.data_qos(), raw=True)
+
+    def _pairs(self, run: Any, source: str) -> RawPairs:
+        """Sample k of the recording at row k (NaN for a missing half); says once what was incomplete."""
+        if source not in SOURCES:
+            raise ValueError(f"source {source!r} is not one of {', '.join(SOURCES)}")
+        recorded = read_samples(self.bag) if source != "raw" else None
+        if recorded is not None and recorded.index.size:
+            times = np.round(recorded.time * 1e9).astype(np.int64)  # the sample's time: log times come in bursts
+            index = recorded.index
+            pairs = pair_raw(recorded.u, recorded.y_p, index, index, u_t=times, y_p_t=times, fill=True)
+            refused = pairs.has_u & pairs.has_y_p & ~(np.isfinite(pairs.u) & np.isfinite(pairs.y_p))
+            what = f"the identifier's samples ({recorded.topic}; {int(np.count_nonzero(refused))} refused live, as NaN)"
+        elif source == "samples":
+            raise BagError(f"{self.bag}: no identifier samples topic in the bag; use source:=raw")
+        else:
+            try:
+                sequences = (run.u_sequence, run.y_p_sequence)
+                pairs = pair_raw(run.u, run.y_p, *sequences, u_t=run.u_t, y_p_t=run.y_p_t, fill=True)
+            except BagError as err:
+                raise BagError(f"{self.bag}: {err}") from None
+            names = f"{run.topics[topics.U]} and {run.topics[topics.Y_P]}"
+            how = "order (no sequence numbers recorded)" if pairs.by_order else "sequence number"
+            what = f"{names} paired by {how}"
+        streams = int(pairs.stream[-1]) + 1 if pairs.stream.size else 0
+        line = f"replaying {what}: {pairs.index.size} samples in {streams} stream(s)"
+        dropped = ((pairs.duplicates, "repeated messages"), (pairs.unindexed, "messages without a sequence number"))
+        tail = "".join(f"; {count} {name} dropped" for count, name in dropped if count)
+        if not pairs.incomplete:
+            self.get_logger().info(f"{line}, all complete{tail}")
+            return pairs
+        no_y = int(np.count_nonzero(pairs.has_u & ~pairs.has_y_p))
+        no_u = int(np.count_nonzero(~pairs.has_u & pairs.has_y_p))
+        self.get_logger().warning(
+            f"{line}; {pairs.incomplete} incomplete in the recording (u missing: {no_u}, y_p missing: {no_y}, "
+            f"both: {pairs.incomplete - no_u - no_y}): published in place with NaN for the missing half, so the "
+            f"identifier skips each and restarts its history there; no later sample is shifted{tail}"
+        )
+        return pairs
 
     def _open_stream(self) -> None:
         """Publishers for one pass: new ones start their publication sequence numbers at 1."""
         self.pub_u = self.create_publisher(self._msg, topics.U, topics.data_qos())
         self.pub_y = self.create_publisher(self._msg, topics.Y_P, topics.data_qos())
 
-    def _restart_stream(self, executor: SingleThreadedExecutor) -> None:
+    def _restart_stream(self, executor: SingleThreadedExecutor, label: str) -> None:
         acked = self.wait_acked()
         if not acked:
             self.get_logger().warning("previous pass not acknowledged by every subscriber before restarting")
@@ -128,7 +197,16 @@ class Replay(Node):
         self.destroy_publisher(self.pub_u)
         self.destroy_publisher(self.pub_y)
         self._open_stream()
-        self.get_logger().info(f"pass {self.passes + 1}: new publishers, sample indices restart at 1")
+        self.get_logger().info(f"{label}: new publishers, sample indices restart at 1")
+
+    def _start_stream(self, executor: SingleThreadedExecutor, restart: str | None) -> None:
+        """Begin a stream (a pass, or a publisher run recorded in the bag): indices from 1, test_start again."""
+        if restart is not None:
+            self._restart_stream(executor, restart)
+        self._wait_for_subscribers(executor)
+        if self.pub_start is not None:
+            self.pub_start.publish(topics.message_class(topics.INT64)(data=int(self.test_start)))
+        self._next_slot = time.monotonic()
 
     def _wait_identifier_idle(self, executor: SingleThreadedExecutor, quiet: float = 0.3) -> None:
         """With an identifier on the graph: wait until its y_hat stops coming (it has caught up).
@@ -140,11 +218,11 @@ class Replay(Node):
         if self.count_publishers(topics.Y_HAT) == 0:
             return
         end = time.monotonic() + (float(self._param("wait_timeout")) or 30.0)
-        last, calm_until = self.y_hat_count, time.monotonic() + quiet
+        last, calm_until = self._progress(), time.monotonic() + quiet
         while not self.stop.is_set() and time.monotonic() < min(calm_until, end):
             executor.spin_once(timeout_sec=0.02)
-            if self.y_hat_count != last:
-                last, calm_until = self.y_hat_count, time.monotonic() + quiet
+            if self._progress() != last:
+                last, calm_until = self._progress(), time.monotonic() + quiet
 
     def _settle_new_stream(self) -> None:
         """Hold sample 2 until every reader has acknowledged sample 1 of a new pass.
@@ -163,6 +241,13 @@ class Replay(Node):
 
     def _on_y_hat(self, _msg: Any) -> None:
         self.y_hat_count += 1
+
+    def _on_sample(self, _msg: Any) -> None:
+        self.samples_count += 1
+
+    def _progress(self) -> int:
+        """Samples the identifier has handled: a NaN-marked (skipped) one has a samples row but no y_hat."""
+        return max(self.y_hat_count, self.samples_count)
 
     def _param(self, name: str) -> Any:
         return self.get_parameter(name).value
@@ -190,12 +275,7 @@ class Replay(Node):
         self._feedback_allowed = rate == 0 and int(self._param("max_in_flight")) > 0
         self._identifier_seen = False
         while not self.stop.is_set():
-            if self.passes:
-                self._restart_stream(executor)
-            self._wait_for_subscribers(executor)
-            if self.pub_start is not None:
-                self.pub_start.publish(topics.message_class(topics.INT64)(data=int(self.test_start)))
-            self._next_slot = time.monotonic()
+            self._start_stream(executor, f"pass {self.passes + 1}" if self.passes else None)
             self._play_once(executor, rate)
             self.passes += 1
             if not self._param("loop") or not len(self.u):
@@ -217,6 +297,9 @@ class Replay(Node):
         for k in range(len(self.u)):
             if self.stop.is_set():
                 break
+            if k in self.stream_starts:  # the recorded publisher restarted: so does ours
+                self._start_stream(executor, f"stream {int(self.pairs.stream[k]) + 1} of the bag")
+                start = time.monotonic() - (self.offsets[k] / rate if rate > 0 else 0.0)
             if rate > 0:
                 self._spin_until(executor, start + self.offsets[k] / rate)
             elif self._paced_by_y_hat():
@@ -227,16 +310,16 @@ class Replay(Node):
             self.pub_u.publish(self._msg(data=float(self.u[k])))
             self.pub_y.publish(self._msg(data=float(self.y_p[k])))
             self.published += 1
-            if k == 0 and self.passes:
+            if (k == 0 and self.passes) or k in self.stream_starts:
                 self._settle_new_stream()
 
     def _wait_for_progress(self, executor: SingleThreadedExecutor, window: int, timeout: float) -> bool:
         """Block while ``window`` samples are unanswered; False (give up feedback) after ``timeout``."""
-        last_count, last_change = self.y_hat_count, time.monotonic()
-        while self.published - self.y_hat_count >= window and not self.stop.is_set():
+        last_count, last_change = self._progress(), time.monotonic()
+        while self.published - self._progress() >= window and not self.stop.is_set():
             executor.spin_once(timeout_sec=0.05)
-            if self.y_hat_count != last_count:
-                last_count, last_change = self.y_hat_count, time.monotonic()
+            if self._progress() != last_count:
+                last_count, last_change = self._progress(), time.monotonic()
             elif time.monotonic() - last_change > timeout:
                 self.get_logger().warning(f"no y_hat for {timeout:.0f} s: pacing by max_rate_hz instead")
                 return False

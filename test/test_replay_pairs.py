@@ -1,0 +1,327 @@
+"""Replay republishes sample k as the k-th u and y_p, whatever the recording lost or reordered.
+
+The pairing itself (:func:`lenn_ros.bag.run.pair_raw`) is checked without ROS first; then
+the replay node as a real process into an rclpy listener and into the real identifier.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import threading
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from lenn_ros import topics
+from lenn_ros.bag import BagError, BagWriter, iter_messages, read_run, read_samples, topic_types
+from lenn_ros.bag.run import pair_raw
+
+REPO = Path(__file__).resolve().parents[1]
+EXAMPLE = REPO / "bags" / "example1"
+LOST_U, LOST_Y = 100, 2000  # sequence numbers (= sample indices) dropped from the copy
+SWAPPED = (501, 504)  # y_p samples whose arrivals are swapped in the copy
+
+
+# -- the pairing alone ---------------------------------------------------------------------------
+
+
+def test_lost_and_reordered_halves_pair_by_index() -> None:
+    u, u_seq = [10.0, 20.0, 40.0, 50.0], [1, 2, 4, 5]  # u(3) lost
+    y, y_seq = [-1.0, -3.0, -2.0, -5.0], [1, 3, 2, 5]  # y_p(2), y_p(3) swapped, y_p(4) lost
+    pairs = pair_raw(u, y, u_seq, y_seq, u_t=[0, 10, 30, 40], y_p_t=[1, 21, 11, 41])
+    assert pairs.index.tolist() == [1, 2, 3, 4, 5] and pairs.stream.tolist() == [0] * 5
+    assert pairs.u[[0, 1, 3, 4]].tolist() == [10.0, 20.0, 40.0, 50.0] and math.isnan(pairs.u[2])
+    assert pairs.y_p[[0, 1, 2, 4]].tolist() == [-1.0, -2.0, -3.0, -5.0] and math.isnan(pairs.y_p[3])
+    assert pairs.has_u.tolist() == [True, True, False, True, True]
+    assert pairs.has_y_p.tolist() == [True, True, True, False, True]
+    assert pairs.time_ns.tolist() == [0, 10, 21, 30, 40]  # u's log time, else y_p's
+    assert pairs.incomplete == 2 and not pairs.by_order
+
+
+def test_fill_gives_every_index_of_each_stream() -> None:
+    pairs = pair_raw([3.0, 5.0], [-3.0, -5.0], [3, 5], [3, 5], u_t=[30, 50], y_p_t=[31, 51], fill=True)
+    assert pairs.index.tolist() == [1, 2, 3, 4, 5]
+    assert pairs.has_u.tolist() == pairs.has_y_p.tolist() == [False, False, True, False, True]
+    assert np.isnan(pairs.u[[0, 1, 3]]).all() and np.isnan(pairs.y_p[[0, 1, 3]]).all()
+    assert pairs.time_ns.tolist() == [30, 30, 30, 30, 50]  # a filled row is due with its neighbours
+    unfilled = pair_raw([3.0, 5.0], [-3.0, -5.0], [3, 5], [3, 5])
+    assert unfilled.index.tolist() == [3, 5] and unfilled.incomplete == 0
+
+
+def test_restart_at_one_is_a_new_stream_and_repeats_keep_the_first() -> None:
+    # u: 1 2 3 | 1 2, with a repeated 2 in the first stream; y_p: a repeated 1 first (not a restart)
+    u, u_seq = [1.0, 2.0, 2.5, 3.0, 11.0, 12.0], [1, 2, 2, 3, 1, 2]
+    y, y_seq = [-1.0, -1.5, -2.0, -3.0, -11.0, -12.0], [1, 1, 2, 3, 1, 2]
+    pairs = pair_raw(u, y, u_seq, y_seq, fill=True)
+    assert pairs.stream.tolist() == [0, 0, 0, 1, 1] and pairs.index.tolist() == [1, 2, 3, 1, 2]
+    assert pairs.u.tolist() == [1.0, 2.0, 3.0, 11.0, 12.0]
+    assert pairs.y_p.tolist() == [-1.0, -2.0, -3.0, -11.0, -12.0]
+    assert pairs.duplicates == 2 and pairs.incomplete == 0
+
+
+def test_without_sequence_numbers_by_order_only_when_counts_match() -> None:
+    pairs = pair_raw([1.0, 2.0], [-1.0, -2.0], [0, 0], None)
+    assert pairs.by_order and pairs.index.tolist() == [1, 2] and pairs.y_p.tolist() == [-1.0, -2.0]
+    with pytest.raises(BagError, match="u has 3 messages, y_p 2: pairing by order would shift"):
+        pair_raw([1.0, 2.0, 3.0], [-1.0, -2.0], None, None)
+    partly = pair_raw([1.0, 2.0, 9.0], [-1.0, -2.0], [1, 2, 0], [1, 2])  # an unindexed message is dropped
+    assert partly.u.tolist() == [1.0, 2.0] and partly.unindexed == 1
+
+
+def copy_damaged(source: Path, target: Path, keep_samples: bool) -> Path:
+    """``source`` without u(LOST_U) and y_p(LOST_Y), y_p SWAPPED in arrival; ``samples`` kept or not."""
+    messages = [
+        m
+        for m in iter_messages(source)
+        if not (m.topic == "/u" and m.sequence == LOST_U)
+        and not (m.topic == "/y_p" and m.sequence == LOST_Y)
+        and (keep_samples or m.topic != "/samples")
+    ]
+    where = [i for i, m in enumerate(messages) if m.topic == "/y_p" and m.sequence in SWAPPED]
+    a, b = where
+    messages[a], messages[b] = (
+        dataclasses.replace(messages[b], log_time_ns=messages[a].log_time_ns),
+        dataclasses.replace(messages[a], log_time_ns=messages[b].log_time_ns),
+    )
+    with BagWriter(target) as writer:
+        for topic, type_name in topic_types(source).items():
+            if keep_samples or topic != "/samples":
+                writer.add_topic(topic, type_name)
+        for m in messages:
+            writer.write_message(
+                m.topic, m.message, m.log_time_ns, publish_time_ns=m.publish_time_ns, sequence=m.sequence
+            )
+    return target
+
+
+def test_damaged_shipped_bag_pairs_as_recorded(tmp_path: Path) -> None:
+    original = read_run(EXAMPLE)
+    assert original.u_sequence.tolist() == list(range(1, original.u.size + 1))  # sample k at position k - 1
+    damaged = read_run(copy_damaged(EXAMPLE, tmp_path / "damaged", keep_samples=False))
+    assert damaged.u.size == original.u.size - 1 and damaged.y_p.size == original.y_p.size - 1
+    pairs = pair_raw(damaged.u, damaged.y_p, damaged.u_sequence, damaged.y_p_sequence, fill=True)
+    assert pairs.index.tolist() == list(range(1, original.u.size + 1))
+    complete = pairs.has_u & pairs.has_y_p
+    assert np.flatnonzero(~complete).tolist() == [LOST_U - 1, LOST_Y - 1]
+    assert np.array_equal(pairs.u[complete], original.u[complete])
+    assert np.array_equal(pairs.y_p[complete], original.y_p[complete])
+    assert np.isnan(pairs.u[LOST_U - 1]) and pairs.y_p[LOST_U - 1] == original.y_p[LOST_U - 1]
+    assert np.isnan(pairs.y_p[LOST_Y - 1]) and pairs.u[LOST_Y - 1] == original.u[LOST_Y - 1]
+
+
+# -- the replay node over DDS --------------------------------------------------------------------
+
+
+def _ros() -> None:
+    pytest.importorskip("rclpy")
+    pytest.importorskip("domain_coordinator")
+
+
+class PairListener:
+    """Keeps every u and y_p by publication sequence number, one dict per stream (publisher run)."""
+
+    def __init__(self, domain_id: int, extra: dict[str, Callable[[object], None]] | None = None) -> None:
+        import rclpy
+        from rclpy.context import Context
+        from rclpy.executors import SingleThreadedExecutor
+
+        self.ctx = Context()
+        rclpy.init(context=self.ctx, domain_id=domain_id)
+        self.node = rclpy.create_node("pair_listener", context=self.ctx)
+        self.streams: dict[str, list[dict[int, float]]] = {topics.U: [], topics.Y_P: []}
+        self.lock = threading.Lock()
+        float64 = topics.message_class(topics.FLOAT64)
+        for name in (topics.U, topics.Y_P):
+            self.node.create_subscription(
+                float64, name, lambda m, info, n=name: self._on(n, m, info), topics.data_qos()
+            )
+        for name, callback in (extra or {}).items():
+            self.node.create_subscription(topics.message_class(topics.FLOAT64_ARRAY), name, callback, topics.data_qos())
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    def _on(self, name: str, message: object, info: dict[str, int]) -> None:
+        sequence = info["publication_sequence_number"]
+        with self.lock:
+            streams = self.streams[name]
+            if not streams or (sequence == 1 and streams[-1]):
+                streams.append({})
+            streams[-1][sequence] = message.data
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.thread.join(timeout=5)
+        self.node.destroy_node()
+        self.ctx.try_shutdown()
+
+
+def run_replay(bag: Path, *params: str, timeout: float = 60) -> tuple[int | None, str, str]:
+    from rosutil import start_node
+
+    replay = start_node("replay", f"bag:={bag}", "rate:=0.0", "max_rate_hz:=4000.0", *params)
+    try:
+        stdout, stderr = replay.communicate(timeout=timeout)
+    finally:
+        if replay.poll() is None:
+            replay.kill()
+            replay.communicate()
+    return replay.returncode, stdout, stderr
+
+
+def assert_as_recorded(received: dict[int, float], recorded: np.ndarray, nan_at: set[int]) -> None:
+    """Message k (1-based) equals recorded sample k; the samples in ``nan_at`` are NaN."""
+    assert sorted(received) == list(range(1, recorded.size + 1)), f"{len(received)} of {recorded.size} received"
+    got = np.array([received[k] for k in range(1, recorded.size + 1)])
+    marked = set((np.flatnonzero(np.isnan(got)) + 1).tolist())
+    assert marked == nan_at, f"NaN at {sorted(marked)[:10]}, expected {sorted(nan_at)}"
+    same = ~np.isnan(got)
+    wrong = np.flatnonzero(got[same] != recorded[same])
+    assert not wrong.size, (
+        f"{wrong.size} samples differ from the recording, first index {np.flatnonzero(same)[wrong[0]] + 1}"
+    )
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(90)
+@pytest.mark.parametrize("keep_samples", [False, True], ids=["raw", "samples"])
+def test_replay_of_a_damaged_bag_publishes_samples_in_place(tmp_path: Path, domain: int, keep_samples: bool) -> None:
+    """Raw: u(k), y_p(k) as recorded at index k, the two incomplete samples NaN-marked, not shifted.
+
+    With the identifier's samples topic in the bag (auto), the recorder's losses do not
+    matter: the pairs the identifier formed live are published, all complete.
+    """
+    _ros()
+    original = read_run(EXAMPLE)
+    bag = copy_damaged(EXAMPLE, tmp_path / "damaged", keep_samples)
+    listener = PairListener(domain)
+    try:
+        code, stdout, stderr = run_replay(bag)
+    finally:
+        listener.close()
+    assert code == 0, stderr
+    n = original.u.size
+    assert f"replay: published {n} samples" in stdout and "not all acknowledged" not in stdout, stdout
+    assert len(listener.streams[topics.U]) == len(listener.streams[topics.Y_P]) == 1
+    u, y_p = listener.streams[topics.U][0], listener.streams[topics.Y_P][0]
+    if keep_samples:
+        assert "replaying the identifier's samples (/samples; 0 refused live, as NaN)" in stderr, stderr
+        assert f"{n} samples in 1 stream(s), all complete" in stderr
+        assert_as_recorded(u, original.u, set())
+        assert_as_recorded(y_p, original.y_p, set())
+        return
+    lines = [line for line in stderr.splitlines() if "incomplete in the recording" in line]
+    assert len(lines) == 1, stderr
+    assert "/u and /y_p paired by sequence number" in lines[0]
+    assert "2 incomplete in the recording (u missing: 1, y_p missing: 1, both: 0)" in lines[0]
+    assert_as_recorded(u, original.u, {LOST_U})
+    assert_as_recorded(y_p, original.y_p, {LOST_Y})
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(150)
+def test_identifier_learns_the_recorded_pairs_from_a_damaged_bag(tmp_path: Path, domain: int) -> None:
+    """The real identifier's samples are the recorded (u(k), y_p(k)); the incomplete two are skipped."""
+    _ros()
+    from rosutil import final_status, start_node, stop
+
+    original = read_run(EXAMPLE)
+    live = read_samples(EXAMPLE)
+    assert live is not None
+    n = original.u.size
+    bag = copy_damaged(EXAMPLE, tmp_path / "damaged", keep_samples=False)
+    rows: list[list[float]] = []
+    done = threading.Event()
+
+    def on_sample(message: object) -> None:
+        rows.append(list(message.data))
+        if len(rows) >= n:
+            done.set()
+
+    listener = PairListener(domain, {topics.SAMPLES: on_sample})
+    identifier = start_node("identifier", params_file=REPO / "config" / "example1_lenn.yaml")
+    try:
+        code, _stdout, stderr = run_replay(bag, "wait_for_subscribers:=2", timeout=90)  # listener + identifier
+        assert code == 0, stderr
+        assert done.wait(30), f"{len(rows)} of {n} samples from the identifier"
+    finally:
+        _out, ident_err = stop(identifier)
+        listener.close()
+    table = np.array(rows[:n])
+    assert table[:, 0].astype(int).tolist() == list(range(1, n + 1))
+    u, y_p, learnt = table[:, 2], table[:, 3], table[:, 4]
+    assert np.flatnonzero(np.isnan(u) | np.isnan(y_p)).tolist() == [LOST_U - 1, LOST_Y - 1]
+    complete = ~(np.isnan(u) | np.isnan(y_p))
+    assert np.array_equal(u[complete], original.u[complete]) and np.array_equal(y_p[complete], original.y_p[complete])
+    assert not learnt[~complete].any()
+    status = final_status(ident_err)
+    counters = status["counters"]
+    assert counters["nan"] == 2 and counters["unpaired"] == 0 and counters["stale"] == 0, counters
+    # learnt where the live run learnt, but not from a skipped sample nor while the history refills after it
+    assert live.learn is not None
+    warm_up = int(np.argmax(live.learn))  # samples the live run needed before its first step
+    expected = live.learn.copy()
+    for k in (LOST_U, LOST_Y):
+        expected[k - 1 : k + warm_up] = False
+    assert np.array_equal(learnt != 0, expected), np.flatnonzero((learnt != 0) != expected)[:10]
+
+
+def write_bag(path: Path, u: list[tuple[int, float]], y_p: list[tuple[int, float]], test_start: int | None) -> Path:
+    """A bag from (sequence number, value) messages in arrival order."""
+    with BagWriter(path) as bag:
+        for name in ("/u", "/y_p", "/test_start"):
+            bag.add_topic(name)
+        if test_start is not None:
+            bag.write_value("/test_start", test_start, 0)
+        for t, ((su, vu), (sy, vy)) in enumerate(zip(u, y_p, strict=True)):
+            bag.write_value("/u", vu, 1_000_000 * (t + 1), sequence=su)
+            bag.write_value("/y_p", vy, 1_000_000 * (t + 1) + 1, sequence=sy)
+    return path
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(60)
+def test_restarted_publisher_in_the_bag_is_a_new_stream(tmp_path: Path, domain: int) -> None:
+    """A recording where the plant restarted (indices 1..4, then 1..3) replays as two streams, as recorded."""
+    _ros()
+    first, second = [(k, float(k)) for k in range(1, 5)], [(k, 10.0 + k) for k in range(1, 4)]
+    u = first + second
+    y_p = [(k, -v) for k, v in u]
+    bag = write_bag(tmp_path / "restarted", u, y_p, test_start=3)
+    starts: list[int] = []
+    listener = PairListener(domain)
+    listener.node.create_subscription(
+        topics.message_class(topics.INT64), topics.TEST_START, lambda m: starts.append(m.data), topics.latched_qos()
+    )
+    try:
+        code, _stdout, stderr = run_replay(bag)
+    finally:
+        listener.close()
+    assert code == 0, stderr
+    assert "7 samples in 2 stream(s), all complete" in stderr, stderr
+    assert "stream 2 of the bag: new publishers, sample indices restart at 1" in stderr
+    assert listener.streams[topics.U] == [dict(first), dict(second)]
+    assert listener.streams[topics.Y_P] == [{k: -v for k, v in first}, {k: -v for k, v in second}]
+    assert starts[:2] == [3, 3]
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(60)
+def test_unequal_counts_without_sequence_numbers_are_refused(tmp_path: Path, domain: int) -> None:
+    """No indices and a message fewer on y_p: no telling where it was lost, so replay says so and stops."""
+    _ros()
+    path = tmp_path / "imported"
+    with BagWriter(path) as bag:
+        bag.add_topic("/u")
+        bag.add_topic("/y_p")
+        for k in range(5):
+            bag.write_value("/u", float(k), k)
+            if k != 2:
+                bag.write_value("/y_p", -float(k), k)
+    code, _stdout, stderr = run_replay(path, timeout=30)
+    assert code == 1
+    assert "u has 5 messages, y_p 4: pairing by order would shift every later pair" in stderr, stderr

@@ -12,6 +12,13 @@ The nonlinear parts are Python callables; user-defined ones come from
 :mod:`lenn_ros.core.expression` (never ``eval``). Time convention used everywhere in
 the package: at step k the plant *shows* y(k), then the input u(k) is applied (plus
 noise) and the plant moves to y(k+1).
+
+Two ways to simulate, equal to the last bit: :meth:`Plant.step` in Python, one sample
+at a time (the live plant simulator node; the reference), and :meth:`Plant.run` over
+a whole input series, which hands the loop to a numba kernel when the plant has one
+(the four examples: cached kernels below; user formulas: compiled from the checked
+tree on first use). Issue 12: the Python loop, ~20-40 us a step, was most of the
+time of ``lenn-ros reproduce``.
 """
 
 from __future__ import annotations
@@ -19,12 +26,28 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import numpy as np
 
-from lenn_ros.core.expression import compile_expression
+from lenn_ros.core.expression import Expression, compile_expression
+from lenn_ros.core.kernels import COMPILED, njit
 
 Function = Callable[..., float]
+
+
+class Kernel(Protocol):
+    """A compiled whole-run simulation of one plant (see :meth:`Plant.run`)."""
+
+    def stands_for(self, plant: Plant) -> bool:
+        """False if the plant's f/g were replaced after the kernel was made: then Python runs."""
+        ...
+
+    def __call__(
+        self, plant: Plant, y_past: np.ndarray, u_past: np.ndarray, u_applied: np.ndarray, y_out: np.ndarray
+    ) -> int:
+        """Fill y_out[0..count], advance y_past/u_past in place; return count (stopped before a non-finite y)."""
+        ...
 
 
 @dataclass
@@ -44,6 +67,7 @@ class Plant:
     a: Sequence[float] = ()
     b: Sequence[float] = ()
     name: str = "plant"
+    kernel: Kernel | None = field(default=None, repr=False, compare=False)
     y_past: np.ndarray = field(init=False, repr=False)
     u_past: np.ndarray = field(init=False, repr=False)
 
@@ -91,12 +115,27 @@ class Plant:
         self.y_past[0] = y_next
         return y_next
 
-    def run(self, u_applied: np.ndarray) -> np.ndarray:
-        """Outputs y(0..N) for inputs u(0..N-1): y[k] is shown before u[k] acts."""
-        y = np.empty(len(u_applied) + 1)
-        y[0] = self.output
-        for k, u in enumerate(np.asarray(u_applied, dtype=np.float64).tolist()):
-            y[k + 1] = self.step(u)
+    def run(self, u_applied: np.ndarray, compiled: bool = True) -> np.ndarray:
+        """Outputs y(0..N) for inputs u(0..N-1): y[k] is shown before u[k] acts.
+
+        With a kernel (and ``compiled``) the loop runs in numba; ``compiled=False``
+        is the reference, :meth:`step` after step. The kernel stops before any step
+        whose output is not finite and the reference takes over from there, so a
+        formula error is the reference's ExpressionError (same message, same state)
+        and a plant that legitimately reaches inf/NaN gives the reference's values.
+        """
+        u = np.ascontiguousarray(u_applied, dtype=np.float64)
+        y = np.empty(len(u) + 1)
+        done = 0
+        if compiled and COMPILED and self.kernel is not None and self.kernel.stands_for(self):
+            # copies: step() never writes state in place, and callers share these arrays between plants
+            y_past = np.array(self.y_past, dtype=np.float64)
+            u_past = np.array(self.u_past, dtype=np.float64)
+            done = self.kernel(self, y_past, u_past, u, y)
+            self.y_past, self.u_past = y_past, u_past
+        y[done] = self.output
+        for k, value in enumerate(u[done:].tolist(), start=done):
+            y[k + 1] = self.step(value)
         return y
 
 
@@ -116,9 +155,84 @@ def plant_from_expressions(
     """
     ys = tuple(f"y{i + 1}" for i in range(n))
     us = tuple(f"u{i + 1}" for i in range(m))
-    f_fn = compile_expression(f, ys + us if model == 4 else ys) if f else None
-    g_fn = compile_expression(g, us) if g else None
-    return Plant(model=model, n=n, m=m, f=f_fn, g=g_fn, a=tuple(a), b=tuple(b), name="user-defined")
+    f_fn = compile_expression(f, ys + us if model == 4 else ys, name="f") if f else None
+    g_fn = compile_expression(g, us, name="g") if g else None
+    kernel = FormulaKernel(f_fn, g_fn)
+    return Plant(model=model, n=n, m=m, f=f_fn, g=g_fn, a=tuple(a), b=tuple(b), name="user-defined", kernel=kernel)
+
+
+# -- compiled whole-run simulation ----------------------------------------------------
+@njit(cache=True, nogil=True, inline="always")
+def _push(past: np.ndarray, value: float) -> None:
+    """past <- (value, past[0], ..., past[-2]): what step()'s np.roll and assignment do."""
+    for i in range(len(past) - 1, 0, -1):
+        past[i] = past[i - 1]
+    past[0] = value
+
+
+class FormulaKernel:
+    """Whole-run kernel of a user-defined plant, compiled on first use.
+
+    Lazily, so that the plant simulator node (which only steps) never pays numba's
+    compile time (~0.1-1 s). The source comes from :meth:`Expression.source` (the
+    validated tree, never the user's text) plus the loop below, made here from
+    fixed strings; exec-ing that generated text and handing it to numba is the
+    intended way to compile a formula. Nothing can be cached on disk: numba caches
+    only functions that live in a file.
+    """
+
+    def __init__(self, f: Expression | None, g: Expression | None) -> None:
+        self.f, self.g = f, g
+        self._compiled: dict[tuple[int, int, int], Callable[..., int]] = {}
+        self._f_constants = self._g_constants = np.zeros(1)  # the c of Expression.source, set by _compile
+
+    def stands_for(self, plant: Plant) -> bool:
+        return plant.f is self.f and plant.g is self.g
+
+    def __call__(
+        self, plant: Plant, y_past: np.ndarray, u_past: np.ndarray, u_applied: np.ndarray, y_out: np.ndarray
+    ) -> int:
+        key = (plant.model, plant.n, plant.m)
+        if key not in self._compiled:
+            self._compiled[key] = self._compile(*key)
+        linear = np.asarray(plant.a if plant.model == 1 else plant.b if plant.model == 2 else (0.0,), dtype=np.float64)
+        return self._compiled[key](y_past, u_past, u_applied, linear, self._f_constants, self._g_constants, y_out)
+
+    def run_source(self, model: int, n: int, m: int) -> str:
+        """The loop: y(k+1) of the model class from y_past[0..n-1] and u(k) = u0, u_past[0..m-2]."""
+        ys = [f"y_past[{i}]" for i in range(n)]
+        us = ["u0", *(f"u_past[{i}]" for i in range(m - 1))]
+
+        def linear(values: list[str]) -> str:  # sum() of the Python path: 0 + c0 v0 + c1 v1 ..., in that order
+            return "(" * len(values) + "0.0" + "".join(f" + linear[{i}] * {v})" for i, v in enumerate(values))
+
+        f = f"_f(f_constants, {', '.join(ys + us if model == 4 else ys)})"
+        g = f"_g(g_constants, {', '.join(us)})"
+        next_output = {1: f"{linear(ys)} + {g}", 2: f"{f} + {linear(us)}", 3: f"{f} + {g}", 4: f}[model]
+        return (
+            "def run(y_past, u_past, u_applied, linear, f_constants, g_constants, y_out):\n"
+            "    y_out[0] = y_past[0]\n"
+            "    for k in range(u_applied.shape[0]):\n"
+            "        u0 = u_applied[k]\n"
+            f"        y_next = {next_output}\n"
+            "        if not math.isfinite(y_next):\n"
+            "            return k\n"
+            "        _push(u_past, u0)\n"
+            "        _push(y_past, y_next)\n"
+            "        y_out[k + 1] = y_next\n"
+            "    return u_applied.shape[0]\n"
+        )
+
+    def _compile(self, model: int, n: int, m: int) -> Callable[..., int]:
+        namespace: dict[str, object] = {"math": math, "_push": _push}
+        for part, expression in (("_f", self.f), ("_g", self.g)):
+            if expression is not None:
+                source, constants = expression.source(part)
+                exec(source, namespace)  # generated from the checked tree, see Expression.source
+                namespace[part] = njit(nogil=True, error_model="numpy")(namespace[part])
+                setattr(self, f"{part}_constants", np.array(constants or (0.0,), dtype=np.float64))
+        exec(self.run_source(model, n, m), namespace)
+        return njit(nogil=True, error_model="numpy")(namespace["run"])
 
 
 # -- the paper's four examples ------------------------------------------------------
@@ -142,6 +256,71 @@ def example4_f(a1: float, a2: float, a3: float, a4: float, a5: float) -> float:
     return (a1 * a2 * a3 * a5 * (a3 - 1.0) + a4) / (1.0 + a2 * a2 + a3 * a3)
 
 
+_example1_g = njit(cache=True, nogil=True, inline="always")(example1_g)
+_example2_f = njit(cache=True, nogil=True, inline="always")(example2_f)
+_example3_f = njit(cache=True, nogil=True, inline="always")(example3_f)
+_example3_g = njit(cache=True, nogil=True, inline="always")(example3_g)
+_example4_f = njit(cache=True, nogil=True, inline="always")(example4_f)
+
+
+@njit(cache=True, nogil=True)
+def _run_example(
+    example: int,
+    gain: float,
+    linear: np.ndarray,
+    y_past: np.ndarray,
+    u_past: np.ndarray,
+    u_applied: np.ndarray,
+    y_out: np.ndarray,
+) -> int:
+    """The examples' plants over a whole series, the same operations in the same order as step().
+
+    One kernel for all four (the branch on ``example`` costs nothing next to the
+    sines) so that a single cached compilation serves ``reproduce``; the nonlinear
+    parts are the Python functions above compiled as they are, so there is no
+    second copy of a formula to keep in sync.
+    """
+    y_out[0] = y_past[0]
+    for k in range(u_applied.shape[0]):
+        u0 = u_applied[k]
+        if example == 1:
+            y_next = (0.0 + linear[0] * y_past[0] + linear[1] * y_past[1]) + gain * _example1_g(u0)
+        elif example == 2:
+            y_next = gain * _example2_f(y_past[0], y_past[1]) + (0.0 + linear[0] * u0)
+        elif example == 3:
+            y_next = _example3_f(y_past[0]) + gain * _example3_g(u0)
+        else:
+            y_next = gain * _example4_f(y_past[0], y_past[1], y_past[2], u0, u_past[0])
+        if not math.isfinite(y_next):
+            return k
+        _push(u_past, u0)
+        _push(y_past, y_next)
+        y_out[k + 1] = y_next
+    return u_applied.shape[0]
+
+
+@dataclass(frozen=True, eq=False)
+class ExampleKernel:
+    """Binds :func:`_run_example` to one example plant; the known coefficients are read from the plant."""
+
+    example: int
+    gain: float
+    f: Function | None
+    g: Function | None
+
+    def stands_for(self, plant: Plant) -> bool:
+        return plant.f is self.f and plant.g is self.g and (plant.model, plant.n, plant.m) == _SHAPES[self.example]
+
+    def __call__(
+        self, plant: Plant, y_past: np.ndarray, u_past: np.ndarray, u_applied: np.ndarray, y_out: np.ndarray
+    ) -> int:
+        linear = np.asarray(plant.a if plant.model == 1 else plant.b if plant.model == 2 else (0.0,), dtype=np.float64)
+        return _run_example(self.example, self.gain, linear, y_past, u_past, u_applied, y_out)
+
+
+_SHAPES = {1: (1, 2, 1), 2: (2, 2, 1), 3: (3, 1, 1), 4: (4, 3, 2)}  # (model, n, m) of each example
+
+
 def example_plant(example: int, gain: float = 1.0, linear: Sequence[float] | None = None) -> Plant:
     """Plant of the paper's Example 1-4.
 
@@ -149,12 +328,16 @@ def example_plant(example: int, gain: float = 1.0, linear: Sequence[float] | Non
     coefficients (Ex. 1's 0.3 / 0.6): both exist to make a plant *change* mid-run,
     the tracking scenario; the defaults are the paper's plants.
     """
+    gain = float(gain)
     if example == 1:
-        return Plant(1, 2, 1, g=lambda u: gain * example1_g(u), a=tuple(linear or (0.3, 0.6)), name="example 1")
-    if example == 2:
-        return Plant(2, 2, 1, f=lambda y1, y2: gain * example2_f(y1, y2), b=tuple(linear or (1.0,)), name="example 2")
-    if example == 3:
-        return Plant(3, 1, 1, f=example3_f, g=lambda u: gain * example3_g(u), name="example 3")
-    if example == 4:
-        return Plant(4, 3, 2, f=lambda *a: gain * example4_f(*a), name="example 4")
-    raise ValueError(f"unknown example {example}; the paper has examples 1-4")
+        plant = Plant(1, 2, 1, g=lambda u: gain * example1_g(u), a=tuple(linear or (0.3, 0.6)), name="example 1")
+    elif example == 2:
+        plant = Plant(2, 2, 1, f=lambda y1, y2: gain * example2_f(y1, y2), b=tuple(linear or (1.0,)), name="example 2")
+    elif example == 3:
+        plant = Plant(3, 1, 1, f=example3_f, g=lambda u: gain * example3_g(u), name="example 3")
+    elif example == 4:
+        plant = Plant(4, 3, 2, f=lambda *a: gain * example4_f(*a), name="example 4")
+    else:
+        raise ValueError(f"unknown example {example}; the paper has examples 1-4")
+    plant.kernel = ExampleKernel(example, gain, plant.f, plant.g)
+    return plant

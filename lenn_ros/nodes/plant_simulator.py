@@ -193,7 +193,12 @@ class PlantSimulator(Node):
         u, noise = self.excitation.sample(self.k)
         self.u_publisher.publish(Float64(data=u))
         self.y_publisher.publish(Float64(data=self.plant.output))
-        self.plant.step(u + noise)
+        try:
+            self.plant.step(u + noise)
+        except ExpressionError as error:
+            # A formula can pass every check and still fail at some state (u1/y1 at rest). Raised
+            # from this timer callback it would be a traceback; run_node prints this one line, exit 2.
+            raise SystemExit(f"plant_simulator: {self.plant.name} plant failed at step {self.k}: {error}") from None
         self.k += 1
         return True
 

@@ -37,7 +37,7 @@ CONSTANTS: Mapping[str, float] = {"pi": math.pi, "e": math.e}
 #: Deepest allowed nesting (a sum of k terms nests k levels). The checker, the evaluator
 #: and ast.unparse recurse once or more per level, and 1500 nested minus signs fit in the
 #: length limit; real plant formulas nest about 10 levels.
-MAX_DEPTH = 100
+MAX_DEPTH = 300  # ~3 frames a level: well inside Python's default limit of 1000, with room for the caller
 
 
 class ExpressionError(ValueError):

@@ -13,6 +13,7 @@ Seeds: ``LENN_ROBOT_SEEDS=0,1,2`` runs the lockstep comparison for each (default
 from __future__ import annotations
 
 import os
+import re
 import threading
 import time
 from pathlib import Path
@@ -77,6 +78,29 @@ def test_command_hold_and_robot_log_round_trip(tmp_path: Path) -> None:
     plant = get_example(1).plant()
     assert np.allclose(plant.run(again["u"] + again["noise"])[:-1], again["y"])
     assert np.array_equal(run(0.0).arrays()["noise"], again["noise"])  # loss does not move the noise
+
+
+def test_robot_stamp_jitter_and_offset_are_seeded_bounded_and_leave_the_other_streams() -> None:
+    """The driver loop's jitter: within ±stamp_jitter of the nominal step, in order; offset: stamps only."""
+
+    def robot(jitter: float) -> SimulatedRobot:
+        plant = get_example(1).plant()
+        return SimulatedRobot(plant, 8_000_000, -20.0, loss=0.1, seed=2, stamp_jitter_s=jitter, stamp_offset_s=-0.3)
+
+    jittery, steady = robot(0.001), robot(0.0)
+    times = np.array([jittery.step_time_ns(k * 8_000_000) for k in range(2000)])
+    off = times - np.arange(2000) * 8_000_000
+    assert np.abs(off).max() <= 1_000_000 and off.std() > 400_000 and np.all(np.diff(times) > 0)
+    again = robot(0.001)
+    assert np.array_equal(times, [again.step_time_ns(k * 8_000_000) for k in range(2000)])  # seeded
+    assert steady.step_time_ns(123) == 123 and steady.header_stamp_ns(10**9) == 10**9 - 300_000_000
+    for k in range(300):
+        jittery.step(int(times[k]), 0.5)
+        steady.step(k * 8_000_000, 0.5)
+    for name in ("noise", "y", "published"):  # the jitter has a stream of its own
+        assert np.array_equal(jittery.log.arrays()[name], steady.log.arrays()[name])
+    with pytest.raises(ValueError, match="half a period"):
+        robot(0.004)
 
 
 def test_sample_grid_on_epoch_stamps_pairs_every_step_and_never_a_late_one() -> None:
@@ -217,27 +241,35 @@ def test_robot_graph_behaves_like_a_robot(probe: Probe, tmp_path: Path) -> None:
     assert cmd_info[0].qos_profile.reliability == ReliabilityPolicy.BEST_EFFORT
     assert [info.topic_type for info in joint_info] == ["sensor_msgs/msg/JointState"]
     log = RobotLog.load(log_path)
-    arrays = log.arrays()
     assert len(log) == steps and log.period_ns == period_ns and log.example == 1
+    sent = check_controller(probe, seed=7, rate=50.0)
+    check_driver(probe, log, started_ns + delay * 1e9)
+    check_zero_order_hold(probe, log, sent)
 
-    # The controller: the seeded excitation, one value per message, at its own rate.
+
+def check_controller(probe: Probe, seed: int, rate: float) -> list[float]:
+    """The seeded excitation, one value per message, at its own rate; returns what it would send."""
     values = [message.data.tolist() for _, message in probe.commands]
     assert len(values) > 100 and all(len(v) == 1 for v in values)
-    series = Excitation(7, "uniform").sample
+    series = Excitation(seed, "uniform").sample
     sent = [series(k)[0] for k in range(1000)]
     positions = [sent.index(v[0]) for v in values]  # ValueError: a value the controller should not send
     assert positions == sorted(positions)
     intervals = np.diff([received for received, _ in probe.commands]) * 1e-9
-    assert 0.5 / 50 < np.median(intervals) < 1.5 / 50
+    assert 0.5 / rate < np.median(intervals) < 1.5 / rate
+    return sent
 
-    # The driver: stamped at its own steps, from start_delay on, some never published.
+
+def check_driver(probe: Probe, log: RobotLog, earliest_ns: float) -> None:
+    """Stamped at its own steps, from start_delay on, some never published, published late."""
+    arrays, period_ns = log.arrays(), log.period_ns
     stamps = np.array([m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for _, m in probe.joints])
     assert all(m.name == ["joint1"] for _, m in probe.joints)
     t0 = int(arrays["stamp_ns"][0])
     assert np.all(np.diff(arrays["stamp_ns"]) == period_ns)
     assert np.all((stamps - t0) % period_ns == 0), "a stamp off the driver's step times"
     assert np.all(np.diff(stamps) > 0), "measurements out of order or repeated"
-    assert t0 >= started_ns + delay * 1e9  # the first step waits for start_delay
+    assert t0 >= earliest_ns  # the first step waits for start_delay
     lost = 1.0 - arrays["published"].mean()
     assert 0.01 <= lost <= 0.12  # loss 0.05 of 400 steps
     published = arrays["stamp_ns"][arrays["published"]]
@@ -249,9 +281,15 @@ def test_robot_graph_behaves_like_a_robot(probe: Probe, tmp_path: Path) -> None:
     assert late.min() >= 0.005e9  # published after the step, never before its latency
     assert late.max() - late.min() >= 0.001e9  # and not at a fixed delay
 
-    # Zero-order hold by the driver's receive times: step k applied the latest command received
-    # at or before t_k (the one taking over later came after t_k), never an older one, in the
-    # controller's order.
+
+def check_zero_order_hold(probe: Probe, log: RobotLog, sent: list[float]) -> None:
+    """Step k applied the latest command the driver received at or before t_k, in the controller's order.
+
+    The one taking over later came after t_k, never an older one; receive times are
+    each command's as the probe saw it, within the few ms two processes differ by
+    (median: a loaded machine delays some deliveries far more).
+    """
+    arrays = log.arrays()
     stamp_ns, applied = arrays["stamp_ns"], arrays["u_received_ns"]
     commanded = applied >= 0
     assert commanded.sum() > 200 and np.all(applied[commanded] <= stamp_ns[commanded])
@@ -262,8 +300,6 @@ def test_robot_graph_behaves_like_a_robot(probe: Probe, tmp_path: Path) -> None:
     assert len(takeovers) > 100 and stale <= 0.02 * len(takeovers), (stale, len(takeovers))
     order = [sent.index(u) for u in arrays["u"][commanded]]
     assert order == sorted(order)
-    # Those are receive times: each command's as the probe saw it, within the few ms two
-    # processes differ by (median: a loaded machine delays some deliveries far more).
     probe_time = {message.data[0]: received for received, message in probe.commands}
     seen = [(probe_time[u], t) for u, t in zip(arrays["u"], applied, strict=True) if t >= 0 and u in probe_time]
     offsets = np.abs(np.diff(np.array(seen), axis=1))
@@ -284,16 +320,31 @@ def lockstep_reference(log: RobotLog, samples: np.ndarray, period_ns: int) -> tu
     return lockstep_nmse(identifier, log, start, end), float(u_agree), float(y_agree)
 
 
+@pytest.mark.parametrize("stamp_jitter", [0.0, 0.001])
 @pytest.mark.parametrize("seed", SEEDS)
-def test_sample_pairing_on_the_robot_matches_lockstep(probe: Probe, tmp_path: Path, seed: int) -> None:
-    """Controller at 40 Hz, driver at 125 Hz with loss and jitter: within 3 dB of lockstep."""
+def test_sample_pairing_on_the_robot_matches_lockstep(
+    probe: Probe, tmp_path: Path, seed: int, stamp_jitter: float
+) -> None:
+    """Controller at 40 Hz, driver at 125 Hz with loss and jitter: within 3 dB of lockstep.
+
+    With ``stamp_jitter`` the driver's loop (so its stamps) is ±1 ms off the 8 ms
+    grid: the grid must still take every measurement that came, one per period (a
+    grid that sat on the first stamp counted a fifth of them as gaps).
+    """
     period, steps = 0.008, 4000
     identifier = start_node("identifier", *robot_identifier_params(period), ros_args=IDENTIFIER_ON_ROBOT)
     (controller, driver), log_path, _ = start_robot(
         tmp_path,
         seed,
         ["rate_hz:=40.0", f"duration:={steps * period + 15}"],
-        [f"rate_hz:={1 / period}", "start_delay:=3.0", f"steps:={steps}", "loss:=0.02", "noise_db:=-20.0"],
+        [
+            f"rate_hz:={1 / period}",
+            "start_delay:=3.0",
+            f"steps:={steps}",
+            "loss:=0.02",
+            "noise_db:=-20.0",
+            f"stamp_jitter:={stamp_jitter}",
+        ],
     )
     try:
         driver_code, driver_err = finish(driver, steps * period + 60)
@@ -308,14 +359,52 @@ def test_sample_pairing_on_the_robot_matches_lockstep(probe: Probe, tmp_path: Pa
     reference, u_agree, y_agree = lockstep_reference(log, samples, round(period * 1e9))
     live = status["phase_nmse_db"]
     counters = status["counters"]
+    arrays = log.arrays()
+    span = (arrays["stamp_ns"] >= samples[0, 1] * 1e9 - 1e6) & (arrays["stamp_ns"] <= samples[-1, 1] * 1e9 + 1e6)
+    lost = int(np.count_nonzero(~arrays["published"][span]))
     print(
-        f"seed {seed}: live {live:.2f} dB ({counters['learned']} learnt, {counters['grid_gaps']} grid gaps), "
-        f"lockstep {reference:.2f} dB; u agrees {u_agree:.3f}, y_p {y_agree:.3f}"
+        f"seed {seed}, stamp jitter {stamp_jitter * 1e3:.1f} ms: live {live:.2f} dB ({counters['learned']} learnt, "
+        f"{counters['grid_gaps']} grid gaps, {lost} measurements lost), lockstep {reference:.2f} dB; "
+        f"u agrees {u_agree:.3f}, y_p {y_agree:.3f}"
     )
     assert counters["learned"] >= 0.9 * steps * 0.9  # most of the run was learnt (2 % loss, the start)
+    assert counters["grid_gaps"] <= lost + 0.01 * steps  # a gap is a lost measurement (or a rare stall)
     assert y_agree == 1.0  # every y_p learnt is the plant's own at the sample's time
     assert u_agree >= 0.8  # and its command is the one the plant received (or one arriving at t_k)
     assert abs(live - reference) <= 3.0
+
+
+@pytest.mark.parametrize("offset", [0.3, 2.0])
+def test_a_driver_stamping_on_another_clock_is_said_not_taken_for_clock_jumps(
+    probe: Probe, tmp_path: Path, offset: float
+) -> None:
+    """The driver's stamps run ``offset`` s ahead of the receive clock u is timed by: said once, with the fix.
+
+    Before: 0.3 s shifted every command silently; 2 s paired nothing and said
+    "clock_jump" hundreds of times.
+    """
+    identifier = start_node("identifier", *robot_identifier_params(0.01), ros_args=IDENTIFIER_ON_ROBOT)
+    (controller, driver), _, _ = start_robot(
+        tmp_path,
+        0,
+        ["rate_hz:=50.0", "duration:=15.0"],
+        ["start_delay:=1.0", "steps:=600", f"stamp_offset:={offset}"],
+    )
+    try:
+        driver_code, driver_err = finish(driver, 60)
+        time.sleep(1.0)
+    finally:
+        _, identifier_err = stop(identifier)
+        stop(controller)
+    assert driver_code == 0, driver_err
+    counters = final_status(identifier_err)["counters"]
+    said = [line for line in identifier_err.splitlines() if "clock_offset" in line and "WARN" in line]
+    print(*said, sep="\n")
+    assert said and "use_header_stamp:=false" in said[0]
+    ahead = re.search(r"stamps are (\d+\.\d+) s ahead of its arrival", said[0])
+    assert ahead and offset - 0.1 < float(ahead.group(1)) < offset  # less the latency (5-9 ms, more under load)
+    assert counters["clock_offset"] > 100 and counters["clock_jumps"] == 0
+    assert "time went backwards" not in identifier_err
 
 
 def test_sequence_pairing_on_the_robot_learns_nothing(probe: Probe, tmp_path: Path) -> None:

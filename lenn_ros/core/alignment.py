@@ -8,19 +8,24 @@ different nodes, at their own rates and phases, so two other rules are offered:
   within ``slop`` seconds, message_filters' ApproximateTime rule for two topics: a
   message is never paired with one farther away than a later candidate would be,
   and a message that can no longer find a partner within ``slop`` is dropped.
-- :class:`GridSampler` (``pairing: sample``): a sampled-data identifier's view. At
-  each grid time t_k = offset + k T the pair is the latest u and the latest y_p with
-  time <= t_k (zero-order hold). y_p must be a new measurement, taken after the
-  previous grid point (unless younger than ``y_max_age``), or the sample is a
-  gap: a lost or late measurement never becomes a repeated or shifted one.
+- :class:`GridSampler` (``pairing: sample``): a sampled-data identifier's view: one
+  y_p per period T, with the u held at the time of that y_p. Grid points t_k =
+  offset + k T sit on the measurements (the grid starts at the first y_p and follows
+  the median phase of the recent ones), so each cell (t_k - T/2, t_k + T/2] holds
+  one measurement even when stamps jitter: y(k) is the latest y_p stamped in it,
+  u(k) the latest u with time <= that y_p's time (zero-order hold), and the
+  sample's time is the y_p's. A cell without a new y_p is a gap (unless the last
+  one is younger than ``y_max_age``, then it is reused): a lost or late
+  measurement never becomes a repeated or shifted one.
 
 Both emit :class:`Pair` with an *index* that advances by the number of sample periods
 elapsed, so a lost sample shows as a gap to the identifier (which then restarts its
 regressor history) instead of silently joining two samples that were not adjacent.
 Times are seconds on one clock (header stamps where the message has them, else
-receive times; in simulation, the ROS clock). Time moving back by more than
-``jump_back`` seconds is a clock jump (a bag looped, a simulator reset): history is
-dropped and pairing starts again.
+receive times; in simulation, the ROS clock). One input's time moving back by more
+than ``jump_back`` seconds is a clock jump (a bag looped, a simulator reset): history
+is dropped and pairing starts again. Two inputs on different clocks (stamps against
+receive times, offset) are not a jump; the session detects that and says so.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ import math
 from collections import deque
 from dataclasses import dataclass, field
 from statistics import median
+from typing import ClassVar
 
 U, Y = "u", "y"
 
@@ -146,11 +152,18 @@ class StampAligner:
 class GridSampler:
     """Zero-order-hold sampling of two asynchronous streams; see the module docstring.
 
-    The grid is aligned to the first y_p message (``offset``), so when y_p is stamped
-    at the plant's own steps every grid point falls on a measurement. A grid point
-    closes once both streams have moved past it, or ``max_delay`` seconds of
-    receive time after it (a command published only on change is simply held).
+    The grid is aligned to the first y_p message (``offset``) and re-centred every
+    ``TRACK_EVERY`` measurements on their median offset from their grid points: a
+    driver's stamps jitter around its steps (and its clock may run a little off
+    ``period``), and a grid point that sat exactly on them would see half of them
+    fall just after it. Mid-cell, a stamp may be up to T/2 off before it lands in the
+    wrong cell. A grid point closes once both streams have moved past its cell, or
+    ``max_delay`` seconds of receive time after it (a command published only on
+    change is simply held).
     """
+
+    #: Measurements per re-centring of the grid (odd: the median is one of them).
+    TRACK_EVERY: ClassVar[int] = 25
 
     period: float
     max_delay: float = 0.0  # 0: two periods, at least 50 ms
@@ -167,6 +180,7 @@ class GridSampler:
         # Not below 10 us: times are seconds since 1970 as doubles (resolution ~0.24 us), so
         # a stamp exactly on a grid point may land a few ulp either side of it.
         self._epsilon = max(1e-6 * self.period, 1e-5)
+        self._half = 0.5 * self.period
         self._delay = self.max_delay or max(2 * self.period, 0.05)
         self._y_age = self.y_max_age + self._epsilon if self.y_max_age else -math.inf
         self._u_age = self.u_max_age + self._epsilon if self.u_max_age else math.inf
@@ -176,31 +190,42 @@ class GridSampler:
     def _reset(self) -> None:
         self._times: dict[str, list[float]] = {U: [], Y: []}
         self._values: dict[str, list[float]] = {U: [], Y: []}
+        self._newest: dict[str, float] = {}
         self._offset: float | None = None
         self._first_k: int | None = None
         self._next_k: int | None = None
         self._last_y_time = -math.inf
+        self._residuals: list[float] = []
 
     def grid_time(self, k: int) -> float:
         assert self._offset is not None
         return self._offset + k * self.period
 
+    def _cell(self, time: float) -> int:
+        """The grid point whose cell (t_k - T/2, t_k + T/2] holds ``time``."""
+        assert self._offset is not None
+        return math.ceil((time - self._half - self._offset) / self.period - 1e-6)
+
     def add(self, channel: str, value: float, time: float, received: float) -> list[Pair]:
-        if self._next_k is not None and time < self.grid_time(self._next_k - 1) - self.jump_back:
+        newest = self._newest.get(channel)
+        if newest is not None and time < newest - self.jump_back:
+            # This input's own clock went back: a stream behind the grid is merely late (or on another clock).
             self.counters["clock_jumps"] += 1
             self._reset()
             self.restarted = True
+        self._newest[channel] = time if newest is None else max(newest, time)
         times, values = self._times[channel], self._values[channel]
-        if self._next_k is not None and time <= self.grid_time(self._next_k - 1) + self._epsilon:
-            self.counters["late"] += 1  # its grid point is closed; it still holds for later ones
+        if self._next_k is not None:
+            closed = self.grid_time(self._next_k - 1) + (self._half if channel == Y else 0.0)
+            if time <= closed + self._epsilon:
+                self.counters["late"] += 1  # its grid point is closed; it still holds for later ones
         position = bisect.bisect_right(times, time)
         times.insert(position, time)
         values.insert(position, value)
         if self._offset is None and channel == Y:
             self._offset = math.fmod(time, self.period)
         if self._next_k is None and self._offset is not None and self._times[U]:
-            start = max(self._times[U][0], self._times[Y][0])
-            self._first_k = math.ceil((start - self._offset) / self.period - 1e-6)
+            self._first_k = max(self._cell(self._times[U][0]), self._cell(self._times[Y][0]))
             self._next_k = self._first_k
         return self._close(now=received)
 
@@ -216,42 +241,60 @@ class GridSampler:
         while self._next_k is not None:
             k = self._next_k
             t_k = self.grid_time(k)
-            passed = all(times and times[-1] > t_k + self._epsilon for times in self._times.values())
+            end = t_k + self._half
+            passed = all(times and times[-1] > end + self._epsilon for times in self._times.values())
             if not passed and now < t_k + self._delay:
-                break  # a message for t_k may still be on its way
-            i_u, i_y = self._latest(U, t_k), self._latest(Y, t_k)
-            fresh = i_u >= 0 and i_y >= 0 and t_k - self._times[U][i_u] <= self._u_age
-            if fresh:
-                y_time = self._times[Y][i_y]
-                # new, and measured since the previous grid point (an older one closed late is not y(k))
-                new = y_time > self._last_y_time and y_time > t_k - self.period + self._epsilon
-                fresh = new or t_k - y_time <= self._y_age
-            if fresh:
-                self._last_y_time = self._times[Y][i_y]
-                pairs.append(Pair(k - self._first_k + 1, t_k, self._values[U][i_u], self._values[Y][i_y]))
+                break  # a message for cell k may still be on its way
+            i_y = self._latest(Y, end)
+            y_time = self._times[Y][i_y] if i_y >= 0 else -math.inf
+            # new, and measured in this cell (an older one closed late is not y(k))
+            new = y_time > self._last_y_time and y_time > t_k - self._half + self._epsilon
+            when = y_time if new else (t_k if t_k - y_time <= self._y_age else None)
+            i_u = self._latest(U, when) if when is not None else -1
+            if i_u >= 0 and when - self._times[U][i_u] <= self._u_age:
+                if new:
+                    self._last_y_time = y_time
+                    self._track(y_time - t_k)
+                pairs.append(Pair(k - self._first_k + 1, when, self._values[U][i_u], self._values[Y][i_y]))
                 self.counters["paired"] += 1
                 self._next_k = k + 1
+            elif k == self._first_k and i_y >= 0 and when is not None and i_u < 0:
+                self._first_k = self._next_k = k + 1  # its y_p came before the first command: not yet a start
             elif not self._skip_to_data(k):
-                break  # no y_p after t_k yet: wait for data (a quiet plant is not a stream of gaps)
+                break  # no y_p after cell k yet: wait for data (a quiet plant is not a stream of gaps)
             self._trim()
         return pairs
 
+    def _track(self, residual: float) -> None:
+        """Re-centre the grid on the measurements' median phase (a step at most T/4: robust to one odd batch)."""
+        self._residuals.append(residual)
+        if len(self._residuals) < self.TRACK_EVERY:
+            return
+        shift = min(max(median(self._residuals), -0.5 * self._half), 0.5 * self._half)
+        self._residuals.clear()
+        if abs(shift) > self._epsilon:
+            assert self._offset is not None
+            self._offset += shift
+
     def _skip_to_data(self, k: int) -> bool:
         """Grid point k has no fresh data: a gap up to where y_p resumes (False: not yet known)."""
-        t_k = self.grid_time(k)
-        later = [t for t in self._times[Y] if t > t_k + self._epsilon]
-        if not later:
+        times = self._times[Y]
+        after = bisect.bisect_right(times, self.grid_time(k) + self._half + self._epsilon)
+        if after == len(times):
             return False
-        resume = max(math.ceil((later[0] - self._offset) / self.period - 1e-6), k + 1)
+        resume = max(self._cell(times[after]), k + 1)
         self.counters["grid_gaps"] += resume - k
         self._next_k = resume
         return True
 
     def _trim(self) -> None:
-        """Keep only what a later grid point can still use (the held value and newer)."""
-        t_closed = self.grid_time(self._next_k - 1)
+        """Keep only what a later grid point can still use (the held value and newer).
+
+        A period of margin: the grid may since have been re-centred back by up to T/4.
+        """
+        t_kept = self.grid_time(self._next_k - 1) - self.period
         for channel in (U, Y):
-            keep = max(self._latest(channel, t_closed), 0)
+            keep = max(self._latest(channel, t_kept), 0)
             if keep:
                 del self._times[channel][:keep]
                 del self._values[channel][:keep]

@@ -128,7 +128,15 @@ class SimulatedRobot:
     - ``measurement_noise``: standard deviation added to the published y_p;
     - ``loss``: probability that a measurement is never published;
     - ``jitter_s``: each measurement is published ``latency_s`` + U[0, jitter_s] after
-      the step it belongs to (its stamp stays the step's time).
+      the step it belongs to (its stamp stays the step's time);
+    - ``stamp_jitter_s``: the driver's loop does not wake exactly on time: step k runs
+      at t_k + U[-stamp_jitter_s, stamp_jitter_s] (:meth:`step_time_ns`), takes the
+      command held then and is stamped then, as ros2_control stamps ``joint_states``
+      with its loop's time. So the stamps jitter around the nominal grid, and each
+      is the true time of its measurement and of its command;
+    - ``stamp_offset_s``: the stamps' clock runs this far ahead of the clock the
+      commands are received by (:meth:`header_stamp_ns`; negative: behind), as a
+      driver on another, unsynchronised machine would stamp. The log keeps true times.
     """
 
     def __init__(
@@ -142,9 +150,13 @@ class SimulatedRobot:
         jitter_s: float = 0.0,
         seed: int = 0,
         example: int = 0,
+        stamp_jitter_s: float = 0.0,
+        stamp_offset_s: float = 0.0,
     ) -> None:
         if period_ns <= 0:
             raise ValueError("period_ns must be > 0")
+        if not 0.0 <= stamp_jitter_s * 1e9 < 0.5 * period_ns:
+            raise ValueError(f"stamp_jitter must be in [0, half a period), not {stamp_jitter_s} s: steps stay in order")
         if not 0.0 <= loss < 1.0:
             raise ValueError(f"loss must be in [0, 1), not {loss}")
         self.plant = plant
@@ -158,7 +170,21 @@ class SimulatedRobot:
         self._noise_rng, self._measurement_rng, self._loss_rng, self._jitter_rng = (
             np.random.default_rng([seed, stream]) for stream in range(4)
         )
+        # a stream of its own, so jitter on or off leaves the other streams (and earlier runs) as they were
+        self._stamp_rng = np.random.default_rng([seed, 4])
+        self.stamp_jitter_ns = round(stamp_jitter_s * 1e9)
+        self.stamp_offset_ns = round(stamp_offset_s * 1e9)
         self.log = RobotLog(self.period_ns, example)
+
+    def step_time_ns(self, nominal_ns: int) -> int:
+        """When the step due at ``nominal_ns`` really runs (draw once per step, in step order)."""
+        if not self.stamp_jitter_ns:
+            return int(nominal_ns)
+        return int(nominal_ns) + int(self._stamp_rng.integers(-self.stamp_jitter_ns, self.stamp_jitter_ns + 1))
+
+    def header_stamp_ns(self, step_ns: int) -> int:
+        """The stamp the driver writes for a step run at ``step_ns``: on its own clock."""
+        return int(step_ns) + self.stamp_offset_ns
 
     def step(self, stamp_ns: int, u: float, u_received_ns: int = -1) -> tuple[float, bool, float]:
         """Step k at ``stamp_ns`` with command ``u``: (y_p(k) as measured, published?, delay s).

@@ -10,6 +10,14 @@ Nothing here knows ROS. The session *says* what goes wrong as :class:`Notice`
 (kind + one line); the node logs them (throttled per kind), ``evaluate`` prints a
 summary; every notice kind also has a counter in :meth:`Session.status`.
 
+Times are stamps where a message has one, else receive times. When one input is
+timed by stamps whose clock is off the receive clock the other input is timed by (or
+both by stamps of two clocks), the pairs are shifted by that offset and nothing in
+the pairing itself can tell: the session compares each input's median
+(receive - time) and says ``clock_offset`` once the two differ by more than
+``max_clock_offset`` (default max(T/2, 50 ms): above a driver's own latency, and
+the shift from which the held command starts to be the wrong one).
+
 Pairing modes (``SessionConfig.pairing``):
 - ``sequence``: u(k) and y_p(k) carry the same DDS publication sequence number
   because one node publishes both in lockstep (our simulator, replay). Refused, with
@@ -24,7 +32,9 @@ Pairing modes (``SessionConfig.pairing``):
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass, field
+from statistics import median
 from typing import Any
 
 import numpy as np
@@ -37,10 +47,12 @@ from lenn_ros.core.structure import Identifier, StepResult
 PAIRING_MODES = ("sequence", "stamp", "sample")
 SESSION_COUNTERS = (
     "u_messages", "y_messages", "nan", "out_of_range", "clipped",
-    "no_sequence", "misaligned", "refused", "lone_u", "lone_y",
+    "no_sequence", "misaligned", "refused", "lone_u", "lone_y", "clock_offset",
 )  # fmt: skip
 #: What rmw reports when it has no publication sequence numbers (rmw_cyclonedds: 2**64-1).
 SEQUENCE_UNSUPPORTED = (0, 2**64 - 1)
+#: Halves per input whose (receive - time) make the clock-offset estimate (a median: a stall does not move it).
+CLOCK_WINDOW = 64
 
 
 @dataclass
@@ -54,6 +66,8 @@ class SessionConfig:
     y_max_age: float = 0.0  # sample: reuse an old y_p this long (0 = never: a lost y_p is a gap)
     max_skew: float = 0.25  # sequence: the two halves of a pair published further apart are refused
     lone_timeout: float = 3.0  # say so when one input arrives alone this long
+    max_clock_offset: float = 0.0  # stamp/sample: say so when the inputs' clocks differ more (0 = max(T/2, 50 ms))
+    warn_period: float = 5.0  # s of sample time between repeats of a notice said per sample (clipped_inputs)
     u_limit: float = 1.0e3
     y_limit: float = 1.0e3
     out_of_range: str = "reject"
@@ -121,6 +135,13 @@ class Session:
         self._last_seen: dict[str, float] = {}
         self._first_seen: dict[str, float] = {}
         self._seen_dropped = 0
+        self._seen_faults = 0  # sequence mode: stale + duplicate halves already said
+        self._seen_clipped = 0
+        self._clipped_said_at = -math.inf
+        self._lags: dict[str, deque[float]] = {U: deque(maxlen=CLOCK_WINDOW), Y: deque(maxlen=CLOCK_WINDOW)}
+        self._stamped = {U: False, Y: False}
+        self._offset_checks = 0
+        self.clock_offset: float | None = None  # median lag of y_p minus that of u while it stands, s
 
     # -- input -------------------------------------------------------------------------------
     def offer(
@@ -142,6 +163,8 @@ class Session:
         self.counters["u_messages" if channel == U else "y_messages"] += 1
         self._first_seen.setdefault(channel, received)
         self._last_seen[channel] = received
+        if self.pairer is None:
+            self._watch_clocks(channel, time, received)
         if self._alone_for(channel, received) > 0.0:
             self.counters[f"lone_{channel}"] += 1
         name = config.u_name if channel == U else config.y_name
@@ -221,6 +244,10 @@ class Session:
         if self.pairer.counters["restarts"] != restarts:
             self.identifier.restart_stream()
             self._say("restart", "sample indices started over (publisher restart): history reset")
+        faults = self.pairer.counters["stale"] + self.pairer.counters["duplicates"]
+        if released and faults > self._seen_faults:
+            self._say_stale(faults)
+        self._seen_faults = min(self._seen_faults, faults)  # a restart reclaimed halves counted stale
         if self.pairer.counters["unpaired"] > self._seen_dropped:
             dropped = self.pairer.counters["unpaired"] - self._seen_dropped
             self._seen_dropped = self.pairer.counters["unpaired"]
@@ -241,18 +268,87 @@ class Session:
             pairs.append(Pair(index, y_time, u, y))
         return pairs
 
+    def _say_stale(self, faults: int) -> None:
+        """Repeated or outdated halves, said when a pair is released.
+
+        Not at once: the first halves of a restarted publisher count as stale until
+        both halves of its sample 1 are in, and then the Pairer takes them back.
+        """
+        assert self.pairer is not None
+        counters = self.pairer.counters
+        self._say(
+            "stale",
+            f"{faults - self._seen_faults} {self.config.u_name}/{self.config.y_name} half(s) ignored, never learnt "
+            f"(so far {counters['stale']} stale: index already paired or passed; {counters['duplicates']} duplicate: "
+            "index repeated): a second publisher on one topic, one publisher restarted alone, or messages reordered "
+            "on the way (a RELIABLE QoS with KEEP_ALL history keeps them in order)",
+        )
+        self._seen_faults = faults
+
     def _after_alignment(self) -> None:
         aligner = self.aligner
         assert aligner is not None
         if aligner.restarted:
             aligner.restarted = False
             self.identifier.restart_stream()
-            self._say("clock_jump", "time went backwards (clock reset, bag looped): history reset")
+            text = "time went backwards (clock reset, bag looped): history reset"
+            if self.clock_offset is not None:
+                text += f"; the inputs' clocks also differ by {abs(self.clock_offset):.3f} s (see clock_offset)"
+            self._say("clock_jump", text)
         dropped = sum(v for k, v in aligner.counters.items() if k.startswith("dropped") or k == "grid_gaps")
         if dropped > self._seen_dropped:
             what = "grid points without a new y_p (gaps)" if isinstance(aligner, GridSampler) else "unpaired halves"
             self._say("dropped", f"{dropped - self._seen_dropped} {what}: {dict(aligner.counters)}")
             self._seen_dropped = dropped
+
+    def _watch_clocks(self, channel: str, time: float, received: float) -> None:
+        """Compare the inputs' (receive - time): see the module docstring.
+
+        A message timed by its arrival has time == received (the node and evaluate
+        pass the same number), so its lag is 0 and the other input's median lag is
+        the offset of its stamps. The medians are taken every 16 halves once each
+        input has half a window (the first messages after discovery can come late):
+        cheap at kilohertz rates, and a burst delayed by a stall moves neither.
+        """
+        self._lags[channel].append(received - time)
+        self._stamped[channel] = time != received
+        if self.clock_offset is not None:
+            self.counters["clock_offset"] += 1
+        self._offset_checks += 1
+        if self._offset_checks % 16 or min(len(lags) for lags in self._lags.values()) < CLOCK_WINDOW // 2:
+            return
+        lag = {name: median(lags) for name, lags in self._lags.items()}
+        offset = lag[Y] - lag[U]
+        limit = self.config.max_clock_offset or max(0.5 * self.config.sample_period, 0.05)
+        if self.clock_offset is None and abs(offset) > limit:
+            self.clock_offset = offset
+            self.counters["clock_offset"] += 1
+            self._say("clock_offset", self._clock_offset_text(lag, limit))
+        elif self.clock_offset is not None and abs(offset) <= 0.5 * limit:
+            self.clock_offset = None  # the clocks agree again (hysteresis: no notice per wobble)
+
+    def _clock_offset_text(self, lag: dict[str, float], limit: float) -> str:
+        config = self.config
+        names = {U: config.u_name, Y: config.y_name}
+        offset = abs(lag[Y] - lag[U])
+        if all(self._stamped.values()):
+            what = (
+                f"the header stamps of {names[U]} and {names[Y]} lag their arrival by {lag[U]:.3f} and {lag[Y]:.3f} s "
+                "(median): two clocks"
+            )
+        else:
+            stamped = Y if self._stamped[Y] else U
+            side = "behind" if lag[stamped] > 0 else "ahead of"
+            what = (
+                f"{names[stamped]} is timed by its header stamps and {names[U if stamped == Y else Y]} by arrival, "
+                f"and {names[stamped]}'s stamps are {abs(lag[stamped]):.3f} s {side} its arrival (median)"
+            )
+        return (
+            f"{what}: each {names[U]} is paired with a {names[Y]} {offset:.3f} s away from it (more than "
+            f"{limit * 1e3:.0f} ms: a clock offset, not transport latency). Fix: -p use_header_stamp:=false (time "
+            "both inputs by arrival), or synchronise the clocks (chrony/PTP; use_sim_time on every node or none). "
+            "If the measurement really is taken that long before it arrives, the stamps are right: ignore this"
+        )
 
     def _alone_for(self, channel: str, now: float) -> float:
         """How long ``channel`` has been arriving while the other input is silent (0: not alone)."""
@@ -301,6 +397,8 @@ class Session:
         result = self.identifier.step(pair.index, pair.u, pair.y, learn)
         if result.event in ("gap", "diverged"):
             self._say(result.event, f"sample {pair.index}: {result.event}; counters {self.identifier.counters}")
+        if self.identifier.counters["clipped"] > self._seen_clipped:
+            self._say_clipped(pair.time)
         if result.error is not None and result.y_hat is not None:
             self.phase_nmse.add(pair.y, result.y_hat)
         return Sample(pair.index, pair.time, pair.u, pair.y, result)
@@ -339,7 +437,29 @@ class Session:
             last = np.flatnonzero(valid)[changes[-1]] if changes.size else 0
             scored = valid & np.isfinite(y_hat) & (np.arange(len(y)) >= last)
             self.phase_nmse.extend(y[scored], y_hat[scored])
+        if self.identifier.counters["clipped"] > self._seen_clipped:
+            self._say_clipped(None)
         return y_hat
+
+    def _say_clipped(self, time: float | None) -> None:
+        """Network inputs outside [-1, 1]: said at most every ``warn_period`` s of sample time (None: now).
+
+        Throttled here as well as in the node: the condition holds for sample after
+        sample, and ``evaluate`` lists every distinct notice it is handed.
+        """
+        if time is not None and abs(time - self._clipped_said_at) < self.config.warn_period:
+            return
+        clipped = self.identifier.counters["clipped"]
+        self._say(
+            "clipped_inputs",
+            f"{clipped} network inputs outside [-1, 1] clipped so far (+{clipped - self._seen_clipped}): the scaled "
+            f"{self.config.u_name} / {self.config.y_name} leave the range the network is built for, and it learns "
+            "them flattened. Fix: u_scale/u_offset, y_scale/y_offset that map the signals into [-1, 1] (the network "
+            "sees (u - u_offset) / u_scale), or `lenn-ros fit` a recording to take them from the data",
+        )
+        self._seen_clipped = clipped
+        if time is not None:
+            self._clipped_said_at = time
 
     # -- reporting -----------------------------------------------------------------------------
     def _say(self, kind: str, text: str) -> None:

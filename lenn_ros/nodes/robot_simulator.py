@@ -15,6 +15,10 @@ another one, e.g. ``robot_controller``):
   ``position[0]`` = y_p(k), ``header.stamp`` = t_k) ``latency`` + U[0, ``jitter``] s after
   the step, in order; ``loss`` of the measurements are never published; optional
   plant-input noise (``noise_db``) and measurement noise (``measurement_noise``);
+- optional timing faults of a real driver: ``stamp_jitter`` (its loop wakes off time:
+  step k runs, takes its command and is stamped at t_k + U[-stamp_jitter, stamp_jitter]),
+  ``stamp_offset`` (its stamps are on a clock that far ahead of the receive clock:
+  another machine's, unsynchronised);
 - stops after ``steps`` steps or ``duration`` s (0 and 0: until stopped) and writes the
   plant's own series to ``log`` (.npz: stamp_ns, u applied and when it was received,
   noise, y, y_measured, published; see :class:`~lenn_ros.core.robot.RobotLog`): the lockstep reference.
@@ -59,6 +63,12 @@ class RobotSimulator(Node):
         declare("loss", 0.02, describe("probability that a measurement is never published", 0.0, 0.99))
         declare("latency", 0.005, describe("seconds from a step to its measurement's publication", 0.0, 10.0))
         declare("jitter", 0.004, describe("extra publication delay, uniform in [0, jitter] s", 0.0, 10.0))
+        declare(
+            "stamp_jitter",
+            0.0,
+            describe("driver loop jitter: step k runs and is stamped at t_k + U[-j, j] s (< half a period)", 0.0, 10.0),
+        )
+        declare("stamp_offset", 0.0, describe("stamps on a clock this far ahead of the receive clock, s", -1e6, 1e6))
         declare("noise_db", example.noise_db, describe("plant-input noise vs. U[-1,1] power, dB", -300.0, 40.0))
         declare("measurement_noise", 0.0, describe("standard deviation added to the published y_p", 0.0, 1e6))
         declare("seed", 0, describe("seed of the noise, loss and jitter streams", 0, 2**31 - 1))
@@ -84,6 +94,8 @@ class RobotSimulator(Node):
             jitter_s=p("jitter").value,
             seed=p("seed").value,
             example=example.number,
+            stamp_jitter_s=p("stamp_jitter").value,
+            stamp_offset_s=p("stamp_offset").value,
         )
         self.hold = CommandHold()
         self.command_index = p("command_index").value
@@ -109,12 +121,14 @@ class RobotSimulator(Node):
         self._created_ns = self._now_ns()
         self._first_ns: int | None = None
         self.k = 0
+        self._t_k: int | None = None  # when step k runs (drawn once: the loop's jitter)
         self.pending: deque[tuple[int, JointState]] = deque()
         self.create_timer(max(self.period_ns * 0.5e-9, 0.001), self._tick)
         self.get_logger().info(
             f"{example.description}: {rate} Hz from {p('start_delay').value} s, "
             f"{self.max_steps or 'unlimited'} steps, loss {p('loss').value}, "
-            f"publication delay {p('latency').value}+U[0,{p('jitter').value}] s; "
+            f"publication delay {p('latency').value}+U[0,{p('jitter').value}] s, stamp jitter "
+            f"±{p('stamp_jitter').value} s, stamp offset {p('stamp_offset').value} s; "
             f"{self.resolve_topic_name(CMD)} -> {self.resolve_topic_name(JOINT_STATES)}"
         )
 
@@ -157,26 +171,29 @@ class RobotSimulator(Node):
     def _advance(self, now: int) -> None:
         """Every step that is due and whose command is settled; every measurement that is due."""
         while not self._finished():
-            t_k = self._first_ns + self.k * self.period_ns
+            if self._t_k is None:
+                self._t_k = self.robot.step_time_ns(self._first_ns + self.k * self.period_ns)
+            t_k = self._t_k
             if now < t_k + self.latency_ns:
                 break
             if self.hold.latest_ns <= t_k and now < t_k + self.command_wait_ns:
                 break  # a command received before t_k may still be queued: wait for a later one
-            self._step()
+            self._step(t_k)
+            self._t_k = None
         while self.pending and self.pending[0][0] <= now:
             self.publisher.publish(self.pending.popleft()[1])
 
     def _finished(self) -> bool:
         return self.max_steps is not None and self.k >= self.max_steps
 
-    def _step(self) -> None:
-        stamp_ns = self._first_ns + self.k * self.period_ns
+    def _step(self, stamp_ns: int) -> None:
         y, published, delay = self.robot.step(stamp_ns, *self.hold.at(stamp_ns))
         self.k += 1
         if not published:
             return
         message = JointState(name=[self.joint_name], position=[y])
-        message.header.stamp = TimeMsg(sec=stamp_ns // 10**9, nanosec=stamp_ns % 10**9)
+        header_ns = self.robot.header_stamp_ns(stamp_ns)
+        message.header.stamp = TimeMsg(sec=header_ns // 10**9, nanosec=header_ns % 10**9)
         self.pending.append((stamp_ns + round(delay * 1e9), message))
 
     def shutdown(self) -> None:

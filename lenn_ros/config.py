@@ -90,6 +90,13 @@ NODE_PARAMETERS = [
     Parameter(
         "max_skew", 0.25, "sequence: refuse a pair whose halves were published further apart (s)", 0.0, 3600.0
     ),
+    Parameter(
+        "max_clock_offset",
+        0.0,
+        "stamp/sample: say so when the inputs' clocks differ by more, seconds (0 = max(T/2, 50 ms))",
+        0.0,
+        3600.0,
+    ),
     Parameter("use_header_stamp", True, "time a message by its header stamp when it has one (else receive time)"),
     Parameter("lone_timeout", 3.0, "warn when one input arrives alone this many seconds", 0.1, 3600.0),
     Parameter("warn_period", 5.0, "seconds between repeats of one kind of warning", 0.0, 3600.0, live=True),

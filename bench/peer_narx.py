@@ -10,7 +10,11 @@ Both get the same protocol, in the same run, on the same splits:
 - the score is the free-run (simulation) RMSE on the test part, the free run starting
   from the measured outputs just before it (a live switch from series-parallel to
   parallel); a diverged run scores nan;
-- wall time is measured around each whole procedure (selection included).
+- wall time is measured around each whole procedure (selection included);
+- beside them, the test-mean predictor: the RMSE of predicting every test sample by the
+  mean of the test part (its standard deviation, an oracle no causal model is handed).
+  A free-run RMSE above it means the model simulates the test part worse than a flat
+  line would, whichever tool is ahead (NMSE above 0 dB); such rows are marked.
 
     pip install -e .[bench]                 # sysidentpy
     python bench/peer_narx.py               # all sets, ~10 minutes on 2 cores
@@ -197,22 +201,41 @@ def main(argv: list[str] | None = None) -> int:
     for split in splits(args.quick):
         lenn, frols = run_lenn(split), run_frols(split)
         rows.append({"data": split.name, "split": split.note, "test_samples": len(split.y) - split.test_from + 1,
-                     "lenn": lenn, "frols": frols})  # fmt: skip
+                     "test_mean_rmse": test_mean_rmse(split), "lenn": lenn, "frols": frols})  # fmt: skip
         print(f"done {split.name}", file=sys.stderr, flush=True)
     if args.json:
         print(json.dumps(rows, indent=1))
         return 0
-    print("| data (test samples) | lenn-ros fit: free-run RMSE | SysIdentPy FROLS: free-run RMSE | ratio | "
-          "lenn-ros fit: time (s) | FROLS: time (s) | lenn-ros model | FROLS model |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|---|")
-    for row in rows:
-        lenn, frols = row["lenn"], row["frols"]
-        ratio = lenn["rmse_free_run"] / frols["rmse_free_run"] if math.isfinite(frols["rmse_free_run"]) else math.nan
-        print(
-            f"| {row['data']} ({row['test_samples']}) | {_fmt(lenn['rmse_free_run'])} | {_fmt(frols['rmse_free_run'])} "
-            f"| {_fmt(ratio)} | {lenn['seconds']:.1f} | {frols['seconds']:.1f} | {lenn['model']} | {frols['model']} |"
-        )
+    print(table(rows))
     return 0
+
+
+def test_mean_rmse(split: Split) -> float:
+    """RMSE of the test part's own mean as the prediction: the bar below which a model is worth anything."""
+    return float(np.std(split.y[split.test_from - 1 :]))
+
+
+def _vs_mean(value: float, mean: float) -> str:
+    """The RMSE, marked when it is no better than the test-mean predictor (or diverged)."""
+    return _fmt(value) + (" (worse than the mean)" if not value < mean else "")
+
+
+def table(rows: list[dict]) -> str:
+    """The README's Markdown table: both tools, the test-mean predictor, ratio, times, models."""
+    lines = [
+        "| data (test samples) | lenn-ros fit: free-run RMSE | SysIdentPy FROLS: free-run RMSE | test-mean predictor: "
+        "RMSE | ratio | lenn-ros fit: time (s) | FROLS: time (s) | lenn-ros model | FROLS model |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        lenn, frols, mean = row["lenn"], row["frols"], row["test_mean_rmse"]
+        ratio = lenn["rmse_free_run"] / frols["rmse_free_run"] if math.isfinite(frols["rmse_free_run"]) else math.nan
+        lines.append(
+            f"| {row['data']} ({row['test_samples']}) | {_vs_mean(lenn['rmse_free_run'], mean)} "
+            f"| {_vs_mean(frols['rmse_free_run'], mean)} | {_fmt(mean)} | {_fmt(ratio)} | {lenn['seconds']:.1f} "
+            f"| {frols['seconds']:.1f} | {lenn['model']} | {frols['model']} |"
+        )
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":

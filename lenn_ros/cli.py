@@ -106,10 +106,28 @@ def _add_reproduce(commands: Any) -> None:
 
 
 def _add_evaluate(commands: Any) -> None:
-    p = commands.add_parser("evaluate", help="run the identifier over a recorded bag, no ROS graph needed")
+    p = commands.add_parser(
+        "evaluate",
+        help="run the identifier over a recorded bag, no ROS graph needed",
+        description="Learn on the bag's training samples as the identifier node would, then score the frozen "
+        "model on the test samples (one-step and free run). Clipped network inputs, divergence and a free run "
+        "worse than the mean are printed as WARNING lines (and listed in the JSON's warnings).",
+    )
     p.add_argument("bag", help="rosbag2 directory (MCAP) with u and y_p")
-    p.add_argument("--params", metavar="FILE", help="identifier params file (ros__parameters YAML)")
-    p.add_argument("--test-from", type=int, metavar="K", help="first test sample index (default: from the bag)")
+    p.add_argument(
+        "--params",
+        metavar="FILE",
+        help="identifier params file (ros__parameters YAML; default: the configuration the identifier recorded "
+        "in the bag). If either names weights_in (as lenn-ros fit -o writes), learning starts from those weights, "
+        "as in the node: a relative weights_in is taken from the current directory, as the node does",
+    )
+    p.add_argument(
+        "--test-from",
+        type=int,
+        metavar="K",
+        help="1-based index of the first test sample: samples before K are learnt from, K.. are scored "
+        "(the same meaning as in fit and import-csv; default: the bag's recorded test start)",
+    )
     p.add_argument("--plot", metavar="PNG", help="write plant vs model output and error")
     p.add_argument("--json", action="store_true", help="print a JSON object")
     p.set_defaults(handler=_evaluate)
@@ -145,6 +163,14 @@ def _add_fit(commands: Any) -> None:
         default="lenn",
         help="lenn (default: selected Legendre terms, least squares + simulation-error refinement, RLS live) "
         "or mlp (same lags, SGD by epochs with early stopping)",
+    )
+    p.add_argument(
+        "--solver",
+        choices=["ls", "sgd"],
+        default="ls",
+        help="LeNN weights: ls (default: least squares + simulation-error refinement; the node adapts by RLS) "
+        "or sgd (the selected terms trained by SGD with momentum, several epochs early-stopped on the held-out "
+        "tail; the node adapts by SGD with the same step)",
     )
     p.set_defaults(handler=_fit)
 

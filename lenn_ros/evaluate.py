@@ -14,14 +14,22 @@ No ROS graph, the same :class:`~lenn_ros.core.session.Session` as the node:
 
 The configuration is the params file given, else the one the identifier recorded in
 the bag (``identifier_config``); without either, evaluate stops and says what to pass.
-Every gap, refused or clipped sample and an unstable free run are reported.
+The identifier is built as the node builds it: when the configuration names
+``weights_in``, learning starts from those weights (a relative path is taken from the
+current directory, as the node takes it from its own), so a model written by
+``lenn-ros fit -o DIR`` or a bag of a node started from one is scored from the weights
+it really started from, not from fresh ones.
+Every gap, refused or clipped sample and an unstable free run are reported, and each
+thing that makes the figures mean less is a warning (text and ``warnings`` in JSON).
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -54,6 +62,28 @@ class BagEvaluation:
     missing: int = 0  # sample indices absent from the recording
     counters: dict[str, int] = field(default_factory=dict)
     notices: list[str] = field(default_factory=list)
+    weights_in: str = ""  # the weights file learning started from ("" = fresh weights)
+
+    @property
+    def warnings(self) -> list[str]:
+        """What makes the figures mean less, each with its fix; the free run's own problems last."""
+        found = []
+        clipped = self.counters.get("clipped_inputs", 0)
+        if clipped:
+            found.append(
+                f"{clipped} one-step network inputs (training and test) were outside [-1, 1] and clipped: the "
+                "params file's y_scale/u_scale and y_offset/u_offset do not cover these signals (offset = middle "
+                "of the range, scale = half the range plus a margin); set them, or let lenn-ros fit take them "
+                "from the data"
+            )
+        if self.counters.get("diverged", 0):
+            found.append(
+                f"learning diverged ({self.counters['diverged']} time(s)): the weights were rolled "
+                "back to the last healthy block and learning stopped, so the test scores the weights from before "
+                "the divergence; lower alpha (or nlms_step), set y_scale/u_scale/offsets for the signals, or use "
+                "lenn-ros fit"
+            )
+        return found + list(self.evaluation.free_run_warnings)
 
     def as_dict(self) -> dict[str, Any]:
         return {
@@ -69,6 +99,8 @@ class BagEvaluation:
             and not all("clipped" in w for w in self.evaluation.free_run_warnings),
             "counters": self.counters,
             "notices": self.notices,
+            "weights_in": self.weights_in,
+            "warnings": self.warnings,
         }
 
 
@@ -76,7 +108,35 @@ def identifier_from_params(path: str | None) -> tuple[Identifier, dict]:
     """The identifier a params file describes, and every node value (defaults filled in)."""
     values = read_params_file(path) if path else {}
     resolved, network = resolve(values)
-    return build_identifier(resolved, network), {**_NODE_DEFAULTS, **values}
+    values = {**_NODE_DEFAULTS, **values}
+    return _as_node_builds_it(build_identifier(resolved, network), values, f"params file {path}"), values
+
+
+def weights_path(value: str) -> Path:
+    """``weights_in`` as the identifier node opens it: ``~`` expanded, a relative path from the cwd.
+
+    The node cannot know which params file a value came from (ROS merges them), so it
+    opens the path from its working directory; evaluate does the same, so one params
+    file means the same model in both. ``lenn-ros fit -o DIR`` writes an absolute path.
+    """
+    return Path(os.path.expanduser(value))
+
+
+def _as_node_builds_it(identifier: Identifier, values: dict[str, Any], source: str) -> Identifier:
+    """What the node's ``_build_model`` adds to the bare identifier: divergence guard and start weights."""
+    identifier.health_interval = int(values["health_interval"])
+    identifier.divergence_ratio = float(values["divergence_ratio"])
+    if values.get("weights_in"):
+        path = weights_path(values["weights_in"])
+        if not path.is_file():
+            raise EvaluateError(
+                f"weights_in {path} (from the {source}) does not exist (a relative path is taken from the current "
+                f"directory {Path.cwd()}, as the identifier node does): run from there, give an absolute path, "
+                "or set weights_in to '' for fresh weights"
+            )
+        identifier.model.load_state(path)
+        identifier.mark_healthy()
+    return identifier
 
 
 def _configuration(path: str, params: str | None) -> tuple[Identifier, dict[str, Any]]:
@@ -91,7 +151,9 @@ def _configuration(path: str, params: str | None) -> tuple[Identifier, dict[str,
     values = json.loads(recorded[-1].message.data)
     network = values.pop("network", "lenn")
     model_values, _ = resolve({**{k: v for k, v in values.items() if k not in _NODE_DEFAULTS}, "network": network})
-    return build_identifier(model_values, network), {**_NODE_DEFAULTS, **values}
+    values = {**_NODE_DEFAULTS, **values}
+    identifier = build_identifier(model_values, network)
+    return _as_node_builds_it(identifier, values, f"identifier configuration recorded in {path}"), values
 
 
 def _session(identifier: Identifier, values: dict[str, Any]) -> Session:
@@ -213,10 +275,19 @@ def evaluate_bag(path: str, params: str | None = None, test_from: int | None = N
     notices = sorted({f"{n.kind}: {n.text}" for n in session.take_notices() if n.kind != "phase"})
     for topic, lost in _raw_losses(path).items():
         notices.append(f"recording: {lost} {topic} messages missing (gaps in their sequence numbers)")
+    if evaluation.free_run.get("segments", 1) > 1:
+        notices.append(
+            f"free run: restarted from the measured outputs after each of {evaluation.free_run['segments'] - 1} "
+            f"break(s) in the test part (lost or invalid samples); {evaluation.free_run['not_simulated']} test "
+            "samples not simulated, not scored"
+        )
     missing = int(np.sum(np.clip(np.diff(index) - 1, 0, None))) + int(index[0] - 1)
     rejected = int(np.count_nonzero(~(np.isfinite(u) & np.isfinite(y))))
     unpaired = sum(counters.get(name, 0) for name in ("unpaired", "dropped_u", "dropped_y"))
-    return BagEvaluation(evaluation, len(index), unpaired, rejected, int(start), source, missing, counters, notices)
+    weights_in = str(weights_path(values["weights_in"])) if values.get("weights_in") else ""
+    return BagEvaluation(
+        evaluation, len(index), unpaired, rejected, int(start), source, missing, counters, notices, weights_in
+    )
 
 
 def _last_phase_start(index: np.ndarray, learn: np.ndarray) -> int | None:
@@ -227,21 +298,59 @@ def _last_phase_start(index: np.ndarray, learn: np.ndarray) -> int | None:
     return int(index[changes[-1] + 1]) if changes.size else int(index[0])
 
 
+def _free_run_segments(
+    identifier: Identifier, index: np.ndarray, u: np.ndarray, y: np.ndarray, first: int
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """The free run over the test part, restarted from the measured outputs after every break.
+
+    A simulation cannot cross a lost sample or a NaN input: it would feed the model a
+    value that does not exist (the whole rest came out NaN and was reported as
+    divergence). After a break the next ``warm_up`` measured samples seed the model's
+    history again, as at the start of the test part; they are not simulated (NaN) and
+    not scored. Without breaks this is one ``free_run`` from ``first``, as before.
+    """
+    window = identifier.structure.warm_up
+    valid = np.isfinite(u) & np.isfinite(y)
+    continues = np.r_[False, (np.diff(index) == 1) & valid[1:] & valid[:-1]]
+    starts = np.flatnonzero(~continues)
+    y_free = np.full(len(y) - first, np.nan)
+    info: dict[str, Any] = {"samples": 0, "clipped_inputs": 0, "diverged": False, "diverged_at": None}
+    info["segments"] = 0
+    for begin, end in zip(starts, np.r_[starts[1:], len(y)], strict=True):
+        simulate_from = max(first, begin + window)
+        if end <= first or simulate_from >= end or not valid[begin]:
+            continue
+        y_free[simulate_from - first : end - first] = identifier.free_run(
+            u[begin:end], y[begin:end], simulate_from - begin
+        )
+        part = identifier.last_free_run
+        info["segments"] += 1
+        info["samples"] += part["samples"]
+        info["clipped_inputs"] += part["clipped_inputs"]
+        if part["diverged"] and not info["diverged"]:
+            info["diverged"], info["diverged_at"] = True, begin + part["diverged_at"]
+    info["not_simulated"] = int(len(y_free) - info["samples"])
+    return y_free, info
+
+
 def _score(identifier: Identifier, index: np.ndarray, u: np.ndarray, y: np.ndarray, y_hat: np.ndarray, start: int):
     test = index >= start
     scored = test & np.isfinite(y_hat)
     first = int(np.argmax(test))
-    y_free = identifier.free_run(u, y, first) if first >= identifier.structure.warm_up else np.full(test.sum(), np.nan)
+    y_free, free_run = _free_run_segments(identifier, index, u, y, first)
     y_test = y[test]
+    simulated = np.isfinite(y_test) & (np.isfinite(y_free) | free_run["diverged"])
+    if not simulated.any():
+        simulated[:] = True  # nothing could be simulated: the figures are NaN, and said so
     train = ~test & np.isfinite(y_hat)
-    free_run = dict(identifier.last_free_run)
+    free_ok = not free_run["diverged"] and simulated.any() and np.all(np.isfinite(y_free[simulated]))
     return Evaluation(
         free_run=free_run,
-        free_run_warnings=free_run_problems(y_test, y_free, free_run),
+        free_run_warnings=free_run_problems(y_test[simulated], y_free[simulated], free_run),
         nmse_db=nmse_db(y[scored], y_hat[scored]) if scored.any() else math.nan,
-        nmse_free_run_db=nmse_db(y_test, y_free) if np.all(np.isfinite(y_free)) else math.nan,
+        nmse_free_run_db=nmse_db(y_test[simulated], y_free[simulated]) if free_ok else math.nan,
         rmse=rmse(y[scored], y_hat[scored]) if scored.any() else math.nan,
-        rmse_free_run=rmse(y_test, y_free) if np.all(np.isfinite(y_free)) else math.nan,
+        rmse_free_run=rmse(y_test[simulated], y_free[simulated]) if free_ok else math.nan,
         samples=int(scored.sum()),
         trained=int(train.sum()),
         skipped=int((~np.isfinite(y_hat[~test])).sum()),
@@ -265,6 +374,8 @@ def main(args) -> int:
         print(json.dumps(d, indent=1, default=lambda value: None))
         return 0
     print(f"bag {args.bag}: {d['pairs']} samples from {d['source']}, test from sample {d['test_start']}")
+    if d["weights_in"]:
+        print(f"  learning started from the weights in {d['weights_in']} (weights_in)")
     if d["missing"]:
         print(f"  {d['missing']} sample indices are missing from the recording (lost before recording or dropped)")
     print(f"  trained on {d['trained']} samples, scored {d['samples']} test samples, skipped {d['skipped']}")
@@ -272,8 +383,8 @@ def main(args) -> int:
         value = d[key]
         shown = f"{value:8.3f} dB" if value is not None and math.isfinite(value) else str(value)
         print(f"  NMSE {label}: {shown}   RMSE {d[rmse_key]}")
-    for warning in d["free_run_warnings"]:
-        print(f"  warning: {warning}")
+    for warning in d["warnings"]:
+        print(f"  WARNING: {warning}")
     for notice in d["notices"]:
         print(f"  note: {notice}")
     return 0

@@ -5,11 +5,15 @@ What it does, each step reported:
    samples K.. only score it;
 2. takes offsets and scale factors from the training samples (with a margin);
 3. selects the structure (lags, degree, terms) by orthogonal forward regression,
-   judging candidates by free-run error on the last 20 % of the training samples
+   judging candidates by free-run error on the last 20 % of the training samples and
+   rejecting those that run away or do worse than the mean
    (:mod:`lenn_ros.core.selection`);
 4. refines the weights of the chosen model on simulation error
-   (:mod:`lenn_ros.core.refinement`), early-stopped on the same held-out tail, then
-   refits on all training samples;
+   (:mod:`lenn_ros.core.refinement`) over the samples before that tail, early-stopped
+   on the tail. The weights kept are those: the held-out tail only judges them
+   (``refit_all=True`` refits on all training samples instead, with the number of
+   refinement iterations the tail chose; off by default, so every reported held-out
+   figure is that of the model delivered);
 5. scores the frozen model on the test samples: one-step and free run (the free run
    starts from the measured outputs just before sample K, as a live switch from
    series-parallel to parallel would), counting clipped inputs and flagging divergence;
@@ -35,13 +39,16 @@ from lenn_ros.core.metrics import nmse_db, rmse
 from lenn_ros.core.networks import FunctionalLinkNetwork
 from lenn_ros.core.refinement import refine_simulation_error
 from lenn_ros.core.scaling import Scaling
-from lenn_ros.core.selection import TermModel, select_structure
+from lenn_ros.core.selection import PARSIMONY, TermModel, select_structure
 from lenn_ros.core.structure import Identifier
 
 #: share of the training samples held out to judge candidates by free-run error
 VALIDATION_FRACTION = 0.2
 MIN_VALIDATION = 50
 REFINE_ITERATIONS = 20
+#: relative ridge on the live RLS start covariance (see build_identifier): condition number <= 1e7,
+#: well inside the ~1/sqrt(machine epsilon) ~ 7e7 at which conventional RLS goes indefinite by round-off
+RLS_RIDGE = 1e-7
 
 
 class FitError(ValueError):
@@ -140,6 +147,10 @@ def build_identifier(model: TermModel, u: np.ndarray, y: np.ndarray, forgetting:
 
     The RLS covariance is the least-squares one of the training features, scaled to the
     forgetting factor's memory: live adaptation starts as if it had seen the training data.
+    A ridge of RLS_RIDGE times the largest eigenvalue of the features' Gram matrix bounds
+    its condition number to 1 / RLS_RIDGE: lagged outputs are nearly collinear, and the
+    robot arm's 29 terms gave a condition number of 7e10, at which the conventional RLS
+    update loses positive definiteness by round-off (it stopped learning at its 97th sample).
     """
     network = FunctionalLinkNetwork(
         n_inputs=model.y_lags + model.u_lags,
@@ -154,7 +165,8 @@ def build_identifier(model: TermModel, u: np.ndarray, y: np.ndarray, forgetting:
     network._initialise()
     network.weights_ = np.array(model.weights, dtype=np.float64)
     features, _ = model.regression(u, y)
-    gram = features.T @ features + 1e-9 * np.eye(features.shape[1])
+    gram = features.T @ features
+    gram += max(RLS_RIDGE * float(np.linalg.eigvalsh(gram)[-1]), 1e-9) * np.eye(features.shape[1])
     memory = len(features) if forgetting >= 1.0 else min(len(features), 1.0 / (1.0 - forgetting))
     network.covariance_ = np.linalg.inv(gram) * (len(features) / memory)
     return Identifier(model.structure, network, learning=False)
@@ -168,9 +180,16 @@ def fit(
     max_lag: int = 10,
     refit_all: bool = False,
     network: str = "lenn",
+    solver: str = "ls",
     progress: Any = None,
 ) -> dict[str, Any]:
-    """The whole procedure; returns the report (also what ``--json`` prints) and the identifier."""
+    """The whole procedure; returns the report (also what ``--json`` prints) and the identifier.
+
+    The model delivered is estimated on the training samples before the held-out tail
+    (the tail judges it); ``refit_all`` re-estimates it on all training samples.
+    ``solver="sgd"`` trains the selected LeNN terms by SGD epochs instead of least
+    squares and refinement (:func:`fit_lenn_sgd`), for a node that will learn by SGD.
+    """
     began = time.perf_counter()
     say = progress or (lambda text: None)
     u, y = data.u, data.y
@@ -185,15 +204,11 @@ def fit(
         raise FitError(str(error)) from None
     validation_start = start - max(MIN_VALIDATION, round(VALIDATION_FRACTION * start))
     say(f"selecting a structure on samples 1..{validation_start}, judged by free run on the rest up to {start}")
-    candidates = select_structure(u_train, y_train, validation_start, scaling, max_lag=max_lag)
-    usable = [c for c in candidates if c.model is not None]
-    if not usable:
-        reasons = sorted({c.rejected for c in candidates})
-        raise FitError(f"no candidate structure simulates stably on the held-out tail ({'; '.join(reasons)})")
-    chosen = usable[0]
+    candidates, selection_warnings = _select(u_train, y_train, validation_start, scaling, max_lag)
+    chosen = next(c for c in candidates if c.model is not None)
     model = chosen.model
     refinement: dict[str, Any] = {"done": False}
-    if refine:
+    if refine and solver == "ls" and network == "lenn":
         say(f"refining {chosen.terms} terms on simulation error")
         weights, held_out = refine_simulation_error(
             model, u_train[:validation_start], y_train[:validation_start], REFINE_ITERATIONS,
@@ -219,7 +234,12 @@ def fit(
         say(f"training an MLP on lags {final.y_lags}/{final.u_lags} by epochs, early-stopped on the held-out tail")
         identifier, epochs = fit_mlp(final, u_train, y_train, validation_start)
         described = describe_mlp(identifier, epochs)
+    elif solver == "sgd":
+        say(f"training the {len(final.exponents)} selected terms by SGD epochs, early-stopped on the held-out tail")
+        identifier, epochs = fit_lenn_sgd(final, u_train, y_train, validation_start)
+        described = {**describe_model(final, chosen, forgetting), **describe_sgd(identifier, epochs)}
     report = score(identifier, u, y, start)
+    report["warnings"] = selection_warnings + report["warnings"]
     report.update(
         {
             "data": data.source,
@@ -237,7 +257,9 @@ def fit(
                 },
                 "estimation_samples": validation_start,
                 "validation_samples": start - validation_start,
-                "judged_by": "free-run RMSE on the held-out tail of the training samples",
+                "judged_by": "free-run RMSE on the held-out tail of the training samples (two folds); rejected: "
+                "diverged, clipped, worse than the held-out mean, or unsound free run on its own estimation "
+                f"samples; of those within {PARSIMONY:.0%} of the lowest, the fewest terms",
                 "candidates": [c.as_dict() for c in candidates],
                 "chosen": candidates.index(chosen),
                 "refinement": refinement,
@@ -246,6 +268,28 @@ def fit(
         }
     )
     return {"report": report, "identifier": identifier, "model": final}
+
+
+def _select(u: np.ndarray, y: np.ndarray, validation_start: int, scaling: Scaling, max_lag: int):
+    """(candidates, warnings): the strict selection, else the loose one with a warning, else FitError."""
+    candidates = select_structure(u, y, validation_start, scaling, max_lag=max_lag)
+    warnings = []
+    if not any(c.model is not None for c in candidates):
+        # nothing passed the strict checks: the best that merely simulates the held-out tail,
+        # flagged, beats no model at all (the user still learns the lags and what failed)
+        strict_reasons = sorted(
+            {reason for c in candidates for reason in c.rejected.removeprefix("every prefix: ").split("; ") if reason}
+        )
+        candidates = select_structure(u, y, validation_start, scaling, max_lag=max_lag, strict=False)
+        warnings.append(
+            "no candidate structure passed the strict checks (free run better than the mean on the held-out "
+            "tail, sound on its own estimation samples, inside the training range): the best held-out one is "
+            f"used, do not trust it far ({'; '.join(strict_reasons)})"
+        )
+    if not any(c.model is not None for c in candidates):
+        reasons = sorted({c.rejected for c in candidates})
+        raise FitError(f"no candidate structure simulates stably on the held-out tail ({'; '.join(reasons)})")
+    return candidates, warnings
 
 
 def score(identifier: Identifier, u: np.ndarray, y: np.ndarray, start: int) -> dict[str, Any]:
@@ -333,6 +377,61 @@ def fit_mlp(selected: TermModel, u: np.ndarray, y: np.ndarray, validation_start:
     return identifier, epochs
 
 
+#: SGD momentum for the LeNN by epochs, and the share of the stability bound its step takes
+SGD_BETA = 0.5
+SGD_STEP = 0.5
+
+
+def fit_lenn_sgd(selected: TermModel, u: np.ndarray, y: np.ndarray, validation_start: int):
+    """The selected terms as an SGD LeNN (what the node runs with ``solver: sgd``), trained by epochs.
+
+    One pass over a few hundred samples leaves SGD far from its optimum, so the estimation
+    samples are passed repeatedly, early-stopped on the held-out free run
+    (:func:`~lenn_ros.core.training.train_epochs`). The step is unit-free: the features are
+    Legendre polynomials of inputs in [-1, 1] (|phi| <= 1 each), so with n terms
+    ||phi||^2 <= n and momentum beta, alpha = SGD_STEP (1 - beta) / n keeps the update
+    below its stability bound 2 (1 - beta) / ||phi||^2 for any data. The network learns
+    y - y_offset (``output_offset``), so no weight has to climb to the signal's level.
+    """
+    from lenn_ros.core.structure import ModelStructure
+    from lenn_ros.core.training import train_epochs
+
+    s = selected.scaling
+    structure = ModelStructure(
+        y_lags=selected.y_lags,
+        u_lags=selected.u_lags,
+        y_scale=s.y_scale,
+        u_scale=s.u_scale,
+        y_offset=s.y_offset,
+        u_offset=s.u_offset,
+        output_offset=s.y_offset,
+    )
+    network = FunctionalLinkNetwork(
+        n_inputs=structure.n_inputs,
+        exponents=selected.exponents.tolist(),
+        order=max(1, int(selected.exponents.max(initial=1))),
+        basis=selected.basis,
+        output="linear",
+        solver="sgd",
+        alpha=SGD_STEP * (1.0 - SGD_BETA) / len(selected.exponents),
+        beta=SGD_BETA,
+        init_scale=0.0,
+    )
+    identifier = Identifier(structure, network, learning=False)
+    epochs = train_epochs(identifier, u, y, validation_start, max_epochs=200, patience=20)
+    return identifier, epochs
+
+
+def describe_sgd(identifier: Identifier, epochs: Any) -> dict[str, Any]:
+    m = identifier.model
+    return {
+        "weights": [float(w) for w in m.weights_],
+        "solver": f"sgd with momentum, alpha {m.alpha:.6g}, by epochs (terms from the LeNN selection)",
+        "epochs": epochs.as_dict(),
+        "live": {"solver": "sgd", "alpha": m.alpha, "beta": m.beta},
+    }
+
+
 def describe_mlp(identifier: Identifier, epochs: Any) -> dict[str, Any]:
     m = identifier.model
     return {
@@ -388,26 +487,45 @@ def params_values(identifier: Identifier, model: TermModel, forgetting: float, u
         "terms": model.terms,
         "output": "linear",
         "output_scale": 1.0,
-        "solver": "rls",
-        "forgetting": float(forgetting),
+        **_learning_values(identifier, forgetting),
         "u_limit": limit,
         "y_limit": limit,
     }
 
 
+def _learning_values(identifier: Identifier, forgetting: float) -> dict[str, Any]:
+    """How the node goes on learning: RLS with forgetting, or SGD with the epochs' step."""
+    m = identifier.model
+    if m.solver == "sgd":
+        return {
+            "output_offset": float(identifier.structure.output_offset),
+            "solver": "sgd",
+            "alpha": float(m.alpha),
+            "beta": float(m.beta),
+        }
+    return {"solver": "rls", "forgetting": float(forgetting)}
+
+
 def write_outputs(directory: str | Path, result: dict[str, Any], u: np.ndarray, y: np.ndarray) -> dict[str, str]:
-    """``DIR/params.yaml`` (key ``/**``: any node name or namespace) and ``DIR/weights.npz``."""
+    """``DIR/params.yaml`` (key ``/**``: any node name or namespace) and ``DIR/weights.npz``.
+
+    ``weights_in`` in the params file is the absolute path of the weights: the node
+    opens a relative path from its own working directory (it cannot know where the
+    params file was), so only an absolute path makes the params file enough on its own,
+    for the node and for ``lenn-ros evaluate`` alike, from any directory.
+    """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     identifier, model = result["identifier"], result["model"]
     forgetting = result["report"]["model"]["live"].get("forgetting", 1.0)
     weights = directory / "weights.npz"
     identifier.model.save(weights)
-    values = params_values(identifier, model, forgetting, u, y)
+    values = {**params_values(identifier, model, forgetting, u, y), "weights_in": str(weights.resolve())}
     params = directory / "params.yaml"
     header = (
         f"# written by lenn-ros fit ({result['report']['data']}, test from sample {result['report']['test_from']})\n"
-        f"# ros2 run lenn_ros identifier --ros-args --params-file {params} -p weights_in:={weights.resolve()}\n"
+        f"# ros2 run lenn_ros identifier --ros-args --params-file {params}   (starts from weights_in below;\n"
+        "# move the directory and weights_in must follow: it is absolute)\n"
     )
     params.write_text(header + yaml.safe_dump({"/**": {"ros__parameters": values}}, sort_keys=False))
     return {"params": str(params), "weights": str(weights)}
@@ -437,7 +555,8 @@ def main(args: Any) -> int:
     progress = None if args.json else (lambda text: print(text, file=sys.stderr, flush=True))
     network = getattr(args, "network", "lenn") or "lenn"
     test_from = args.test_from if args.test_from is not None else data.test_start
-    result = fit(data, test_from, refine=not args.no_refine, network=network, progress=progress)
+    solver = getattr(args, "solver", "ls") or "ls"
+    result = fit(data, test_from, refine=not args.no_refine, network=network, solver=solver, progress=progress)
     report = result["report"]
     if args.output:
         report["files"] = write_outputs(args.output, result, data.u[: report["train_samples"]], data.y)
@@ -467,10 +586,15 @@ def format_report(report: dict[str, Any], dt: float | None = None) -> str:
         mark = "->" if index == c["chosen"] else "  "
         value = candidate["rmse_free_run_validation"]
         shown = f"free-run RMSE {value:.5g}" if value is not None else f"rejected: {candidate['rejected']}"
+        if candidate.get("note"):
+            shown += f" ({candidate['note']})"
         lines.append(
             f"   {mark} lags {candidate['y_lags']}/{candidate['u_lags']}, degree {candidate['degree']}, "
             f"{candidate['basis']}: {candidate['terms']} of {candidate['dictionary']} terms, {shown}"
         )
+    if m["network"] == "lenn" and "epochs" in m:
+        e = m["epochs"]
+        lines.append(f"  trained by SGD epochs: {e['epochs']} run, best {e['best_epoch']} ({e['stopped']})")
     if m["network"] == "mlp":
         e = m["epochs"]
         lines.append(f"  model: MLP {m['structure']} hidden {m['expansion']['hidden']}, {m['n_terms']} weights")
@@ -513,7 +637,7 @@ def format_report(report: dict[str, Any], dt: float | None = None) -> str:
         lines.append(f"  wrote {report['files']['params']} and {report['files']['weights']}")
         lines.append(
             f"  live: ros2 run lenn_ros identifier --ros-args --params-file {report['files']['params']} "
-            f"-p weights_in:={report['files']['weights']}"
+            "(its weights_in names the weights file)"
         )
     lines.append(f"  {report['seconds']} s")
     return "\n".join(lines)

@@ -161,3 +161,33 @@ def test_params_file_errors_are_still_one_line(tmp_path: Path) -> None:
         assert result.returncode == 2, result.stderr
         assert message in result.stderr and "Traceback" not in result.stderr
         assert len(result.stderr.strip().splitlines()) == 1
+
+
+def test_evaluate_warns_in_text_and_json_about_clipping_and_divergence(tmp_path: Path) -> None:
+    """A plant around 50 units under the paper's Example-2 scaling (y_scale 3): clipped inputs, diverged learning."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    u = rng.uniform(0.0, 1.0, 3000)
+    y = 50.0 + 5.0 * np.sin(np.arange(3000) / 20.0) + np.convolve(u, [0.0, 1.0, 0.5])[:3000]
+    csv = tmp_path / "log.csv"
+    csv.write_text("u,y\n" + "".join(f"{float(a)!r},{float(b)!r}\n" for a, b in zip(u, y, strict=True)))
+    bag = tmp_path / "bag"
+    done = lenn_ros("import-csv", str(csv), "--u", "u", "--y", "y", "--dt", "1", "-o", str(bag), "--test-from", "2001")
+    assert done.returncode == 0, done.stderr
+    text = lenn_ros("evaluate", str(bag), "--params", "config/example2_lenn.yaml")
+    assert text.returncode == 0, text.stderr
+    warnings = [line.strip() for line in text.stdout.splitlines() if line.strip().startswith("WARNING:")]
+    one_step = [w for w in warnings if "one-step network inputs" in w and "clipped" in w]
+    assert one_step and "y_scale/u_scale" in one_step[0] and "lenn-ros fit" in one_step[0]
+    assert any(w.startswith("WARNING: learning diverged (") and "lenn-ros fit" in w for w in warnings)
+    assert any("free-run network inputs" in w or "free run" in w for w in warnings)
+    report = json.loads(lenn_ros("evaluate", str(bag), "--params", "config/example2_lenn.yaml", "--json").stdout)
+    assert [f"WARNING: {w}" for w in report["warnings"]] == warnings
+    assert str(report["counters"]["clipped_inputs"]) in one_step[0]
+
+
+def test_evaluate_help_says_what_test_from_and_weights_in_mean() -> None:
+    text = " ".join(lenn_ros("evaluate", "-h").stdout.split())
+    assert "1-based index of the first test sample" in text
+    assert "weights_in" in text and "current directory" in text

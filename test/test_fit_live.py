@@ -1,8 +1,9 @@
 """From offline to online: the identifier node starts from ``lenn-ros fit -o DIR`` and keeps adapting.
 
-A real identifier process over DDS, configured only by the params file and weights
-``fit`` wrote; its live predictions must equal the same model stepped offline
-(RLS adapting from the fitted weights), and the weights it saves must have moved.
+A real identifier process over DDS, configured only by the params file ``fit`` wrote
+(its ``weights_in`` names the weights: no ``-p weights_in:=`` on the command line); its
+live predictions must equal the same model stepped offline (RLS adapting from the
+fitted weights), and the weights it saves must have moved.
 """
 
 from __future__ import annotations
@@ -54,7 +55,6 @@ def test_node_starts_from_the_fitted_model_and_keeps_adapting(tmp_path: Path, do
     talker = SeriesTalker(domain)
     identifier = start_node(
         "identifier",
-        f"weights_in:={files['weights']}",
         f"weights_out:={tmp_path / 'after.npz'}",
         "wait_for_y_hat_subscribers:=1",
         params_file=Path(files["params"]),

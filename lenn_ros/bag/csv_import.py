@@ -62,6 +62,26 @@ def import_csv(
         raise BagError(f"dt must be a positive number of seconds, got {dt}")
     if not csv_path.is_file():
         raise BagError(f"{csv_path}: no such file; pass the CSV with the logged input and output")
+    rows = _read_rows(csv_path)
+    first = [cell.strip() for cell in rows[0][1]]
+    named = any(isinstance(c, str) and not c.isdigit() for c in (u_column, y_column))
+    has_header = named or not all(_is_number(c) for c in first if c)
+    header = first if has_header else None
+    iu = _column_index(header, u_column, csv_path)
+    iy = _column_index(header, y_column, csv_path)
+    u_vals, y_vals = _read_values(csv_path, rows[1:] if has_header else rows, ((iu, u_column), (iy, y_column)))
+    if not u_vals:
+        raise BagError(f"{csv_path}: no data rows after the header")
+    if test_from is not None and not 1 <= test_from <= len(u_vals):
+        raise BagError(
+            f"test_from={test_from} is outside samples 1..{len(u_vals)} of {csv_path} (1-based, like test_start)"
+        )
+    _write_run_bag(out_path, u_vals, y_vals, dt, test_from)
+    return out_path
+
+
+def _read_rows(csv_path: Path) -> list[tuple[int, list[str]]]:
+    """The non-empty rows, each with its 1-based file line, so every later error can name the line."""
     text = csv_path.read_text(encoding="utf-8-sig")
     try:
         dialect: Any = csv.Sniffer().sniff(text[:4096], delimiters=",;\t")
@@ -70,33 +90,36 @@ def import_csv(
     rows = [(n, row) for n, row in enumerate(csv.reader(text.splitlines(), dialect), start=1) if any(row)]
     if not rows:
         raise BagError(f"{csv_path}: the file has no rows")
-    first = [cell.strip() for cell in rows[0][1]]
-    named = any(isinstance(c, str) and not c.isdigit() for c in (u_column, y_column))
-    has_header = named or not all(_is_number(c) for c in first if c)
-    header = first if has_header else None
-    iu = _column_index(header, u_column, csv_path)
-    iy = _column_index(header, y_column, csv_path)
-    data = rows[1:] if has_header else rows
-    u_vals: list[float] = []
-    y_vals: list[float] = []
+    return rows
+
+
+def _read_values(
+    csv_path: Path, data: list[tuple[int, list[str]]], columns: tuple[tuple[int, str | int], ...]
+) -> list[list[float]]:
+    """One list of floats per (index, name) column, row by row, so the first bad cell in file order is reported."""
+    values: list[list[float]] = [[] for _ in columns]
     for line, row in data:
-        for index, column, values in ((iu, u_column, u_vals), (iy, y_column, y_vals)):
-            if index >= len(row):
-                raise BagError(f"{csv_path}: line {line} has {len(row)} cells, no column {column!r}; fix that row")
-            cell = row[index].strip()
-            try:
-                value = float(cell)
-            except ValueError:
-                raise BagError(f"{csv_path}: line {line}, column {column!r}: {cell!r} is not a number") from None
-            if not math.isfinite(value):
-                raise BagError(f"{csv_path}: line {line}, column {column!r}: {cell!r} is not finite")
-            values.append(value)
-    if not u_vals:
-        raise BagError(f"{csv_path}: no data rows after the header")
-    if test_from is not None and not 1 <= test_from <= len(u_vals):
-        raise BagError(
-            f"test_from={test_from} is outside samples 1..{len(u_vals)} of {csv_path} (1-based, like test_start)"
-        )
+        for (index, column), column_values in zip(columns, values, strict=True):
+            column_values.append(_cell_value(csv_path, line, row, index, column))
+    return values
+
+
+def _cell_value(csv_path: Path, line: int, row: list[str], index: int, column: str | int) -> float:
+    """The finite number in one cell; a short row, a non-number or an inf/nan is refused with its line and column."""
+    if index >= len(row):
+        raise BagError(f"{csv_path}: line {line} has {len(row)} cells, no column {column!r}; fix that row")
+    cell = row[index].strip()
+    try:
+        value = float(cell)
+    except ValueError:
+        raise BagError(f"{csv_path}: line {line}, column {column!r}: {cell!r} is not a number") from None
+    if not math.isfinite(value):
+        raise BagError(f"{csv_path}: line {line}, column {column!r}: {cell!r} is not finite")
+    return value
+
+
+def _write_run_bag(out_path: Path, u_vals: list[float], y_vals: list[float], dt: float, test_from: int | None) -> None:
+    """/u and /y_p stamped at k*dt (the log's own clock), the latched /test_start first when given."""
     with BagWriter(out_path, flush_period=None) as bag:
         bag.add_topic("/" + topics.U)
         bag.add_topic("/" + topics.Y_P)
@@ -107,4 +130,3 @@ def import_csv(
             stamp = round(k * dt * 1e9)
             bag.write_value("/" + topics.U, u, stamp)
             bag.write_value("/" + topics.Y_P, y, stamp)
-    return out_path

@@ -137,9 +137,8 @@ def least_squares_floor(example: PaperExample, series: Series, **feature_overrid
     model = example.make_network("lenn", 0, output="linear", output_scale=1.0, **feature_overrides)
     structure = example.structure
     train = slice(0, series.test_start)
-    x, linear = structure.regressors(series.u[train], series.y[train])
-    targets = series.y[structure.warm_up : series.test_start] - linear[:-1]
-    features = model.features(x[:-1])
+    x, targets, _ = structure.training_pairs(series.u[train], series.y[train])
+    features = model.features(x)
     model.update(x[:1], targets[:1], learn=False)  # initialise the state arrays
     model.weights_ = np.linalg.lstsq(features, targets, rcond=None)[0]
     identifier = Identifier(structure, model, learning=False)

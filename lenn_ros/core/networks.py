@@ -308,11 +308,7 @@ class FunctionalLinkNetwork(OnlineRegressor):
 
     def _validate(self) -> None:
         if self.exponents is not None:
-            rows = np.asarray(self.exponents, dtype=np.int64).reshape(len(self.exponents), -1)
-            if len(self.exponents) == 0 or rows.shape[1] != int(self.n_inputs) or (rows < 0).any():
-                raise ValueError(f"exponents must be non-empty rows of {self.n_inputs} non-negative integers")
-            if self.branches is not None and len(self.branches) > 1:
-                raise ValueError("selected terms (exponents) make one combiner: use branches=None")
+            self._validate_exponents()
         if self.basis not in BASES:
             raise ValueError(f"basis must be one of {', '.join(BASES)}, not {self.basis!r}")
         if self.solver not in SOLVERS:
@@ -328,6 +324,14 @@ class FunctionalLinkNetwork(OnlineRegressor):
             raise ValueError("forgetting factor lambda must lie in (0, 1]")
         if not 0.0 < self.nlms_step < 2.0:
             raise ValueError("nlms_step must lie in (0, 2) for NLMS to converge")
+
+    def _validate_exponents(self) -> None:
+        """One exponent per input, none negative: the compiled free run indexes its table with them unchecked."""
+        rows = np.asarray(self.exponents, dtype=np.int64).reshape(len(self.exponents), -1)
+        if len(self.exponents) == 0 or rows.shape[1] != int(self.n_inputs) or (rows < 0).any():
+            raise ValueError(f"exponents must be non-empty rows of {self.n_inputs} non-negative integers")
+        if self.branches is not None and len(self.branches) > 1:
+            raise ValueError("selected terms (exponents) make one combiner: use branches=None")
 
     @property
     def branch_inputs_(self) -> list[list[int]]:

@@ -53,50 +53,20 @@ def refine_simulation_error(
         raise ValueError("the model to refine diverges in free run")
     cost = float(residual @ residual)
     start_rmse = math.sqrt(cost / len(residual))
-
-    def held_out(w: np.ndarray) -> float:
-        vu, vy, vstart = validation
-        y_sim, _, diverged_at = model.free_run(vu, vy, vstart, w)
-        return math.inf if diverged_at >= 0 else float(np.sqrt(np.mean((vy[vstart:] - y_sim) ** 2)))
-
-    best_val = held_out(weights) if validation else None
+    best_val = _held_out_rmse(model, validation, weights) if validation else None
     best_weights, val_before = weights.copy(), best_val
     damping, done, best_iteration = 1e-3, 0, 0
     for _ in range(iterations):
-        jacobian = np.empty((len(residual), len(weights)))
-        usable = True
-        for j in range(len(weights)):
-            step = 1e-6 * max(abs(weights[j]), 1e-3)
-            nudged = weights.copy()
-            nudged[j] += step
-            r = _simulation_residual(model, u, y, nudged)
-            if r is None:
-                usable = False
-                break
-            jacobian[:, j] = (residual - r) / step  # d y_sim / d w
-        if not usable:
+        jacobian = _jacobian(model, u, y, weights, residual)
+        if jacobian is None:
             break
-        normal = jacobian.T @ jacobian
-        gradient = jacobian.T @ residual
-        improved = False
-        while damping < 1e8:
-            try:
-                delta = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-12), gradient)
-            except np.linalg.LinAlgError:
-                damping *= 10.0
-                continue
-            r = _simulation_residual(model, u, y, weights + delta)
-            if r is not None and float(r @ r) < cost:
-                weights, residual, cost = weights + delta, r, float(r @ r)
-                damping = max(damping / 3.0, 1e-9)
-                improved = True
-                break
-            damping *= 10.0
-        if not improved:
+        step = _damped_step(model, u, y, weights, jacobian, residual, cost, damping)
+        if step is None:
             break
+        weights, residual, cost, damping = step
         done += 1
         if validation:
-            value = held_out(weights)
+            value = _held_out_rmse(model, validation, weights)
             if value < best_val:
                 best_val, best_weights, best_iteration = value, weights.copy(), done
         else:
@@ -106,3 +76,60 @@ def refine_simulation_error(
     final = _simulation_residual(model, u, y, best_weights)
     after = math.sqrt(float(final @ final) / len(final)) if final is not None else math.inf
     return best_weights, Refinement(done, best_iteration, start_rmse, after, val_before, best_val)
+
+
+def _held_out_rmse(model: TermModel, validation: tuple[np.ndarray, np.ndarray, int], weights: np.ndarray) -> float:
+    """Free-run RMSE on the validation series, inf when it diverges: a diverged run must never look best."""
+    vu, vy, vstart = validation
+    y_sim, _, diverged_at = model.free_run(vu, vy, vstart, weights)
+    return math.inf if diverged_at >= 0 else float(np.sqrt(np.mean((vy[vstart:] - y_sim) ** 2)))
+
+
+def _jacobian(
+    model: TermModel, u: np.ndarray, y: np.ndarray, weights: np.ndarray, residual: np.ndarray
+) -> np.ndarray | None:
+    """d y_sim / d w by forward differences, one free run per weight; None if a nudged run diverges.
+
+    A model that diverges under a nudge of one part in a million sits on the edge of
+    stability, where the linearisation means nothing: the refinement stops there.
+    """
+    jacobian = np.empty((len(residual), len(weights)))
+    for j in range(len(weights)):
+        step = 1e-6 * max(abs(weights[j]), 1e-3)
+        nudged = weights.copy()
+        nudged[j] += step
+        r = _simulation_residual(model, u, y, nudged)
+        if r is None:
+            return None
+        jacobian[:, j] = (residual - r) / step  # d y_sim / d w
+    return jacobian
+
+
+def _damped_step(
+    model: TermModel,
+    u: np.ndarray,
+    y: np.ndarray,
+    weights: np.ndarray,
+    jacobian: np.ndarray,
+    residual: np.ndarray,
+    cost: float,
+    damping: float,
+) -> tuple[np.ndarray, np.ndarray, float, float] | None:
+    """One Levenberg-Marquardt step: (weights, residual, cost, damping) after it, or None if no damping helps.
+
+    The damping grows tenfold until a step lowers the simulation cost (a step judged
+    by the linearisation alone could diverge in free run) and shrinks after success.
+    """
+    normal = jacobian.T @ jacobian
+    gradient = jacobian.T @ residual
+    while damping < 1e8:
+        try:
+            delta = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-12), gradient)
+        except np.linalg.LinAlgError:
+            damping *= 10.0
+            continue
+        r = _simulation_residual(model, u, y, weights + delta)
+        if r is not None and float(r @ r) < cost:
+            return weights + delta, r, float(r @ r), max(damping / 3.0, 1e-9)
+        damping *= 10.0
+    return None

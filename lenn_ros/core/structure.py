@@ -113,11 +113,22 @@ class ModelStructure:
         """Series-parallel pairs: inputs x(k), targets y(k+1) - lin(k), and lin(k).
 
         Row r is k = warm_up - 1 + r and predicts y(k+1) = lin(k) + network(x(k)); the
-        last regressor row has no y(k+1) yet and is left out. The one place this
-        one-sample offset is written, so batch training, the learning curves and the
-        benchmarks cannot disagree about which output a row predicts.
+        last regressor row has no y(k+1) yet and is left out. With
+        :meth:`pairs_from_regressors`, the one place this one-sample offset is written,
+        so batch training, the learning curves and the benchmarks cannot disagree about
+        which output a row predicts.
         """
         x, linear = self.regressors(u, y)
+        return self.pairs_from_regressors(x, linear, y)
+
+    def pairs_from_regressors(
+        self, x: np.ndarray, linear: np.ndarray, y: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """:meth:`training_pairs` from the output of :meth:`regressors` on the same ``y``.
+
+        For a caller that also needs the last regressor row (which predicts a sample
+        not yet measured), so the regressors are not built twice.
+        """
         targets = np.asarray(y, dtype=np.float64)[self.warm_up :] - linear[:-1]
         return x[:-1], targets, linear[:-1]
 
@@ -178,7 +189,7 @@ class Identifier:
         self._y_past: list[float] = []
         self._u_past: list[float] = []
         self._last_index: int | None = None
-        self._pending: tuple[np.ndarray, float] | None = None  # x(k-1), lin(k-1)
+        self._pending: tuple[np.ndarray, float, np.ndarray | None] | None = None  # x(k-1), lin(k-1), phi(k-1)
         self._block_errors: list[float] = []
         self._block_targets: list[float] = []
         self.last_free_run: dict = {}
@@ -201,42 +212,53 @@ class Identifier:
         self._last_index = index
         self.counters["samples"] += 1
         if self._pending is not None:
-            x_previous, linear_previous, phi_previous = self._pending
-            learn = learn and not self.diverged
-            try:
-                if phi_previous is None:
-                    prior = float(self.model.update(x_previous, y - linear_previous, learn=learn)[0])
-                else:
-                    prior = float(self.model.update_features(phi_previous, y - linear_previous, learn=learn)[0])
-            except DivergenceError as error:
-                prior = float(error.predictions[0])
-                self._on_divergence()
-                learn = False
-                result.event = "diverged"
-            result.y_hat = linear_previous + prior
-            result.error = y - result.y_hat
-            result.learned = learn
-            if learn:
-                self.counters["learned"] += 1
-                self._block_errors.append(result.error)
-                self._block_targets.append(y - linear_previous)
-                if len(self._block_errors) == self.health_interval and not self._check_block():
-                    result.event = "diverged"
+            self._score_pending(y, learn, result)
         self._push(u, y)
         if len(self._y_past) >= self.structure.warm_up:
-            x, linear = self.structure.regressor_row(self._u_past, self._y_past)
-            self.counters["clipped"] += sum(1 for value in x[0] if abs(value) > 1.0)
-            features = getattr(self.model, "features", None)
-            if features is None:  # no expansion to reuse (MLP)
-                self._pending = (x, linear, None)
-                result.y_hat_next = float(linear + self.model.predict(x)[0])
-            else:
-                if not self.model.is_initialised:
-                    self.model._initialise()
-                phi = features(x)
-                self._pending = (x, linear, phi)
-                result.y_hat_next = float(linear + self.model.update_features(phi, 0.0, learn=False)[0])
+            result.y_hat_next = self._predict_next()
         return result
+
+    def _score_pending(self, y: float, learn: bool, result: StepResult) -> None:
+        """y_p(k) has arrived: score the prediction made at k-1 and learn from its error.
+
+        The learning step reuses the regressor (and its expansion) stored when the
+        prediction was made, so the update is from exactly the pattern that predicted.
+        """
+        x_previous, linear_previous, phi_previous = self._pending
+        learn = learn and not self.diverged
+        try:
+            if phi_previous is None:
+                prior = float(self.model.update(x_previous, y - linear_previous, learn=learn)[0])
+            else:
+                prior = float(self.model.update_features(phi_previous, y - linear_previous, learn=learn)[0])
+        except DivergenceError as error:
+            prior = float(error.predictions[0])
+            self._on_divergence()
+            learn = False
+            result.event = "diverged"
+        result.y_hat = linear_previous + prior
+        result.error = y - result.y_hat
+        result.learned = learn
+        if learn:
+            self.counters["learned"] += 1
+            self._block_errors.append(result.error)
+            self._block_targets.append(y - linear_previous)
+            if len(self._block_errors) == self.health_interval and not self._check_block():
+                result.event = "diverged"
+
+    def _predict_next(self) -> float:
+        """y^(k+1) from the current history; keeps its regressor pending until y_p(k+1) arrives to learn from."""
+        x, linear = self.structure.regressor_row(self._u_past, self._y_past)
+        self.counters["clipped"] += sum(1 for value in x[0] if abs(value) > 1.0)
+        features = getattr(self.model, "features", None)
+        if features is None:  # no expansion to reuse (MLP)
+            self._pending = (x, linear, None)
+            return float(linear + self.model.predict(x)[0])
+        if not self.model.is_initialised:
+            self.model._initialise()
+        phi = features(x)
+        self._pending = (x, linear, phi)
+        return float(linear + self.model.update_features(phi, 0.0, learn=False)[0])
 
     def skip(self, index: int | None = None) -> None:
         """Sample ``index`` was rejected (bad value): the history is broken there.
@@ -313,10 +335,10 @@ class Identifier:
         y = np.asarray(y, dtype=np.float64)
         learn_mask = np.broadcast_to(np.asarray(learn, dtype=bool), y.shape)
         x, linear = self.structure.regressors(u, y)
-        self.counters["clipped"] += int(np.count_nonzero(np.abs(x) > 1.0))
+        self.counters["clipped"] += int(np.count_nonzero(np.abs(x) > 1.0))  # incl. the last row, as step counts it
+        inputs, targets, linear = self.structure.pairs_from_regressors(x, linear, y)
         first = self.structure.warm_up - 1
-        targets = y[first + 1 :] - linear[:-1]
-        inputs, mask, outputs = x[:-1], learn_mask[first + 1 :], y[first + 1 :]  # outputs: y(k+1)
+        mask, outputs = learn_mask[first + 1 :], y[first + 1 :]  # outputs: y(k+1)
         y_hat = np.full(len(y), np.nan)
         mask_changes = np.append(np.flatnonzero(mask[1:] != mask[:-1]) + 1, len(targets))
         start = 0

@@ -61,9 +61,8 @@ def train_epochs(
     u = np.asarray(u, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64)
     structure, model = identifier.structure, identifier.model
-    x, linear = structure.regressors(u[:validation_start], y[:validation_start])
-    inputs = np.clip(x[:-1], -1.0, 1.0)
-    targets = y[structure.warm_up : validation_start] - linear[:-1]
+    x, targets, _ = structure.training_pairs(u[:validation_start], y[:validation_start])
+    inputs = np.clip(x, -1.0, 1.0)
     best_state, best = model.state(), held_out_rmse(identifier, u, y, validation_start)
     report = EpochTraining(0, 0, f"no improvement in {patience} epochs")
     for epoch in range(1, max_epochs + 1):

@@ -39,11 +39,9 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as error:
-        print(f"{name}: cannot start: {str(error).strip().splitlines()[0]}", file=sys.stderr)
+        print(_cannot_start(name, error), file=sys.stderr)
         return 2
-    stop = threading.Event()
-    for signum in (signal.SIGINT, signal.SIGTERM):
-        signal.signal(signum, lambda *_: stop.set())
+    stop = _stop_requested_by_signals()
     node = None
     code = 0
     executor = SingleThreadedExecutor()
@@ -61,20 +59,42 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
     except Exception as error:
         if node is not None:
             raise
-        print(f"{name}: cannot start: {str(error).strip().splitlines()[0]}", file=sys.stderr)
+        print(_cannot_start(name, error), file=sys.stderr)
         code = 2
     finally:
         if node is not None:
-            drain = getattr(node, "drain", None)  # e.g. the recorder takes what DDS still holds
-            if drain is not None and rclpy.ok():
-                drain(executor)
-            shutdown = getattr(node, "shutdown", None)
-            if shutdown is not None:
-                shutdown()
-            if rclpy.ok():
-                wait_for_acknowledgements(node)
-            executor.remove_node(node)
-            node.destroy_node()
+            _close_node(node, executor)
         executor.shutdown()
         rclpy.try_shutdown()
     return code
+
+
+def _cannot_start(name: str, error: Exception) -> str:
+    """The one line shown for a refused start: the first line of rclpy's message is the reason, the rest noise."""
+    return f"{name}: cannot start: {str(error).strip().splitlines()[0]}"
+
+
+def _stop_requested_by_signals() -> threading.Event:
+    """An event SIGINT and SIGTERM set, instead of rclpy's handlers that would shut the context down at once."""
+    stop = threading.Event()
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(signum, lambda *_: stop.set())
+    return stop
+
+
+def _close_node(node: Node, executor: SingleThreadedExecutor) -> None:
+    """Take in what is still queued, save the final state, wait for the recorder, and only then destroy the node.
+
+    The order matters: a node destroyed before its publishers are acknowledged takes
+    its last messages with it, and ``shutdown()`` may still publish.
+    """
+    drain = getattr(node, "drain", None)  # e.g. the recorder takes what DDS still holds
+    if drain is not None and rclpy.ok():
+        drain(executor)
+    shutdown = getattr(node, "shutdown", None)
+    if shutdown is not None:
+        shutdown()
+    if rclpy.ok():
+        wait_for_acknowledgements(node)
+    executor.remove_node(node)
+    node.destroy_node()

@@ -24,6 +24,7 @@ What it does, each step reported:
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 import time
@@ -34,6 +35,7 @@ from typing import Any
 import numpy as np
 import yaml
 
+from lenn_ros.bag.csv_import import is_number
 from lenn_ros.core.evaluation import free_run_problems
 from lenn_ros.core.metrics import nmse_db, rmse
 from lenn_ros.core.networks import FunctionalLinkNetwork
@@ -83,7 +85,7 @@ def _load_csv(path: Path, u_column: str | None, y_column: str | None) -> Data:
         rows = [row for row in csv.reader(stream) if row and any(cell.strip() for cell in row)]
     if not rows:
         raise FitError(f"{path} is empty")
-    header = None if all(_is_number(cell) for cell in rows[0]) else [cell.strip() for cell in rows[0]]
+    header = None if all(is_number(cell) for cell in rows[0]) else [cell.strip() for cell in rows[0]]
     body = rows[1:] if header else rows
     width = len(rows[0])
     if u_column is None or y_column is None:
@@ -106,12 +108,6 @@ def _load_csv(path: Path, u_column: str | None, y_column: str | None) -> Data:
     return Data(u, y, f"CSV {path}: u = column {names[0]}, y = column {names[1]}")
 
 
-def _is_number(text: str) -> bool:
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
 
 
 def _column(header: list[str] | None, column: str, width: int, path: Path) -> int:
@@ -351,19 +347,10 @@ def fit_mlp(selected: TermModel, u: np.ndarray, y: np.ndarray, validation_start:
     one learning rate (on the normalised target) suits any units.
     """
     from lenn_ros.core.networks import MLP
-    from lenn_ros.core.structure import ModelStructure
     from lenn_ros.core.training import train_epochs
 
     s = selected.scaling
-    structure = ModelStructure(
-        y_lags=selected.y_lags,
-        u_lags=selected.u_lags,
-        y_scale=s.y_scale,
-        u_scale=s.u_scale,
-        y_offset=s.y_offset,
-        u_offset=s.u_offset,
-        output_offset=s.y_offset,
-    )
+    structure = dataclasses.replace(selected.structure, output_offset=s.y_offset)
     network = MLP(
         n_inputs=structure.n_inputs,
         hidden=MLP_HIDDEN,
@@ -393,19 +380,10 @@ def fit_lenn_sgd(selected: TermModel, u: np.ndarray, y: np.ndarray, validation_s
     below its stability bound 2 (1 - beta) / ||phi||^2 for any data. The network learns
     y - y_offset (``output_offset``), so no weight has to climb to the signal's level.
     """
-    from lenn_ros.core.structure import ModelStructure
     from lenn_ros.core.training import train_epochs
 
     s = selected.scaling
-    structure = ModelStructure(
-        y_lags=selected.y_lags,
-        u_lags=selected.u_lags,
-        y_scale=s.y_scale,
-        u_scale=s.u_scale,
-        y_offset=s.y_offset,
-        u_offset=s.u_offset,
-        output_offset=s.y_offset,
-    )
+    structure = dataclasses.replace(selected.structure, output_offset=s.y_offset)
     network = FunctionalLinkNetwork(
         n_inputs=structure.n_inputs,
         exponents=selected.exponents.tolist(),

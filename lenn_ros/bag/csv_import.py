@@ -33,7 +33,8 @@ def _column_index(header: list[str] | None, column: str | int, csv_path: Path) -
     return index
 
 
-def _is_number(text: str) -> bool:
+def is_number(text: str) -> bool:
+    """Whether a CSV cell is a number (a first row of numbers is data, not a header)."""
     try:
         float(text)
     except ValueError:
@@ -65,7 +66,7 @@ def import_csv(
     rows = _read_rows(csv_path)
     first = [cell.strip() for cell in rows[0][1]]
     named = any(isinstance(c, str) and not c.isdigit() for c in (u_column, y_column))
-    has_header = named or not all(_is_number(c) for c in first if c)
+    has_header = named or not all(is_number(c) for c in first if c)
     header = first if has_header else None
     iu = _column_index(header, u_column, csv_path)
     iy = _column_index(header, y_column, csv_path)

@@ -19,6 +19,8 @@ from itertools import combinations_with_replacement
 
 import numpy as np
 
+from lenn_ros.core import kernels
+
 BASES = ("legendre", "chebyshev", "trigonometric")
 
 
@@ -221,14 +223,42 @@ def dictionary_exponents(
     return np.array(rows, dtype=np.int64).reshape(len(rows), n_inputs)
 
 
-def term_features(x: np.ndarray, exponents: np.ndarray, basis: str = "legendre") -> np.ndarray:
-    """Columns prod_i P_{e_i}(x_i) for each exponent row (x already in [-1, 1])."""
+#: bases whose compiled expansion gives the numpy recursion's bits: the same IEEE
+#: additions and multiplications in the same order. The trigonometric basis is left to
+#: numpy, whose sin/cos may differ from the compiled libm's in the last bit.
+COMPILED_BASES = ("legendre", "chebyshev")
+
+
+def _checked_terms(x: np.ndarray, exponents: np.ndarray, basis: str) -> tuple[np.ndarray, np.ndarray]:
     if basis not in _UNIVARIATE:
         raise ValueError(f"unknown basis {basis!r}; expected one of {', '.join(BASES)}")
     x = np.atleast_2d(np.asarray(x, dtype=np.float64))
     exponents = np.asarray(exponents, dtype=np.int64)
     if exponents.ndim != 2 or exponents.shape[1] != x.shape[1]:
         raise ValueError(f"exponent rows must have {x.shape[1]} entries (one per input)")
+    return x, exponents
+
+
+def term_features(x: np.ndarray, exponents: np.ndarray, basis: str = "legendre") -> np.ndarray:
+    """Columns prod_i P_{e_i}(x_i) for each exponent row (x already in [-1, 1]).
+
+    Compiled (:func:`kernels.term_expansion`) for the polynomial bases when numba
+    compiles, bit for bit :func:`term_features_reference` (test_offline_speed checks it): numpy
+    makes one pass over the batch per degree and per term, several times the cost of
+    the arithmetic, and this expansion is most of an offline run's time.
+    """
+    x, exponents = _checked_terms(x, exponents, basis)
+    if not (kernels.JIT and basis in COMPILED_BASES):
+        return term_features_reference(x, exponents, basis)
+    features = np.empty((x.shape[0], exponents.shape[0]))
+    code = kernels.BASIS_CODES[basis]
+    kernels.term_expansion(np.ascontiguousarray(x), np.ascontiguousarray(exponents), code, features)
+    return features
+
+
+def term_features_reference(x: np.ndarray, exponents: np.ndarray, basis: str = "legendre") -> np.ndarray:
+    """:func:`term_features` in numpy, one vectorised pass per degree and term (the reference)."""
+    x, exponents = _checked_terms(x, exponents, basis)
     top = int(exponents.max(initial=0))
     univariate = _UNIVARIATE[basis](x, top) if top else np.empty((*x.shape, 0))
     features = np.ones((x.shape[0], exponents.shape[0]))

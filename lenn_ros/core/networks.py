@@ -18,13 +18,14 @@ from __future__ import annotations
 import json
 import os
 import tempfile
+from functools import lru_cache
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 
 from lenn_ros.core import kernels
-from lenn_ros.core.expansions import BASES, expand, feature_count, full_exponents, term_features
+from lenn_ros.core.expansions import BASES, COMPILED_BASES, expand, feature_count, full_exponents, term_features
 
 SOLVERS = ("sgd", "nlms", "rls")
 OUTPUTS = ("tanh", "linear")
@@ -385,6 +386,11 @@ class FunctionalLinkNetwork(OnlineRegressor):
         x = self._check_inputs(x)
         if self.exponents is not None:
             return term_features(x, np.asarray(self.exponents, dtype=np.int64), self.basis)
+        if x.shape[0] > 1 and kernels.JIT and self.basis in COMPILED_BASES:
+            # one compiled pass over all branches, in the column order of the hstack below
+            # (the same bits; test_offline_speed checks it); one sample keeps expand's scalar path
+            rows = _expansion_rows(int(self.n_inputs), int(self.order), int(self.cross_degree), _branch_key(self))
+            return term_features(x, rows, self.basis)
         parts = [expand(x[:, branch], self.order, self.basis, self.cross_degree) for branch in self.branch_inputs_]
         return parts[0] if len(parts) == 1 else np.hstack(parts)
 
@@ -555,6 +561,23 @@ class MLP(OnlineRegressor):
         if done < x.shape[0]:
             raise DivergenceError(done, y[: done + 1])
         return y
+
+
+def _branch_key(network: FunctionalLinkNetwork) -> tuple[tuple[int, ...], ...]:
+    return tuple(tuple(branch) for branch in network.branch_inputs_)
+
+
+@lru_cache(maxsize=64)
+def _expansion_rows(n_inputs: int, order: int, cross_degree: int, branches: tuple[tuple[int, ...], ...]) -> np.ndarray:
+    """Exponent rows of a full per-branch expansion (:meth:`FunctionalLinkNetwork.term_exponents`).
+
+    Cached: the identifier expands a series in blocks of a thousand samples, and
+    building the rows in Python each time would cost a good part of expanding them.
+    """
+    network = FunctionalLinkNetwork(
+        n_inputs=n_inputs, order=order, cross_degree=cross_degree, branches=[list(b) for b in branches]
+    )
+    return np.ascontiguousarray(network.term_exponents()[0])
 
 
 def make_network(kind: str, **params: Any) -> OnlineRegressor:

@@ -84,14 +84,21 @@ class ModelStructure:
         y = np.asarray(y, dtype=np.float64)
         first = self.warm_up - 1
         k = np.arange(first, len(y))
-        columns = [(y[k - i] - self.y_offset) / self.y_scale for i in range(self.y_lags)]
-        columns += [(u[k - i] - self.u_offset) / self.u_scale for i in range(self.u_lags)]
+        # a[k - i] as a slice: the same values without gathering a copy per lag; indexing
+        # when there is nothing to slice or u is too short (it raises, as it always did)
+        sliced = len(k) > 0 and len(u) >= len(y)
+
+        def lag(a: np.ndarray, i: int) -> np.ndarray:
+            return a[first - i : len(y) - i] if sliced else a[k - i]
+
+        columns = [(lag(y, i) - self.y_offset) / self.y_scale for i in range(self.y_lags)]
+        columns += [(lag(u, i) - self.u_offset) / self.u_scale for i in range(self.u_lags)]
         x = np.stack(columns, axis=1) if len(k) else np.empty((0, self.n_inputs))
         linear = np.full(len(k), float(self.output_offset))
         for i, a in enumerate(self.known_a):
-            linear = linear + a * y[k - i]
+            linear = linear + a * lag(y, i)
         for i, b in enumerate(self.known_b):
-            linear = linear + b * u[k - i]
+            linear = linear + b * lag(u, i)
         return x, linear
 
     def regressor_row(self, u_past: list[float], y_past: list[float]) -> tuple[np.ndarray, float]:
@@ -287,10 +294,16 @@ class Identifier:
         del self._y_past[keep:], self._u_past[keep:]
 
     # -- divergence guard --------------------------------------------------------------
-    def _check_block(self) -> bool:
-        """End of a block of learnt samples: keep it (True) or roll back (False)."""
-        errors = np.asarray(self._block_errors)
-        targets = np.asarray(self._block_targets)
+    def _check_block(self, errors: np.ndarray | None = None, targets: np.ndarray | None = None) -> bool:
+        """End of a block of learnt samples: keep it (True) or roll back (False).
+
+        ``errors`` and ``targets`` are a whole block learnt in one kernel call (:meth:`run`),
+        given as arrays rather than through the lists :meth:`step` fills sample by sample,
+        which cost more to fill and convert than the check itself; the numbers are the same.
+        """
+        if errors is None or targets is None:
+            errors = np.asarray(self._block_errors)
+            targets = np.asarray(self._block_targets)
         self._block_errors.clear()
         self._block_targets.clear()
         mse = float(np.mean(errors * errors))
@@ -357,13 +370,20 @@ class Identifier:
             y_hat[first + 1 + start : first + 1 + stop] = linear[start:stop] + prior
             if learning:
                 self.counters["learned"] += stop - start
-                self._block_errors.extend((outputs[start:stop] - y_hat[first + 1 + start : first + 1 + stop]).tolist())
-                self._block_targets.extend(targets[start:stop].tolist())
-                if len(self._block_errors) == self.health_interval:
-                    self._check_block()
+                self._score_run(outputs[start:stop] - y_hat[first + 1 + start : first + 1 + stop], targets[start:stop])
             start = stop
         self.counters["samples"] += len(y)
         return y_hat
+
+    def _score_run(self, errors: np.ndarray, targets: np.ndarray) -> None:
+        """Add a learnt run of :meth:`run` to the divergence guard's block, checking it once full."""
+        if not self._block_errors and len(errors) == self.health_interval:  # a whole block at once
+            self._check_block(errors, targets.copy())
+            return
+        self._block_errors.extend(errors.tolist())
+        self._block_targets.extend(targets.tolist())
+        if len(self._block_errors) == self.health_interval:
+            self._check_block()
 
     def free_run(self, u: np.ndarray, y: np.ndarray, start: int) -> np.ndarray:
         """Parallel model from ``start`` on: the network fed its own past outputs.

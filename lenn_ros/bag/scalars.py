@@ -89,21 +89,37 @@ def _message_offsets(mm: mmap.mmap, offset: int) -> np.ndarray:
     return pairs[1::2].astype(np.int64)
 
 
-def _array_layout(payload: bytes) -> tuple[int, int]:
-    """(offset of the float64 data within the CDR payload, element count) of a Float64MultiArray."""
+def _array_layout(payload: bytes) -> tuple[int, int, np.ndarray]:
+    """Where a Float64MultiArray's float64 data starts, its element count, and which prefix bytes count.
+
+    The third value marks the prefix bytes that carry the layout; CDR alignment padding
+    is left as the serialiser found the memory (rclpy's is not zeroed), so it differs
+    between otherwise identical messages and must not be compared.
+    """
+    meaningful = []
+
+    def skip_padding(pos: int, alignment: int) -> int:
+        pad = -(pos - _HEADER) % alignment
+        meaningful.extend([False] * pad)
+        return pos + pad
+
     pos = _HEADER
+    meaningful.extend([True] * _HEADER)
     (dims,) = struct.unpack_from("<I", payload, pos)
     pos += 4
+    meaningful.extend([True] * 4)
     for _ in range(dims):
         (label,) = struct.unpack_from("<I", payload, pos)
         pos += 4 + label
-        pos += -(pos - _HEADER) % 4
+        meaningful.extend([True] * (4 + label))
+        pos = skip_padding(pos, 4)
         pos += 8  # size, stride
-    pos += 4  # data_offset
-    (count,) = struct.unpack_from("<I", payload, pos)
-    pos += 4
-    pos += -(pos - _HEADER) % 8
-    return pos, count
+        meaningful.extend([True] * 8)
+    pos += 8  # data_offset, element count
+    meaningful.extend([True] * 8)
+    (count,) = struct.unpack_from("<I", payload, pos - 4)
+    pos = skip_padding(pos, 8)
+    return pos, count, np.asarray(meaningful, dtype=bool)
 
 
 def _decode(buf: np.ndarray, data_at: np.ndarray, sizes: np.ndarray, type_name: str) -> np.ndarray:
@@ -118,8 +134,8 @@ def _decode(buf: np.ndarray, data_at: np.ndarray, sizes: np.ndarray, type_name: 
     if not np.all(sizes == size):
         raise _SlowPath("array sizes vary")
     first = bytes(buf[data_at[0] : data_at[0] + size])
-    at, count = _array_layout(first)
-    prefixes = _gather(buf, data_at, at, "u1")
+    at, count, meaningful = _array_layout(first)
+    prefixes = _gather(buf, data_at, at, "u1")[:, meaningful]
     if at + 8 * count > size or not np.all(prefixes == prefixes[0]):
         raise _SlowPath("array layouts vary")
     return _gather(buf, data_at + at, 8 * count, "<f8")

@@ -6,11 +6,15 @@ message back on ``y_hat``, unchanged.
 
     python bench/echo_node.py            # rclpy.spin, like the identifier
     python bench/echo_node.py --waitset  # no executor: own wait set, raw take/publish
+    python bench/echo_node.py --events   # rclpy.experimental.EventsExecutor
 
-The first is the ceiling of an rclpy node spun the usual way (what the identifier
-can reach at best). The second shows what the executor itself costs: it waits on a
-wait set built once and takes / publishes serialised bytes, which is the least
-Python work per message rclpy allows.
+The first is the ceiling of an rclpy node spun the usual way (the
+SingleThreadedExecutor rebuilds its wait set in Python for every message). The
+second shows what the executor itself costs: it waits on a wait set built once and
+takes / publishes serialised bytes, which is the least Python work per message
+rclpy allows. The third is the C++ events executor (rmw "new message" callbacks,
+no wait set), the supported route to the second's speed, and the ceiling for an
+identifier run with ``executor="events"``.
 """
 
 from __future__ import annotations
@@ -51,16 +55,35 @@ class EchoNode(Node):
                 while (taken := y.take_message(Float64, True)) is not None:
                     publish(taken[0])
 
+    def spin_events(self) -> None:
+        """Echo under the events executor until the context shuts down (SIGINT).
+
+        Not ``rclpy.spin(node, executor=...)``: in rclpy 7.1.6 the events executor's
+        ``spin_once()`` without a timeout busy-loops and never delivers a message;
+        with a timeout it runs one event (one message) per call.
+        """
+        from rclpy.experimental import EventsExecutor
+
+        executor = EventsExecutor(context=self.context)
+        executor.add_node(self)
+        try:
+            while self.context.ok():
+                executor.spin_once(timeout_sec=0.1)
+        finally:
+            executor.shutdown()
+
 
 def main(args: list[str] | None = None) -> int:
     args = list(sys.argv if args is None else args)
-    waitset = "--waitset" in args
-    rclpy.init(args=[a for a in args if a != "--waitset"])
+    waitset, events = "--waitset" in args, "--events" in args
+    rclpy.init(args=[a for a in args if a not in ("--waitset", "--events")])
     node = None
     try:
         node = EchoNode(raw=waitset)
         if waitset:
             node.spin_waitset()
+        elif events:
+            node.spin_events()
         else:
             rclpy.spin(node)
     except (KeyboardInterrupt, ExternalShutdownException):

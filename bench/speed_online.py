@@ -73,31 +73,46 @@ class NodeUnderTest:
     argv: list[str]
     reply_offset: int  # replies start at sample reply_offset + 1 (1-based)
     has_status: bool
+    env: tuple[tuple[str, str], ...] = ()  # added to the child's environment (e.g. the executor choice)
+    root: Path = PACKAGE_ROOT  # the source tree the node runs from (another one: a baseline)
+
+
+#: The identifier's loops compared (``LENN_ROS_EXECUTOR``, see :func:`lenn_ros.nodes.run_node`).
+IDENTIFIER_EXECUTORS = ("single", "waitset", "events")
 
 
 def nodes_under_test(example: int = 1, network: str = "lenn") -> dict[str, NodeUnderTest]:
+    """The echo ceilings and the identifier, the latter as it runs by default and with each loop forced.
+
+    ``identifier`` is the node exactly as users start it (its default loop);
+    ``identifier_<loop>`` forces one loop through ``LENN_ROS_EXECUTOR``, so each
+    can be measured against the echo with the same loop in one run.
+    """
     python = sys.executable
-    return {
-        "echo": NodeUnderTest("echo", [python, str(BENCH / "echo_node.py")], 0, False),
-        "echo_waitset": NodeUnderTest("echo_waitset", [python, str(BENCH / "echo_node.py"), "--waitset"], 0, False),
-        "identifier": NodeUnderTest(
-            "identifier",
-            [
-                python,
-                "-m",
-                "lenn_ros.nodes.identifier",
-                "--ros-args",
-                "-p",
-                f"example:={example}",
-                "-p",
-                f"network:={network}",
-                "-p",
-                f"status_period:={STATUS_PERIOD}",
-            ],
-            EXAMPLES[example].structure.warm_up - 1,
-            True,
-        ),
+    echo = [python, str(BENCH / "echo_node.py")]
+    identifier = [
+        python,
+        "-m",
+        "lenn_ros.nodes.identifier",
+        "--ros-args",
+        "-p",
+        f"example:={example}",
+        "-p",
+        f"network:={network}",
+        "-p",
+        f"status_period:={STATUS_PERIOD}",
+    ]
+    offset = EXAMPLES[example].structure.warm_up - 1
+    nodes = {
+        "echo": NodeUnderTest("echo", echo, 0, False),
+        "echo_waitset": NodeUnderTest("echo_waitset", [*echo, "--waitset"], 0, False),
+        "echo_events": NodeUnderTest("echo_events", [*echo, "--events"], 0, False),
+        "identifier": NodeUnderTest("identifier", identifier, offset, True),
     }
+    for loop in IDENTIFIER_EXECUTORS:
+        name = f"identifier_{loop}"
+        nodes[name] = NodeUnderTest(name, identifier, offset, True, (("LENN_ROS_EXECUTOR", loop),))
+    return nodes
 
 
 # --------------------------------------------------------------------------- environment
@@ -126,9 +141,9 @@ def private_domain() -> Iterator[int]:
                     os.environ[name] = value
 
 
-def child_environment() -> dict[str, str]:
-    env = dict(os.environ)
-    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(PACKAGE_ROOT), env.get("PYTHONPATH", "")) if p)
+def child_environment(extra: tuple[tuple[str, str], ...] = (), root: Path = PACKAGE_ROOT) -> dict[str, str]:
+    env = dict(os.environ) | dict(extra)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in (str(root), env.get("PYTHONPATH", "")) if p)
     env["PYTHONUNBUFFERED"] = "1"
     return env
 
@@ -321,7 +336,12 @@ def run_trial(
     driver = Driver(context, total + 16, payload)
     with tempfile.TemporaryFile(mode="w+") as log:
         process = subprocess.Popen(
-            node.argv, env=child_environment(), cwd=PACKAGE_ROOT, stdout=log, stderr=subprocess.STDOUT, text=True
+            node.argv,
+            env=child_environment(node.env, node.root),
+            cwd=node.root,
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            text=True,
         )
         memory: list[tuple[float, int, int, int]] = []  # (time, samples sent, rss kB, hwm kB)
         sampling = threading.Event()
@@ -625,6 +645,10 @@ def profile_identifier_callbacks(pairs: int, repeats: int) -> dict[str, Any]:
     if own_init:
         rclpy.init(args=["--ros-args", "--log-level", "error"])
     node = IdentifierNode()
+    # No publisher of u / y_p exists in this process's graph: without this the node would
+    # hold every pair (and look the graph up per message) for its 5 s start grace, and
+    # the profile would measure holding, not learning.
+    node._graph_checked = True
     try:
         u, y = example_series(1, 500 + pairs * (repeats + 1))
         messages = [(Float64(data=a), Float64(data=b)) for a, b in zip(u.tolist(), y.tolist(), strict=True)]
@@ -689,12 +713,13 @@ def profile_identifier_callbacks(pairs: int, repeats: int) -> dict[str, Any]:
 def profile_identifier_process(
     seconds: float, context: Any, payload: tuple[list[bytes], list[bytes]], rate: float = 200.0
 ) -> dict[str, Any]:
-    """The real identifier process under cProfile (thread CPU time) for one trial: executor vs callbacks.
+    """The real identifier process under cProfile (thread CPU time) for one trial: loop vs callbacks.
 
-    Shares are of the CPU the node's main thread spent spinning, per pair of u / y_p.
+    Shares are of the CPU the node's main thread spent in run_node's loop (whichever
+    it is: ``LENN_ROS_EXECUTOR`` or the identifier's default), per pair of u / y_p.
     Profiling slows the node down about twice (hence the low rate) and inflates the
     executor's many small Python calls more than the numpy-heavy callbacks, so the
-    executor's share is an upper estimate; the one-time load of the compiled kernel
+    loop's share is an upper estimate; the one-time load of the compiled kernel
     from numba's cache (first message) is left out.
     """
     with tempfile.TemporaryDirectory(prefix="lenn-bench-") as directory:
@@ -724,25 +749,29 @@ def profile_identifier_process(
     if not pairs:
         return {"skipped": "no pair reached Identifier.step", "problems": trial["problems"]}
     compile_load = cumulative("numba/core/dispatcher.py", "_compile_for_args")
-    spin = cumulative("rclpy/executors.py", "spin_once") - compile_load
+    spin = cumulative("lenn_ros/nodes/__init__.py", "_spin") - compile_load  # run_node's loop, any executor
     wait = cumulative("rclpy/executors.py", "wait_for_ready_callbacks")
     take = cumulative("rclpy/executors.py", "_take_subscription")
     callbacks = cumulative("nodes/identifier.py", "_on_message") - compile_load
     timer = cumulative("nodes/identifier.py", "_on_status_timer") + cumulative("nodes/identifier.py", "_on_poll_timer")
     step = cumulative("core/structure.py", "step") - compile_load
     publish = cumulative("rclpy/publisher.py", "publish")
+    loop = _identifier_loop()
     parts = [
-        ("rclpy executor: rebuild the wait set, wait, find ready entities", wait),
-        ("rclpy executor: take + deserialise each message", take),
-        ("rclpy executor: dispatch (handler, task, coroutine)", max(0.0, spin - wait - take - callbacks - timer)),
+        (f"the loop ({loop}): wait, take, dispatch; all but the callbacks", max(0.0, spin - callbacks - timer)),
+        ("  of which rclpy executor: rebuild the wait set, wait, find ready entities", wait),
+        ("  of which rclpy executor: take + deserialise each message", take),
         ("node callbacks (_on_message: the identifier's own work, and the messages it takes itself)", callbacks),
         ("  of which Identifier.step (model)", step),
-        ("  of which Publisher.publish (y_hat, error)", publish),
+        ("  of which Publisher.publish (y_hat; the other outputs have no reader here)", publish),
         ("status and poll timers", timer),
     ]
+    if spin <= 0:
+        return {"skipped": "no time in run_node's loop (_spin) in the profile", "problems": trial["problems"]}
     return {
         "rate_hz": rate,
         "seconds": seconds,
+        "loop": loop,
         "pairs": int(pairs),
         "profiled_us_per_pair": spin / pairs * 1e6,
         "breakdown": [
@@ -753,7 +782,172 @@ def profile_identifier_process(
     }
 
 
+def _identifier_loop() -> str:
+    """The loop the identifier runs under when started by this benchmark (its default or the environment's)."""
+    from lenn_ros.nodes import executor_choice
+    from lenn_ros.nodes.identifier import EXECUTOR
+
+    return executor_choice(EXECUTOR)
+
+
 # --------------------------------------------------------------------------- all of it
+
+#: Nodes searched by :func:`online` (``bench/speed.py``), in this order.
+ONLINE_NODES = ("echo", "echo_waitset", "echo_events", "identifier")
+
+
+def summarise_rates(
+    entry: dict[str, Any],
+    node: NodeUnderTest,
+    seconds: float,
+    context: Any,
+    payload: tuple[list[bytes], list[bytes]],
+    log: Callable[[str], None],
+) -> None:
+    """Latency at 500 Hz and 1 kHz, and the figures at the highest passing rate, into ``entry``.
+
+    The search's own trials are used where it ran those rates; 1 kHz is run once more
+    when the search stopped below it, so the latency target is judged on every node.
+    """
+    at = [t for t in entry["trials"] if t["rate_hz"] == LATENCY_RATE]
+    if not at and node.name != "echo_waitset":
+        log(f"online: latency of the {node.name} node at {LATENCY_RATE:g} Hz")
+        at = [safe_trial(node, LATENCY_RATE, seconds, context, payload)]
+        at[0]["memory"].pop("series", None)
+    if at:
+        entry["latency_at_1khz"] = {**at[0]["latency"], "passed": at[0]["passed"]}
+    low = [t for t in entry["trials"] if t["rate_hz"] == LOW_LATENCY_RATE]
+    if low:
+        entry["latency_at_500hz"] = {**low[0]["latency"], "passed": low[0]["passed"]}
+    passed = [t for t in entry["trials"] if t["passed"]]
+    if passed:
+        top = max(passed, key=lambda t: t["rate_hz"])
+        entry["at_max_rate"] = {
+            "rate_hz": top["rate_hz"],
+            "node_cpu_us_per_sample": top.get("node_cpu_us_per_sample"),
+            **top["latency"],
+        }
+
+
+def fractions_of_echo(result: dict[str, Any]) -> dict[str, float]:
+    """Every identifier variant's loss-free rate over every echo's, all from this one run."""
+    fractions = {}
+    for name, entry in result.items():
+        if not name.startswith("identifier") or not isinstance(entry, dict) or "max_rate_hz" not in entry:
+            continue
+        for echo in ("echo", "echo_waitset", "echo_events"):
+            ceiling = result.get(echo, {}).get("max_rate_hz")
+            if ceiling and entry["max_rate_hz"]:
+                fractions[f"{name}_fraction_of_{echo}"] = entry["max_rate_hz"] / ceiling
+    return fractions
+
+
+def compare(
+    names: list[str],
+    seconds: float,
+    bisections: int,
+    log: Callable[[str], None],
+    extra: dict[str, NodeUnderTest] | None = None,
+) -> dict[str, Any]:
+    """Highest loss-free rate and latency of the named nodes only, in one run (``python bench/speed_online.py``).
+
+    The quick way to compare loops: no profile and no memory run, and ratios are
+    formed between nodes measured minutes apart on the same machine, not across runs.
+    ``extra`` adds nodes by name (a baseline identifier from another source tree).
+    """
+    import rclpy
+    from rclpy.context import Context
+
+    nodes = nodes_under_test() | (extra or {})
+    result: dict[str, Any] = {"trial_seconds": seconds, "bisections": bisections, "load_at_start": os.getloadavg()}
+    with private_domain() as domain:
+        result["domain_id"] = domain
+        context = Context()
+        rclpy.init(context=context, domain_id=domain)
+        try:
+            payload = make_payload()
+            for name in names:
+                log(f"online: highest loss-free rate of the {name} node, {seconds:g} s trials")
+                result[name] = find_max_rate(nodes[name], seconds, context, payload, bisections, log)
+                summarise_rates(result[name], nodes[name], seconds, context, payload, log)
+        finally:
+            context.try_shutdown()
+    result["load_at_end"] = os.getloadavg()
+    return result | fractions_of_echo(result)
+
+
+def compare_markdown(result: dict[str, Any], names: list[str]) -> list[str]:
+    """One row per node: highest loss-free rate, CPU there, latency at 500 Hz and 1 kHz."""
+
+    def latency(entry: dict[str, Any] | None) -> str:
+        if not entry or "p50_ms" not in entry:
+            return "n/a"
+        return f"{entry['p50_ms']:.2f} / {entry['p99_ms']:.2f}" + ("" if entry.get("passed") else " (failed)")
+
+    out = [
+        "| node | highest loss-free rate (Hz) | first failing (Hz) | node CPU us/sample there | "
+        "p50 / p99 ms at 500 Hz | p50 / p99 ms at 1 kHz |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name in names:
+        entry = result[name]
+        cpu = entry.get("at_max_rate", {}).get("node_cpu_us_per_sample")
+        out.append(
+            f"| {name} | {entry['max_rate_hz'] or '< 500'}{' (driver limit)' if entry['driver_limited'] else ''} "
+            f"| {entry['first_failing_hz'] or '-'} | {f'{cpu:.0f}' if cpu else 'n/a'} "
+            f"| {latency(entry.get('latency_at_500hz'))} | {latency(entry.get('latency_at_1khz'))} |"
+        )
+    out += ["", *(f"- {key}: {value:.0%}" for key, value in result.items() if "_fraction_of_" in key)]
+    return out
+
+
+def _log_stderr(text: str) -> None:
+    print(text, file=sys.stderr, flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Compare chosen nodes' loss-free rates and latency in one run (the full benchmark is bench/speed.py)."""
+    import argparse
+
+    parser = argparse.ArgumentParser(
+        description=__doc__.split("\n\n")[0],
+        epilog="e.g. python bench/speed_online.py --seconds 5 echo echo_events identifier_single identifier_events",
+    )
+    parser.add_argument("nodes", nargs="*", default=list(ONLINE_NODES), help=f"of {', '.join(nodes_under_test())}")
+    parser.add_argument("--seconds", type=float, default=30.0, help="length of each trial (default 30)")
+    parser.add_argument("--bisections", type=int, default=3, help="bisection steps after the doubling (default 3)")
+    parser.add_argument("--json", type=Path, help="also write every trial as JSON to this file")
+    parser.add_argument(
+        "--baseline",
+        type=Path,
+        help="a source tree (e.g. `git archive HEAD | tar -x -C DIR`) whose identifier runs as node "
+        "'identifier_baseline', for a before/after in one run",
+    )
+    args = parser.parse_args(argv)
+    extra = {}
+    if args.baseline:
+        base = nodes_under_test()["identifier"]
+        extra["identifier_baseline"] = NodeUnderTest(
+            "identifier_baseline", base.argv, base.reply_offset, True, root=args.baseline.resolve()
+        )
+    unknown = sorted(set(args.nodes) - set(nodes_under_test()) - set(extra))
+    if unknown:
+        parser.error(f"unknown node(s): {', '.join(unknown)}")
+    started = time.perf_counter()
+    result = compare(args.nodes, args.seconds, args.bisections, _log_stderr, extra)
+    result["seconds"] = time.perf_counter() - started
+    if args.json:
+        args.json.write_text(json.dumps(result, indent=1))
+    print("\n".join(compare_markdown(result, args.nodes)))
+    print(
+        f"\n{args.seconds:g} s trials, {result['seconds']:.0f} s in all, load {result['load_at_start'][0]:.1f} "
+        f"at start, {result['load_at_end'][0]:.1f} at end"
+    )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
 
 
 def online(seconds: float, quick: bool, log: Callable[[str], None]) -> dict[str, Any]:
@@ -774,27 +968,10 @@ def online(seconds: float, quick: bool, log: Callable[[str], None]) -> dict[str,
         rclpy.init(context=context, domain_id=domain)
         try:
             payload = make_payload()
-            for name in ("echo", "echo_waitset", "identifier"):
+            for name in ONLINE_NODES:
                 log(f"online: highest loss-free rate of the {name} node, {seconds:g} s trials")
                 result[name] = find_max_rate(nodes[name], seconds, context, payload, bisections, log)
-            for name in ("echo", "echo_waitset", "identifier"):
-                at = [t for t in result[name]["trials"] if t["rate_hz"] == LATENCY_RATE]
-                if not at and name != "echo_waitset":
-                    log(f"online: latency of the {name} node at {LATENCY_RATE:g} Hz")
-                    at = [safe_trial(nodes[name], LATENCY_RATE, seconds, context, payload)]
-                if at:
-                    result[name]["latency_at_1khz"] = {**at[0]["latency"], "passed": at[0]["passed"]}
-                low = [t for t in result[name]["trials"] if t["rate_hz"] == LOW_LATENCY_RATE]
-                if low:
-                    result[name]["latency_at_500hz"] = {**low[0]["latency"], "passed": low[0]["passed"]}
-                passed = [t for t in result[name]["trials"] if t["passed"]]
-                if passed:
-                    top = max(passed, key=lambda t: t["rate_hz"])
-                    result[name]["at_max_rate"] = {
-                        "rate_hz": top["rate_hz"],
-                        "node_cpu_us_per_sample": top.get("node_cpu_us_per_sample"),
-                        **top["latency"],
-                    }
+                summarise_rates(result[name], nodes[name], seconds, context, payload, log)
             best = result["identifier"]["max_rate_hz"] or RATE_MIN
             memory_rate = max(RATE_MIN / 2, 0.8 * best)
             memory_seconds = 10 * seconds
@@ -808,6 +985,7 @@ def online(seconds: float, quick: bool, log: Callable[[str], None]) -> dict[str,
             context.try_shutdown()
     echo, identifier = result["echo"]["max_rate_hz"], result["identifier"]["max_rate_hz"]
     result["identifier_fraction_of_echo"] = identifier / echo if echo and identifier else float("nan")
+    result |= fractions_of_echo(result)
     # what the echo's rate says one pair costs in rclpy + DDS, plus the node's own work
     if echo:
         transport_us = 1e6 / echo

@@ -2,15 +2,39 @@
 
 from __future__ import annotations
 
+import contextlib
+import inspect
+import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable
+from typing import Any
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.exceptions import InvalidHandle
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor, TimeoutException
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
+from rclpy.subscription import Subscription
+
+#: The loops :func:`run_node` can spin a node with (see its docstring).
+EXECUTORS = ("single", "events", "waitset")
+#: Environment variable that overrides a node's choice of loop (benchmarks, trouble-shooting).
+EXECUTOR_VARIABLE = "LENN_ROS_EXECUTOR"
+#: Longest wait in one loop turn: how soon a stop request (SIGINT, SIGTERM) is seen.
+_TURN_SECONDS = 0.1
+
+
+def executor_choice(default: str) -> str:
+    """The loop a node asked for, unless ``LENN_ROS_EXECUTOR`` names another one.
+
+    Read by the nodes that offer the choice (the identifier), so that a benchmark or
+    a user who suspects the loop can switch without a rebuild, and every other node
+    keeps the loop its shutdown guarantees were written for.
+    """
+    return os.environ.get(EXECUTOR_VARIABLE, "").strip().lower() or default
 
 
 def wait_for_acknowledgements(node: Node, timeout_s: float = 5.0) -> bool:
@@ -25,7 +49,7 @@ def wait_for_acknowledgements(node: Node, timeout_s: float = 5.0) -> bool:
     return all(publisher.wait_for_all_acked(Duration(seconds=timeout_s)) for publisher in node.publishers)
 
 
-def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = None) -> int:
+def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = None, executor: str = "single") -> int:
     """The Jazzy ``main`` of ros2/demos, with a graceful stop and one-line startup errors.
 
     SIGINT and SIGTERM only request the stop: rclpy's own handlers would shut the
@@ -35,21 +59,37 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
     constructor; rclpy's own refusals (an override outside a declared range, a
     params file it cannot parse) arrive as exceptions. Either way the user gets one
     line naming the problem and exit status 2, not a traceback.
+
+    ``executor`` picks the loop that hands messages to the node:
+
+    - ``"single"``: rclpy's ``SingleThreadedExecutor``, which rebuilds its wait set in
+      Python for every callback it runs (most of the CPU per message at kilohertz);
+    - ``"events"``: ``rclpy.experimental.EventsExecutor`` (C++, the middleware's
+      "new message" callbacks, no wait set), several times cheaper per message;
+    - ``"waitset"``: this module's loop: one wait set of the node's subscriptions,
+      timers and services, built once; messages taken and dispatched directly, and
+      the single-threaded executor run only when a timer or service is ready (and
+      every ``_TURN_SECONDS``, for QoS events and entities added since).
+
+    All three run timers, parameter services and the ``drain`` / ``shutdown`` hooks
+    the same way; the choice changes the cost per message, not the behaviour.
     """
+    if executor not in EXECUTORS:
+        print(f"{name}: cannot start: unknown executor {executor!r} (one of: {', '.join(EXECUTORS)})", file=sys.stderr)
+        return 2
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     except Exception as error:
         print(_cannot_start(name, error), file=sys.stderr)
         return 2
-    stop = _stop_requested_by_signals()
+    loop = _new_executor(executor)
+    stop = _stop_requested_by_signals()  # after the executor: nothing it sets up may take the signals over
     node = None
     code = 0
-    executor = SingleThreadedExecutor()
     try:
         node = factory()
-        executor.add_node(node)
-        while not stop.is_set() and rclpy.ok():
-            executor.spin_once(timeout_sec=0.1)
+        loop.add_node(node)
+        _spin(node, loop, executor, stop)
     except ExternalShutdownException:
         pass
     except SystemExit as exit_request:
@@ -63,10 +103,175 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
         code = 2
     finally:
         if node is not None:
-            _close_node(node, executor)
-        executor.shutdown()
+            _close_node(node, loop)
+        loop.shutdown()
         rclpy.try_shutdown()
     return code
+
+
+def _new_executor(kind: str) -> Any:
+    """The executor behind the chosen loop (the wait-set loop keeps a single-threaded one for the rest)."""
+    if kind == "events":
+        from rclpy.experimental import EventsExecutor
+
+        return EventsExecutor()
+    return SingleThreadedExecutor()
+
+
+class _MessageInfoCallback:
+    """A (message, info) callback as rclpy 7.1.6's events executor can call it.
+
+    That executor hands a callback that takes the message info one tuple
+    ``(message, info)`` instead of two arguments (the callback fails with a
+    ``TypeError``, surfacing as ``SystemError: null argument to internal routine``).
+    rclpy picks the calling convention from the signature, so this wrapper declares
+    two parameters and accepts either form: it keeps working once the executor
+    passes two arguments.
+    """
+
+    __signature__ = inspect.Signature(
+        [inspect.Parameter(name, inspect.Parameter.POSITIONAL_ONLY) for name in ("message", "info")]
+    )
+
+    def __init__(self, callback: Callable[[Any, Any], Any]) -> None:
+        self.callback = callback
+
+    def __call__(self, *arguments: Any) -> Any:
+        if len(arguments) == 1:
+            return self.callback(*arguments[0])
+        return self.callback(*arguments)
+
+
+def _pass_message_info(node: Node) -> None:
+    """Wrap the node's (message, info) subscription callbacks for the events executor (see above)."""
+    with_info = Subscription.CallbackType.WithMessageInfo
+    for subscription in node.subscriptions:
+        if subscription._callback_type is with_info and not isinstance(subscription.callback, _MessageInfoCallback):
+            subscription.callback = _MessageInfoCallback(subscription.callback)
+
+
+def _spin(node: Node, executor: Any, kind: str, stop: threading.Event) -> None:
+    """Hand messages and timer ticks to ``node`` until a stop is requested or the context ends.
+
+    Always ``spin_once`` with a timeout: the events executor of rclpy 7.1.6 busy-loops
+    and delivers nothing when ``spin_once()`` is called without one (so ``rclpy.spin``
+    cannot drive it); with a timeout it runs one event per call.
+    """
+    if kind == "waitset":
+        _WaitSetLoop(node, executor).spin(stop)
+        return
+    if kind == "events":
+        _pass_message_info(node)  # subscriptions created later (none in the identifier) are not wrapped
+    ok, spin_once = node.context.ok, executor.spin_once
+    while not stop.is_set() and ok():
+        spin_once(timeout_sec=_TURN_SECONDS)
+
+
+class _WaitSetLoop:
+    """Messages straight from the subscriptions; the executor only for timers, services and QoS events.
+
+    The single-threaded executor's cost is rebuilding its wait set (every entity,
+    entered through an ExitStack, every QoS event handler) for each callback. Here the
+    wait set's handles are entered once and only re-added per turn; messages are taken
+    until none is left and passed to the subscription's callback as the executor would
+    (with or without the message info). Services, timers and waitables still go
+    through ``executor`` (``wait_for_ready_callbacks(0)``, all that is ready), so
+    their behaviour is rclpy's own.
+    """
+
+    def __init__(self, node: Node, executor: SingleThreadedExecutor) -> None:
+        self.node, self.executor = node, executor
+        self._stack = contextlib.ExitStack()
+        self._snapshot: tuple[tuple[Any, ...], ...] = ()
+        self._subscriptions: list[tuple[Any, Any, Any, bool, bool]] = []
+        self._handles: tuple[list[Any], list[Any], list[Any]] = ([], [], [])
+        self._wait_set: Any = None
+
+    def spin(self, stop: threading.Event) -> None:
+        """Until a stop is requested or the context ends; the executor runs at least every ``_TURN_SECONDS``."""
+        context = self.node.context
+        period_ns = int(_TURN_SECONDS * 1e9)
+        try:
+            self._refresh()
+            next_turn = time.monotonic_ns()
+            while not stop.is_set() and context.ok():
+                now = time.monotonic_ns()
+                others_ready = self._wait(max(0, min(period_ns, next_turn - now)))
+                self._take_all()
+                if others_ready or time.monotonic_ns() >= next_turn:
+                    self._run_executor()
+                    self._refresh()
+                    next_turn = time.monotonic_ns() + period_ns
+        finally:
+            self._stack.close()
+
+    def _refresh(self) -> None:
+        """Enter the handles of the node's current entities (again, if any was added or destroyed)."""
+        node = self.node
+        snapshot = (tuple(node.subscriptions), tuple(node.timers), tuple(node.services))
+        if snapshot == self._snapshot:
+            return
+        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+
+        self._stack.close()
+        self._stack = contextlib.ExitStack()
+        self._snapshot = snapshot
+        alive: tuple[list[Any], list[Any], list[Any]] = ([], [], [])
+        for group, entities in zip(snapshot, alive, strict=True):
+            for entity in group:
+                with contextlib.suppress(InvalidHandle):  # destroyed meanwhile
+                    self._stack.enter_context(entity.handle)
+                    entities.append(entity)
+        self._handles = ([s.handle for s in alive[0]], [t.handle for t in alive[1]], [s.handle for s in alive[2]])
+        message_only = Subscription.CallbackType.MessageOnly
+        self._subscriptions = [
+            (s.handle, s.msg_type, s.callback, s.raw, s._callback_type is message_only) for s in alive[0]
+        ]
+        self._stack.enter_context(node.context.handle)
+        counts = [len(handles) for handles in self._handles]
+        self._wait_set = _rclpy.WaitSet(counts[0], 0, counts[1], 0, counts[2], 0, node.context.handle)
+
+    def _wait(self, timeout_ns: int) -> bool:
+        """Wait for a message, a timer or a service request; whether a timer or service is ready."""
+        wait_set = self._wait_set
+        subscriptions, timers, services = self._handles
+        wait_set.clear_entities()
+        for handle in subscriptions:
+            wait_set.add_subscription(handle)
+        for handle in timers:
+            wait_set.add_timer(handle)
+        for handle in services:
+            wait_set.add_service(handle)
+        wait_set.wait(timeout_ns)
+        return bool(wait_set.get_ready_entities("timer") or wait_set.get_ready_entities("service"))
+
+    def _take_all(self) -> None:
+        """Every message waiting on every subscription, each to its callback, until none is left."""
+        taken = True
+        while taken:
+            taken = False
+            for handle, msg_type, callback, raw, message_only in self._subscriptions:
+                waiting = handle.take_message(msg_type, raw)
+                if waiting is None:
+                    continue
+                taken = True
+                if message_only:
+                    callback(waiting[0])
+                else:
+                    callback(waiting[0], waiting[1])
+
+    def _run_executor(self) -> None:
+        """Everything the executor finds ready now (timers, services, QoS events), then back to the data."""
+        executor = self.executor
+        while True:
+            try:
+                handler, _, _ = executor.wait_for_ready_callbacks(timeout_sec=0)
+            except TimeoutException:
+                return
+            handler()
+            if handler.exception() is not None:
+                raise handler.exception()
+            handler.result()
 
 
 def _cannot_start(name: str, error: Exception) -> str:
@@ -82,11 +287,13 @@ def _stop_requested_by_signals() -> threading.Event:
     return stop
 
 
-def _close_node(node: Node, executor: SingleThreadedExecutor) -> None:
+def _close_node(node: Node, executor: Any) -> None:
     """Take in what is still queued, save the final state, wait for the recorder, and only then destroy the node.
 
     The order matters: a node destroyed before its publishers are acknowledged takes
-    its last messages with it, and ``shutdown()`` may still publish.
+    its last messages with it, and ``shutdown()`` may still publish. The executor is
+    shut down before the node is destroyed: the events executor drops its callbacks
+    on the node's subscriptions and timers only then.
     """
     drain = getattr(node, "drain", None)  # e.g. the recorder takes what DDS still holds
     if drain is not None and rclpy.ok():
@@ -97,4 +304,5 @@ def _close_node(node: Node, executor: SingleThreadedExecutor) -> None:
     if rclpy.ok():
         wait_for_acknowledgements(node)
     executor.remove_node(node)
+    executor.shutdown()
     node.destroy_node()

@@ -26,6 +26,7 @@ import json
 import os
 import sys
 import time
+from array import array
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
@@ -35,7 +36,6 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter as RosParameter
 from rclpy.qos import QoSPolicyKind, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
-from rclpy.time import Time
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, Float64MultiArray, Int64, MultiArrayDimension, String
 
@@ -52,7 +52,7 @@ from lenn_ros.core.fields import FieldError, check_path, compile_path, has_heade
 from lenn_ros.core.networks import ModelFileError
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.session import Notice, Sample, Session, SessionConfig, json_safe
-from lenn_ros.nodes import run_node
+from lenn_ros.nodes import executor_choice, run_node
 
 #: Parameters set by rclpy itself or by the QoS override mechanism: not unknown.
 _FOREIGN_PARAMETERS = ("use_sim_time", "start_type_description_service", "qos_overrides.")
@@ -92,8 +92,16 @@ def _normalise(parameter: Parameter, value: Any) -> Any:
     return value
 
 
-def _stamp(seconds: float) -> Any:
-    return Time(nanoseconds=round(seconds * 1e9)).to_msg()
+def _set_stamp(stamp: Any, seconds: float) -> None:
+    """``stamp`` (builtin_interfaces/Time) := ``seconds``, as ``Time(nanoseconds=...).to_msg()`` gives it.
+
+    Set in place on a reused message: building an rclpy Time and a Time message for
+    every sample costs more than the arithmetic.
+    """
+    nanoseconds = round(seconds * 1e9)
+    if nanoseconds < 0:
+        raise ValueError("Nanoseconds value must not be negative")  # as rclpy's Time says it
+    stamp.sec, stamp.nanosec = divmod(nanoseconds, 1_000_000_000)
 
 
 class IdentifierNode(Node):
@@ -148,6 +156,7 @@ class IdentifierNode(Node):
         self._sample_layout = Float64MultiArray().layout
         labels = topics.SAMPLE_LABELS
         self._sample_layout.dim = [MultiArrayDimension(label=",".join(labels), size=len(labels), stride=len(labels))]
+        self._reuse_messages()
         self.nmse_publisher = self.create_publisher(Float64, topics.NMSE, qos)
         self.status_publisher = self.create_publisher(String, topics.STATUS, qos)
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
@@ -383,35 +392,58 @@ class IdentifierNode(Node):
         self._publish(self.session.poll(self._now()))
         self._emit_notices()
 
+    def _reuse_messages(self) -> None:
+        """One message object per output, refilled for every sample.
+
+        Building messages was a good part of the per-sample cost (a JointState
+        constructs its Header and Time, the generated ``__init__`` re-imports their
+        modules each time); ``publish`` serialises at once, so refilling is safe.
+        """
+        self._y_hat_message = Float64()
+        self._error_message = Float64()
+        self._sample_message = Float64MultiArray(layout=self._sample_layout)
+        self._joint_messages = {
+            publisher: JointState(name=[self.y_name], position=[0.0])
+            for publisher in (self.y_hat_stamped_publisher, self.error_stamped_publisher)
+        }
+
     def _publish(self, samples: list[Sample]) -> None:
+        """Every output of each sample; y_hat first, since a lockstep plant is waiting for it.
+
+        ``samples``, ``error`` and the stamped outputs are VOLATILE: a publisher with no
+        matched reader delivers them to nobody, so their messages are not built then
+        (``get_subscription_count`` is a cheap call; a recorder or a plot is a reader).
+        ``y_hat`` is always published: its publication sequence number counts samples.
+        """
         if self.session.holding and self._outputs_matched() and self._publishers_vouched():
             samples = self.session.release() + samples
         for sample in samples:
             result = sample.result
-            learn = float(result.learned) if result is not None else 0.0
-            self.samples_publisher.publish(
-                Float64MultiArray(
-                    layout=self._sample_layout, data=[float(sample.index), sample.time, sample.u, sample.y, learn]
-                )
-            )
-            if result is None:
-                continue
-            if result.error is not None and result.y_hat is not None:
-                self.error_publisher.publish(Float64(data=result.error))
-                stamp = _stamp(sample.time)
-                self.y_hat_stamped_publisher.publish(self._joint(stamp, result.y_hat))
-                self.error_stamped_publisher.publish(self._joint(stamp, result.error))
-                self.errors_since_report += 1
-                if self.errors_since_report >= self.values["report_every"]:
-                    self.errors_since_report = 0
-                    self.nmse_publisher.publish(Float64(data=self.session.phase_nmse.nmse_db))
-            if result.y_hat_next is not None:
-                self.y_hat_publisher.publish(Float64(data=result.y_hat_next))
+            if result is not None and result.y_hat_next is not None:
+                self._y_hat_message.data = result.y_hat_next
+                self.y_hat_publisher.publish(self._y_hat_message)
+            if self.samples_publisher.get_subscription_count():
+                learn = float(result.learned) if result is not None else 0.0
+                self._sample_message.data = array("d", (float(sample.index), sample.time, sample.u, sample.y, learn))
+                self.samples_publisher.publish(self._sample_message)
+            if result is not None and result.error is not None and result.y_hat is not None:
+                self._publish_error(sample.time, result.y_hat, result.error)
 
-    def _joint(self, stamp: Any, value: float) -> JointState:
-        message = JointState(name=[self.y_name], position=[value])
-        message.header.stamp = stamp
-        return message
+    def _publish_error(self, seconds: float, y_hat: float, error: float) -> None:
+        """e(k) and y^(k) of a learnt sample (plain and stamped), and the NMSE every ``report_every`` errors."""
+        if self.error_publisher.get_subscription_count():
+            self._error_message.data = error
+            self.error_publisher.publish(self._error_message)
+        for publisher, value in ((self.y_hat_stamped_publisher, y_hat), (self.error_stamped_publisher, error)):
+            if publisher.get_subscription_count():
+                message = self._joint_messages[publisher]
+                _set_stamp(message.header.stamp, seconds)
+                message.position[0] = value  # in place: the array the message serialises
+                publisher.publish(message)
+        self.errors_since_report += 1
+        if self.errors_since_report >= self.values["report_every"]:
+            self.errors_since_report = 0
+            self.nmse_publisher.publish(Float64(data=self.session.phase_nmse.nmse_db))
 
     def _outputs_matched(self) -> bool:
         """Our outputs are VOLATILE: what is published before a reader matched is lost to it."""
@@ -576,8 +608,12 @@ class IdentifierNode(Node):
         print(f"identifier: {json.dumps(self.status())}", file=sys.stderr, flush=True)
 
 
+#: The loop the identifier runs under unless ``LENN_ROS_EXECUTOR`` says otherwise (see ``run_node``).
+EXECUTOR = "single"
+
+
 def main(args: list[str] | None = None) -> int:
-    return run_node(IdentifierNode, "identifier", args)
+    return run_node(IdentifierNode, "identifier", args, executor=executor_choice(EXECUTOR))
 
 
 if __name__ == "__main__":

@@ -1,0 +1,170 @@
+"""The identifier under each loop run_node offers (``LENN_ROS_EXECUTOR``): same behaviour, real nodes over DDS.
+
+The loops differ only in how messages reach the node (rclpy's single-threaded
+executor, the experimental events executor, or run_node's own wait set), so each
+must keep every guarantee: every pair answered, nothing lost, the optional outputs
+(samples, error, stamped) complete for a reader, parameter services, status and
+autosave timers (also an autosave timer replaced at run time), and a graceful
+SIGINT with the final status line and the weights saved.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import threading
+import time
+from pathlib import Path
+
+import pytest
+import rclpy
+from rclpy.context import Context
+from rclpy.executors import SingleThreadedExecutor
+from rosutil import final_status, start_node, stop
+
+from lenn_ros import topics
+from lenn_ros.core.examples import EXAMPLES
+from lenn_ros.nodes import EXECUTOR_VARIABLE, EXECUTORS, _MessageInfoCallback
+
+PAIRS = 400
+AFTER = 20  # pairs sent after learning is switched off
+
+
+class Outputs:
+    """Every output of the identifier a reader can take, and its last status."""
+
+    def __init__(self, domain_id: int) -> None:
+        from sensor_msgs.msg import JointState
+        from std_msgs.msg import Float64, Float64MultiArray, String
+
+        self.ctx = Context()
+        rclpy.init(context=self.ctx, domain_id=domain_id)
+        self.node = rclpy.create_node("test_outputs", context=self.ctx)
+        qos = topics.data_qos()
+        self.y_hat: list[float] = []
+        self.error: list[float] = []
+        self.samples: list[list[float]] = []
+        self.stamped: dict[str, list[tuple[int, float]]] = {topics.Y_HAT_STAMPED: [], topics.ERROR_STAMPED: []}
+        self.status: dict = {}
+        self.node.create_subscription(Float64, topics.Y_HAT, lambda m: self.y_hat.append(m.data), qos)
+        self.node.create_subscription(Float64, topics.ERROR, lambda m: self.error.append(m.data), qos)
+        self.node.create_subscription(
+            Float64MultiArray, topics.SAMPLES, lambda m: self.samples.append(list(m.data)), qos
+        )
+        for name, values in self.stamped.items():
+            self.node.create_subscription(
+                JointState,
+                name,
+                lambda m, v=values: v.append((m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, m.position[0])),
+                qos,
+            )
+        self.node.create_subscription(String, topics.STATUS, lambda m: setattr(self, "status", json.loads(m.data)), qos)
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    def close(self) -> None:
+        self.executor.shutdown()
+        self.thread.join(timeout=5)
+        self.node.destroy_node()
+        self.ctx.try_shutdown()
+
+
+def _wait(condition, timeout: float, what: str) -> None:
+    deadline = time.monotonic() + timeout
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.05)
+
+
+def _set_parameter(domain: int, name: str, value) -> bool:
+    """Through the node's parameter service, as ``ros2 param set`` does."""
+    from rcl_interfaces.srv import SetParameters
+    from rclpy.parameter import Parameter
+
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    node = rclpy.create_node("test_parameter_client", context=ctx)
+    executor = SingleThreadedExecutor(context=ctx)
+    try:
+        client = node.create_client(SetParameters, "/identifier/set_parameters")
+        assert client.wait_for_service(timeout_sec=20)
+        future = client.call_async(SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()]))
+        rclpy.spin_until_future_complete(node, future, executor=executor, timeout_sec=10)
+        return bool(future.result() and future.result().results[0].successful)
+    finally:
+        node.destroy_node()
+        ctx.try_shutdown()
+
+
+def _check_outputs(outputs: Outputs) -> None:
+    """The optional outputs, built from reused messages now, say the same as y_hat and samples."""
+    total = PAIRS + AFTER
+    assert len(outputs.y_hat) == total - (EXAMPLES[1].structure.warm_up - 1)
+    assert [row[0] for row in outputs.samples] == [float(k) for k in range(1, total + 1)]
+    assert [row[4] for row in outputs.samples[-AFTER:]] == [0.0] * AFTER
+    errors = outputs.stamped[topics.ERROR_STAMPED]
+    assert len(outputs.error) == len(errors) == len(outputs.stamped[topics.Y_HAT_STAMPED]) > total // 2
+    assert [value for _, value in errors] == outputs.error
+    # y^(k) stamped at sample k is the prediction published as y_hat at sample k - 1
+    predicted = [value for _, value in outputs.stamped[topics.Y_HAT_STAMPED]]
+    assert predicted == outputs.y_hat[len(outputs.y_hat) - len(predicted) - 1 : -1]
+    sample_times = {round(row[1] * 1e9) for row in outputs.samples}
+    assert {stamp for stamp, _ in errors} <= sample_times
+
+
+@pytest.mark.parametrize("loop", EXECUTORS)
+def test_identifier_under_each_loop(tmp_path: Path, domain: int, talker, monkeypatch, loop: str) -> None:
+    monkeypatch.setenv(EXECUTOR_VARIABLE, loop)
+    weights = tmp_path / "weights.npz"
+    identifier = start_node(
+        "identifier", "example:=1", "status_period:=0.2", f"weights_out:={weights}", "autosave_period:=30.0"
+    )
+    outputs = Outputs(domain)
+    try:
+        assert talker.wait_matched(timeout=30), "the identifier's subscriptions never matched"
+        _wait(lambda: outputs.node.count_publishers(topics.SAMPLES) > 0 and outputs.status, 30, "status")
+        time.sleep(0.5)  # the identifier's publishers see our subscriptions too
+        for _ in range(PAIRS // 100):
+            talker.publish(100)  # bursts: the loops take what is queued
+            time.sleep(0.05)
+        _wait(lambda: outputs.status.get("counters", {}).get("paired") == PAIRS, 30, f"{PAIRS} pairs")
+        assert _set_parameter(domain, "learning", False)
+        talker.publish(AFTER)  # the status says the learning of the last sample
+        _wait(lambda: outputs.status.get("counters", {}).get("paired") == PAIRS + AFTER, 30, "the pairs after")
+        assert outputs.status["learning"] is False
+        assert _set_parameter(domain, "autosave_period", 0.2)  # the autosave timer destroyed and made anew
+        _wait(weights.exists, 10, "an autosave from the new timer")
+        time.sleep(0.5)  # more timer ticks on the replaced timer
+    finally:
+        outputs.close()
+        _, err = stop(identifier, signal.SIGINT)
+    assert identifier.returncode == 0, err[-3000:]
+    assert "Traceback" not in err, err[-3000:]
+    final = final_status(err)
+    assert final["counters"]["paired"] == PAIRS + AFTER
+    assert final["counters"]["lost"] == 0 and final["counters"]["duplicates"] == 0
+    assert weights.exists()
+    _check_outputs(outputs)
+
+
+def test_unknown_loop_is_one_line(domain: int, monkeypatch) -> None:
+    monkeypatch.setenv(EXECUTOR_VARIABLE, "fastest")
+    identifier = start_node("identifier")
+    _, err = identifier.communicate(timeout=60)
+    assert identifier.returncode == 2
+    assert "unknown executor 'fastest'" in err and "Traceback" not in err
+
+
+def test_message_info_callback_takes_both_calling_forms() -> None:
+    """rclpy 7.1.6's events executor passes one (message, info) tuple; rclpy's own executors two arguments."""
+    import inspect
+
+    calls = []
+    wrapped = _MessageInfoCallback(lambda message, info: calls.append((message, info)))
+    assert len(inspect.signature(wrapped).parameters) == 2  # so rclpy hands it the message info
+    wrapped(("m", {"publication_sequence_number": 1}))
+    wrapped("m", {"publication_sequence_number": 2})
+    assert calls == [("m", {"publication_sequence_number": 1}), ("m", {"publication_sequence_number": 2})]

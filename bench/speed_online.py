@@ -1,7 +1,12 @@
 """Online speed through ROS: highest loss-free rate, latency, memory, per-message cost.
 
+Run alone (``python bench/speed_online.py -h``) it compares chosen nodes in one run: a
+search per node, or fixed-rate trials taking turns (``--at``); ``bench/speed.py`` runs
+the full set (rates, latency, memory, profiles).
+
 Setup of every trial: the node under test (the bare :mod:`echo node
-<echo_node>` or the real identifier) runs as a subprocess on a
+<echo_node>`, spun three ways, or the real identifier under any of run_node's loops)
+runs as a subprocess on a
 private ROS domain, discovery kept on this machine. The driver, in this process,
 publishes u(k) then y_p(k) (RELIABLE, depth ``topics.DATA_DEPTH``) on a wall-clock
 schedule and counts the ``y_hat`` replies. Its own costs are kept small: the
@@ -792,8 +797,10 @@ def _identifier_loop() -> str:
 
 # --------------------------------------------------------------------------- all of it
 
-#: Nodes searched by :func:`online` (``bench/speed.py``), in this order.
-ONLINE_NODES = ("echo", "echo_waitset", "echo_events", "identifier")
+#: Nodes searched by :func:`online` (``bench/speed.py``, whose tables show these), in this order.
+ONLINE_NODES = ("echo", "echo_waitset", "identifier")
+#: Nodes the command line compares when none is named: every echo and every loop of the identifier.
+COMPARED_NODES = ("echo", "echo_waitset", "echo_events", "identifier_single", "identifier_waitset", "identifier_events")
 
 
 def summarise_rates(
@@ -876,6 +883,66 @@ def compare(
     return result | fractions_of_echo(result)
 
 
+def interleaved(
+    names: list[str],
+    rates: list[float],
+    repeats: int,
+    seconds: float,
+    log: Callable[[str], None],
+    extra: dict[str, NodeUnderTest] | None = None,
+) -> dict[str, Any]:
+    """Fixed-rate trials taking turns (node after node, ``repeats`` rounds): the fairest comparison on a busy machine.
+
+    A search runs one node's trials back to back, so a neighbour's build can land on
+    one node only; here every round gives each node a trial at each rate within
+    minutes, and the medians over rounds are compared.
+    """
+    import rclpy
+    from rclpy.context import Context
+
+    nodes = nodes_under_test() | (extra or {})
+    trials: dict[str, dict[float, list[dict[str, Any]]]] = {name: {rate: [] for rate in rates} for name in names}
+    with private_domain() as domain:
+        context = Context()
+        rclpy.init(context=context, domain_id=domain)
+        try:
+            payload = make_payload()
+            for round_ in range(repeats):
+                for rate in rates:
+                    for name in names:
+                        trial = safe_trial(nodes[name], rate, seconds, context, payload)
+                        trial["memory"].pop("series", None)
+                        trials[name][rate].append(trial)
+                        verdict = "pass" if trial["passed"] else "FAIL: " + "; ".join(trial["problems"])
+                        log(f"  round {round_ + 1} {name} {rate:6.0f} Hz: {verdict}")
+        finally:
+            context.try_shutdown()
+    return {"trial_seconds": seconds, "repeats": repeats, "trials": trials}
+
+
+def interleaved_markdown(result: dict[str, Any]) -> list[str]:
+    """Per node and rate: trials passed, and the medians of latency and CPU per sample over the rounds."""
+
+    def median(values: list[float]) -> str:
+        values = [v for v in values if v is not None and math.isfinite(v)]
+        return f"{statistics.median(values):.2f}" if values else "n/a"
+
+    out = [
+        "| node | rate (Hz) | passed | p50 ms (median) | p99 ms (median) | p99 ms (each trial) | node CPU us/sample |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    for name, by_rate in result["trials"].items():
+        for rate, trials in by_rate.items():
+            p99 = [t["latency"].get("p99_ms") for t in trials]
+            out.append(
+                f"| {name} | {rate:g} | {sum(t['passed'] for t in trials)}/{len(trials)} "
+                f"| {median([t['latency'].get('p50_ms') for t in trials])} | {median(p99)} "
+                f"| {', '.join(f'{v:.2f}' if v is not None else 'n/a' for v in p99)} "
+                f"| {median([t.get('node_cpu_us_per_sample') for t in trials])} |"
+            )
+    return out
+
+
 def compare_markdown(result: dict[str, Any], names: list[str]) -> list[str]:
     """One row per node: highest loss-free rate, CPU there, latency at 500 Hz and 1 kHz."""
 
@@ -913,7 +980,12 @@ def main(argv: list[str] | None = None) -> int:
         description=__doc__.split("\n\n")[0],
         epilog="e.g. python bench/speed_online.py --seconds 5 echo echo_events identifier_single identifier_events",
     )
-    parser.add_argument("nodes", nargs="*", default=list(ONLINE_NODES), help=f"of {', '.join(nodes_under_test())}")
+    parser.add_argument(
+        "nodes",
+        nargs="*",
+        default=list(COMPARED_NODES),
+        help=f"of {', '.join(nodes_under_test())} (default: every echo and every identifier loop)",
+    )
     parser.add_argument("--seconds", type=float, default=30.0, help="length of each trial (default 30)")
     parser.add_argument("--bisections", type=int, default=3, help="bisection steps after the doubling (default 3)")
     parser.add_argument("--json", type=Path, help="also write every trial as JSON to this file")
@@ -923,6 +995,12 @@ def main(argv: list[str] | None = None) -> int:
         help="a source tree (e.g. `git archive HEAD | tar -x -C DIR`) whose identifier runs as node "
         "'identifier_baseline', for a before/after in one run",
     )
+    parser.add_argument(
+        "--at",
+        type=lambda text: [float(rate) for rate in text.split(",")],
+        help="no search: fixed-rate trials at these rates (e.g. 1000,3000), the nodes taking turns",
+    )
+    parser.add_argument("--repeats", type=int, default=3, help="rounds of --at trials (default 3)")
     args = parser.parse_args(argv)
     extra = {}
     if args.baseline:
@@ -934,11 +1012,18 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         parser.error(f"unknown node(s): {', '.join(unknown)}")
     started = time.perf_counter()
-    result = compare(args.nodes, args.seconds, args.bisections, _log_stderr, extra)
+    load = os.getloadavg()[0]
+    if args.at:
+        result = interleaved(args.nodes, args.at, args.repeats, args.seconds, _log_stderr, extra)
+        result["load_at_start"], result["load_at_end"] = [load], os.getloadavg()
+        lines = interleaved_markdown(result)
+    else:
+        result = compare(args.nodes, args.seconds, args.bisections, _log_stderr, extra)
+        lines = compare_markdown(result, args.nodes)
     result["seconds"] = time.perf_counter() - started
     if args.json:
-        args.json.write_text(json.dumps(result, indent=1))
-    print("\n".join(compare_markdown(result, args.nodes)))
+        args.json.write_text(json.dumps(result, indent=1, default=str))
+    print("\n".join(lines))
     print(
         f"\n{args.seconds:g} s trials, {result['seconds']:.0f} s in all, load {result['load_at_start'][0]:.1f} "
         f"at start, {result['load_at_end'][0]:.1f} at end"

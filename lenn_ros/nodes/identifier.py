@@ -609,7 +609,10 @@ class IdentifierNode(Node):
 
 
 #: The loop the identifier runs under unless ``LENN_ROS_EXECUTOR`` says otherwise (see ``run_node``).
-EXECUTOR = "single"
+#: The wait-set loop: half the CPU per sample of the single-threaded executor at 500-1000 Hz
+#: (messages one by one), rclpy's own executor still for timers and services, and none of
+#: the experimental events executor's defects to work around (bench/RESULTS.md, "Loops").
+EXECUTOR = "waitset"
 
 
 def main(args: list[str] | None = None) -> int:

@@ -586,6 +586,32 @@ def term_expansion(x: np.ndarray, exponents: np.ndarray, basis: int, out: np.nda
                 out[k0 + b, t] = phi[t, b]
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _augmented_rows(
+    x: np.ndarray,
+    targets: np.ndarray,
+    k0: int,
+    exponents: np.ndarray,
+    basis: int,
+    table: np.ndarray,
+    phi: np.ndarray,
+    rows: np.ndarray,
+) -> int:
+    """rows[b] = [phi(x[k0 + b]) | d(k0 + b)] for one block; returns how many rows it filled.
+
+    The one place both least-squares kernels (normal equations and Givens QR) form the
+    augmented rows they consume.
+    """
+    n_terms = exponents.shape[0]
+    count = min(EXPANSION_BLOCK, x.shape[0] - k0)
+    _expand_block(x, k0, count, exponents, basis, table, phi)
+    for b in range(count):
+        for t in range(n_terms):
+            rows[b, t] = phi[t, b]
+        rows[b, n_terms] = targets[k0 + b]
+    return count
+
+
 @njit(cache=True, nogil=True)
 def normal_equations(x: np.ndarray, targets: np.ndarray, exponents: np.ndarray, basis: int, gram: np.ndarray) -> None:
     """gram += [Phi | d]' [Phi | d], each sample's features expanded on the fly.
@@ -597,19 +623,15 @@ def normal_equations(x: np.ndarray, targets: np.ndarray, exponents: np.ndarray, 
     """
     n_samples, n_terms = x.shape[0], exponents.shape[0]
     table = np.empty((x.shape[1], _top_degree(exponents) + 1, EXPANSION_BLOCK))
+    rows = np.empty((EXPANSION_BLOCK, n_terms + 1))
     phi = np.empty((n_terms, EXPANSION_BLOCK))
-    row = np.empty(n_terms + 1)
     for k0 in range(0, n_samples, EXPANSION_BLOCK):
-        count = min(EXPANSION_BLOCK, n_samples - k0)
-        _expand_block(x, k0, count, exponents, basis, table, phi)
+        count = _augmented_rows(x, targets, k0, exponents, basis, table, phi, rows)
         for b in range(count):
-            for t in range(n_terms):
-                row[t] = phi[t, b]
-            row[n_terms] = targets[k0 + b]
             for i in range(n_terms + 1):
-                v = row[i]
+                v = rows[b, i]
                 for j in range(n_terms + 1):
-                    gram[i, j] += v * row[j]
+                    gram[i, j] += v * rows[b, j]
 
 
 @njit(cache=True, nogil=True)
@@ -625,16 +647,12 @@ def qr_rows(x: np.ndarray, targets: np.ndarray, exponents: np.ndarray, basis: in
     """
     n_samples, n_terms = x.shape[0], exponents.shape[0]
     table = np.empty((x.shape[1], _top_degree(exponents) + 1, EXPANSION_BLOCK))
+    rows = np.empty((EXPANSION_BLOCK, n_terms + 1))
     phi = np.empty((n_terms, EXPANSION_BLOCK))
-    row = np.empty(n_terms + 1)
     for k0 in range(0, n_samples, EXPANSION_BLOCK):
-        count = min(EXPANSION_BLOCK, n_samples - k0)
-        _expand_block(x, k0, count, exponents, basis, table, phi)
+        count = _augmented_rows(x, targets, k0, exponents, basis, table, phi, rows)
         for b in range(count):
-            for t in range(n_terms):
-                row[t] = phi[t, b]
-            row[n_terms] = targets[k0 + b]
-            _givens_row(r, row)
+            _givens_row(r, rows[b])
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -63,6 +63,7 @@ NODE_PARAMETERS = [
         100,
     ),
     Parameter("wait_for_error_subscribers", 0, "the same for error (e.g. 1: a recorder)", 0, 100),
+    Parameter("wait_for_samples_subscribers", 0, "the same for samples (e.g. 1: a recorder)", 0, 100),
     Parameter("report_every", 100, "publish the running NMSE every N errors", 1, 10**9, live=True),
     Parameter("status_period", 1.0, "seconds between status messages", 0.05, 3600.0),
     Parameter("health_interval", 1000, "samples per divergence check", 10, 10**7),

@@ -83,6 +83,7 @@ def _start_nodes(
         "seed": seed,
         "wait_for_y_hat_subscribers": 2,  # the recorder and the simulator (lockstep)
         "wait_for_error_subscribers": 1,  # the recorder
+        "wait_for_samples_subscribers": 1,  # the recorder
     }
     params_file = run_dir / "identifier.yaml"
     params_file.write_text(json.dumps({"identifier": {"ros__parameters": identifier_params}}))

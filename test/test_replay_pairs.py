@@ -7,8 +7,10 @@ the replay node as a real process into an rclpy listener and into the real ident
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import threading
+import time
 from collections.abc import Callable
 from pathlib import Path
 
@@ -243,13 +245,29 @@ def test_identifier_learns_the_recorded_pairs_from_a_damaged_bag(tmp_path: Path,
             done.set()
 
     listener = PairListener(domain, {topics.SAMPLES: on_sample})
+    readers: list[int] = []
+    listener.node.create_subscription(
+        topics.message_class(topics.STRING),
+        topics.STATUS,
+        lambda m: readers.append(json.loads(m.data)["readers"]["samples"]),
+        topics.data_qos(),
+    )
     identifier = start_node("identifier", params_file=REPO / "config" / "example1_lenn.yaml")
+    ident_err = ""
     try:
+        # samples is VOLATILE: what the identifier publishes before it has matched the listener is lost
+        deadline = time.monotonic() + 60
+        while not (readers and readers[-1] >= 1) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        assert readers and readers[-1] >= 1, f"the identifier never matched the listener's samples reader: {readers}"
         code, _stdout, stderr = run_replay(bag, "wait_for_subscribers:=2", timeout=90)  # listener + identifier
         assert code == 0, stderr
-        assert done.wait(30), f"{len(rows)} of {n} samples from the identifier"
-    finally:
+        received = done.wait(30)
         _out, ident_err = stop(identifier)
+        assert received, f"{len(rows)} of {n} samples from the identifier\n{stderr[-1500:]}\n{ident_err[-1500:]}"
+    finally:
+        if identifier.poll() is None:
+            _out, ident_err = stop(identifier)
         listener.close()
     table = np.array(rows[:n])
     assert table[:, 0].astype(int).tolist() == list(range(1, n + 1))

@@ -166,6 +166,26 @@ def test_u_without_y_p_is_said_and_counted(graph: Graph) -> None:
     assert "/u has been arriving alone" in err and "nothing on /y_p" in err
 
 
+def test_pairs_held_for_missing_readers_are_said_and_counted(graph: Graph) -> None:
+    """wait_for_error_subscribers:=2 with no reader of error: nothing learnt, and the node says why."""
+    from std_msgs.msg import Float64
+
+    identifier = start_node("identifier", "status_period:=0.2", "wait_for_error_subscribers:=2")
+    plant = graph.node("plant")
+    u_pub = plant.create_publisher(Float64, topics.U, topics.data_qos())
+    y_pub = plant.create_publisher(Float64, topics.Y_P, topics.data_qos())
+    graph.listen()
+    graph.spin()
+    try:
+        graph.wait(lambda s: True)  # the identifier is up
+        publish_for(7.0, 50, lambda k: (u_pub.publish(Float64(data=0.1)), y_pub.publish(Float64(data=0.2))))
+        status = graph.wait(lambda s: s["held"] > 100)
+    finally:
+        _, err = stop(identifier)
+    assert status["counters"]["learned"] == 0 and status["readers"]["error"] == 0
+    assert "pairs held, not learnt" in err and "error has 0 of 2 readers" in err, err[-2000:]
+
+
 @pytest.mark.parametrize("remap", [("-r", "__ns:=/id3"), ("-r", "__node:=ident3")])
 def test_params_file_applies_under_any_namespace_or_node_name(tmp_path: Path, domain: int, remap) -> None:
     params = tmp_path / "p.yaml"

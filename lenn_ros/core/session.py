@@ -207,6 +207,11 @@ class Session:
         """Sequence index of the first test sample (from the simulator's latched topic)."""
         self.test_start = int(index)
 
+    @property
+    def held(self) -> int:
+        """Pairs formed while holding, not yet processed."""
+        return len(self._held)
+
     def release(self) -> list[Sample]:
         """Stop holding: process the samples formed meanwhile (outputs now have readers)."""
         self.holding = False

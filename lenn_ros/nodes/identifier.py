@@ -141,6 +141,7 @@ class IdentifierNode(Node):
         self.session.holding = bool(
             self.values["wait_for_y_hat_subscribers"]
             or self.values["wait_for_error_subscribers"]
+            or self.values["wait_for_samples_subscribers"]
             or self.values["pairing"] == "sequence"
         )
         self._check_graph(at_start=True)
@@ -415,8 +416,11 @@ class IdentifierNode(Node):
         (``get_subscription_count`` is a cheap call; a recorder or a plot is a reader).
         ``y_hat`` is always published: its publication sequence number counts samples.
         """
-        if self.session.holding and self._outputs_matched() and self._publishers_vouched():
-            samples = self.session.release() + samples
+        if self.session.holding:
+            if self._outputs_matched() and self._publishers_vouched():
+                samples = self.session.release() + samples
+            else:
+                self._say_holding()
         for sample in samples:
             result = sample.result
             if result is not None and result.y_hat_next is not None:
@@ -445,11 +449,43 @@ class IdentifierNode(Node):
             self.errors_since_report = 0
             self.nmse_publisher.publish(Float64(data=self.session.phase_nmse.nmse_db))
 
+    def _readers(self) -> dict[str, int]:
+        """Matched readers of each output that can hold the first pairs back."""
+        return {
+            "y_hat": self.y_hat_publisher.get_subscription_count(),
+            "error": self.error_publisher.get_subscription_count(),
+            "samples": self.samples_publisher.get_subscription_count(),
+        }
+
+    _holding_since: float | None = None
+
+    def _say_holding(self) -> None:
+        """Held pairs are not learnt: after the start grace, say what they wait for."""
+        if not self.session.held:
+            return
+        now = time.monotonic()
+        if self._holding_since is None:
+            self._holding_since = now
+        if now - self._holding_since < _START_GRACE:
+            return
+        readers = self._readers()
+        waiting = [
+            f"{output} has {readers[output]} of {self.values[f'wait_for_{output}_subscribers']} readers"
+            for output in readers
+            if readers[output] < self.values[f"wait_for_{output}_subscribers"]
+        ] or ["the graph to show who publishes u and y_p"]
+        self._log(
+            Notice(
+                "holding",
+                f"{self.session.held} pairs held, not learnt, for {now - self._holding_since:.0f} s: waiting until "
+                f"{'; '.join(waiting)} (lower wait_for_*_subscribers or start the readers)",
+            )
+        )
+
     def _outputs_matched(self) -> bool:
         """Our outputs are VOLATILE: what is published before a reader matched is lost to it."""
         return (
-            self.y_hat_publisher.get_subscription_count() >= self.values["wait_for_y_hat_subscribers"]
-            and self.error_publisher.get_subscription_count() >= self.values["wait_for_error_subscribers"]
+            all(count >= self.values[f"wait_for_{output}_subscribers"] for output, count in self._readers().items())
         )
 
     # -- the graph: types, publishers, QoS --------------------------------------------------------
@@ -551,6 +587,8 @@ class IdentifierNode(Node):
         status["network"] = self.network
         status["counters"].update(self.node_counters)
         status["topics"] = {"u": self.u_name, "y_p": self.y_name}
+        status["readers"] = self._readers()
+        status["held"] = self.session.held
         return status
 
     def _on_status_timer(self) -> None:

@@ -205,8 +205,30 @@ class Replay(Node):
             self._restart_stream(executor, restart)
         self._wait_for_subscribers(executor)
         if self.pub_start is not None:
+            self._wait_test_start_readers(executor)
             self.pub_start.publish(topics.message_class(topics.INT64)(data=int(self.test_start)))
+            if not self.pub_start.wait_for_all_acked(Duration(seconds=float(self._param("wait_timeout")) or 30.0)):
+                self.get_logger().warning("test_start not acknowledged by every reader before sample 1")
         self._next_slot = time.monotonic()
+
+    def _wait_test_start_readers(self, executor: SingleThreadedExecutor) -> None:
+        """Every test_start reader the graph shows is matched before sample 1 goes out.
+
+        test_start is latched, so a reader matched late still gets it, but an identifier
+        that gets it after its sample ``test_start`` has learnt from test samples. A node's
+        readers reach the graph together, while each one matches on its own. Bounded by
+        ``wait_timeout``; without subscribers to wait for (``wait_for_subscribers`` 0) no wait.
+        """
+        wanted = int(self._param("wait_for_subscribers"))
+        if not wanted:
+            return
+        end = time.monotonic() + (float(self._param("wait_timeout")) or 30.0)
+        while not self.stop.is_set() and time.monotonic() < end:
+            graph_caught_up = self.count_subscribers(topics.U) >= wanted  # the matched readers' nodes are known
+            if graph_caught_up and self.pub_start.get_subscription_count() >= self.count_subscribers(topics.TEST_START):
+                return
+            executor.spin_once(timeout_sec=0.02)
+        self.get_logger().warning("a test_start reader unmatched at sample 1: it may learn from test samples")
 
     def _wait_identifier_idle(self, executor: SingleThreadedExecutor, quiet: float = 0.3) -> None:
         """With an identifier on the graph: wait until its y_hat stops coming (it has caught up).

@@ -282,6 +282,46 @@ def test_table1_counts() -> None:
 
 
 # -- the identifier: one-sample path equals the batch path -------------------------------------
+@pytest.mark.skipif(not kernels.JIT, reason="the compiled step exists only where numba compiles")
+@pytest.mark.parametrize(
+    ("number", "settings"),
+    [
+        (1, {"solver": "sgd", "alpha": 0.5}),  # known linear part, tanh output
+        (2, {"solver": "sgd", "alpha": 1e308}),  # a non-finite step: rollback in the middle of a step
+        (3, {"solver": "sgd"}),  # two branches
+        (4, {"solver": "nlms", "output": "linear"}),
+        (4, {"solver": "rls", "output": "linear", "forgetting": 0.995, "cross_degree": 2}),
+        (1, {"solver": "rls", "output": "linear", "basis": "chebyshev"}),
+    ],
+)
+def test_compiled_step_equals_the_python_step(monkeypatch, number: int, settings: dict) -> None:
+    """The one-call compiled step gives the Python step's numbers, weights and counters, bit for bit."""
+    from lenn_ros.core import structure
+
+    example = EXAMPLES[number]
+    series = simulate(example.plant(), example.noise_db, 3, 1500, 200)
+    u, y = 1.6 * series.u, series.y  # |u| up to 1.6 > 1: inputs get clipped
+    learn = np.arange(1700) < 1500
+    runs = []
+    for compiled in (True, False):
+        if not compiled:
+            monkeypatch.setattr(structure.StepPlan, "for_model", classmethod(lambda cls, model, shape: None))
+        identifier = Identifier(example.structure, example.make_network("lenn", 5, **settings), health_interval=300)
+        results = [identifier.step(k + 1 + (k >= 900), u[k], y[k], bool(learn[k])) for k in range(1700)]  # a gap
+        assert (identifier._plan is not None) == compiled
+        runs.append((results, identifier))
+    (fast, fast_id), (slow, slow_id) = runs
+    fields = ("y_hat", "y_hat_next", "error", "learned", "event")
+    for a, b in zip(fast, slow, strict=True):
+        assert [getattr(a, name) for name in fields] == [getattr(b, name) for name in fields]
+    assert fast_id.counters == slow_id.counters
+    assert fast_id.counters["clipped"] > 0 or number != 1
+    assert fast_id.diverged == slow_id.diverged == (number == 2)
+    assert np.array_equal(fast_id.model.weights_, slow_id.model.weights_)
+    assert fast_id.model.n_samples_seen_ == slow_id.model.n_samples_seen_
+    assert fast_id.model.n_clipped_ == slow_id.model.n_clipped_
+
+
 @pytest.mark.parametrize(("number", "network"), [(1, "lenn"), (3, "lenn"), (3, "mlp"), (4, "lenn")])
 def test_step_by_step_equals_batch_run(number: int, network: str) -> None:
     example = EXAMPLES[number]

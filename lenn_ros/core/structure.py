@@ -10,11 +10,22 @@ arithmetic either way.
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from lenn_ros.core.networks import DivergenceError, OnlineRegressor
+from lenn_ros.core.online_step import (
+    CLIPPED,
+    DIVERGED,
+    LINEAR_PREVIOUS,
+    NON_FINITE,
+    PRIOR,
+    STATUS,
+    Y_HAT_NEXT,
+    StepPlan,
+)
 
 
 @dataclass(frozen=True)
@@ -199,6 +210,8 @@ class Identifier:
         self._pending: tuple[np.ndarray, float, np.ndarray | None] | None = None  # x(k-1), lin(k-1), phi(k-1)
         self._block_errors: list[float] = []
         self._block_targets: list[float] = []
+        self._plan: StepPlan | None = None  # the compiled per-sample path, where the model has one
+        self._plan_model: OnlineRegressor | None = None  # the model the plan was made for
         self.last_free_run: dict = {}
         self.mark_healthy()
 
@@ -218,12 +231,38 @@ class Identifier:
             result.event = "gap"
         self._last_index = index
         self.counters["samples"] += 1
+        if self._plan_model is not self.model:
+            self._plan_model, self._plan = self.model, StepPlan.for_model(self.model, self.structure)
+            self._restart_history()
+        if self._plan is not None:
+            self._step_compiled(self._plan, u, y, learn, result)
+            return result
         if self._pending is not None:
             self._score_pending(y, learn, result)
         self._push(u, y)
         if len(self._y_past) >= self.structure.warm_up:
             result.y_hat_next = self._predict_next()
         return result
+
+    def _step_compiled(self, plan: StepPlan, u: float, y: float, learn: bool, result: StepResult) -> None:
+        """:meth:`step`'s scoring, learning and prediction in one compiled call (same numbers)."""
+        learn = learn and not self.diverged
+        out = plan.run(self.model, u, y, learn, score=True)
+        if out[STATUS] == DIVERGED:
+            self._on_divergence()
+            learn = False
+            result.event = "diverged"
+            self._record_score(result, y, float(out[LINEAR_PREVIOUS]), float(out[PRIOR]), False)
+            out = plan.run(self.model, u, y, False, score=False)
+        elif not math.isnan(out[PRIOR]):
+            self._record_score(result, y, float(out[LINEAR_PREVIOUS]), float(out[PRIOR]), learn)
+        if out[STATUS] == NON_FINITE:
+            raise ValueError("non-finite network input")
+        if out[CLIPPED]:
+            self.counters["clipped"] += int(out[CLIPPED])
+            self.model.n_clipped_ = getattr(self.model, "n_clipped_", 0) + int(out[CLIPPED])
+        if not math.isnan(out[Y_HAT_NEXT]):
+            result.y_hat_next = float(out[Y_HAT_NEXT])
 
     def _score_pending(self, y: float, learn: bool, result: StepResult) -> None:
         """y_p(k) has arrived: score the prediction made at k-1 and learn from its error.
@@ -243,6 +282,10 @@ class Identifier:
             self._on_divergence()
             learn = False
             result.event = "diverged"
+        self._record_score(result, y, linear_previous, prior, learn)
+
+    def _record_score(self, result: StepResult, y: float, linear_previous: float, prior: float, learn: bool) -> None:
+        """y^(k), e(k) into ``result``; a learnt error also into the divergence guard's block."""
         result.y_hat = linear_previous + prior
         result.error = y - result.y_hat
         result.learned = learn
@@ -286,6 +329,8 @@ class Identifier:
         self._y_past.clear()
         self._u_past.clear()
         self._pending = None
+        if self._plan is not None:
+            self._plan.state.restart()
 
     def _push(self, u: float, y: float) -> None:
         keep = self.structure.warm_up

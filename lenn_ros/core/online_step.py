@@ -1,0 +1,320 @@
+"""One compiled call per live sample: score, learn, push the history, expand, predict.
+
+The live identifier used to spend about 70 us of Python per sample around a learning
+rule that costs well under 1 us compiled: building the regressor as a list, checking
+and clipping it with numpy, expanding it in Python, and two kernel calls through
+numba's dispatcher. :func:`functional_link_step` does all of it in one call, with the
+same arithmetic in the same order as the Python path of
+:meth:`lenn_ros.core.structure.Identifier.step` (regressor of
+:meth:`~lenn_ros.core.structure.ModelStructure.regressor_row`, the compiled
+:func:`~lenn_ros.core.kernels.term_expansion`, the learning rule's own kernel), so
+the two paths agree bit for bit and a test holds them to it.
+
+The state the call carries from one sample to the next lives in small arrays owned by
+the caller (:class:`StepState`), not in the kernel, so a rollback, a gap or a reload
+is plain Python on those arrays.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from lenn_ros.core.kernels import (
+    functional_link_nlms,
+    functional_link_rls,
+    functional_link_sgd,
+    njit,
+    term_expansion,
+)
+
+SOLVER_CODES = {"sgd": 0, "nlms": 1, "rls": 2}
+NLMS_EPSILON = 1e-6  # as FunctionalLinkNetwork.update_features passes it
+
+#: ``out`` of :func:`functional_link_step`: what the caller reads back
+PRIOR, Y_HAT_NEXT, CLIPPED, STATUS, LINEAR_PREVIOUS = range(5)
+#: STATUS values
+OK, DIVERGED, NON_FINITE = 1, 0, -1
+
+
+@dataclass
+class StepState:
+    """History (newest first), the pending pattern and the scratch one live sample needs.
+
+    ``counts[0]`` is how many history entries are filled, ``counts[1]`` whether a
+    prediction is pending (its pattern in ``phi``, its linear part in ``linear``).
+    """
+
+    u_history: np.ndarray
+    y_history: np.ndarray
+    counts: np.ndarray
+    linear: np.ndarray
+    x: np.ndarray
+    phi: np.ndarray
+    scratch: np.ndarray
+    out: np.ndarray
+
+    @classmethod
+    def empty(cls, window: int, n_inputs: int, n_features: int) -> StepState:
+        return cls(
+            u_history=np.zeros(window),
+            y_history=np.zeros(window),
+            counts=np.zeros(2, dtype=np.int64),
+            linear=np.zeros(1),
+            x=np.zeros((1, n_inputs)),
+            phi=np.zeros((1, n_features)),
+            scratch=np.zeros(2),
+            out=np.zeros(5),
+        )
+
+    def restart(self) -> None:
+        """Forget the history and the pending prediction (a gap, a rejected sample)."""
+        self.counts[:] = 0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _rule(
+    solver: int,
+    weights: np.ndarray,
+    momentum: np.ndarray,
+    covariance: np.ndarray,
+    phi: np.ndarray,
+    target: np.ndarray,
+    feature_branch: np.ndarray,
+    n_branches: int,
+    rule: np.ndarray,
+    tanh_output: bool,
+    learn: bool,
+    y_out: np.ndarray,
+) -> int:
+    """The model's rule on one pattern; ``rule`` = alpha, beta, output_scale, nlms_step, forgetting, max_trace."""
+    if solver == 0:
+        alpha, beta, scale = rule[0], rule[1], rule[2]
+        return functional_link_sgd(
+            weights, momentum, phi, target, feature_branch, n_branches, alpha, beta, tanh_output, scale, learn, y_out
+        )
+    if solver == 1:
+        return functional_link_nlms(weights, phi, target, rule[3], NLMS_EPSILON, learn, y_out)
+    return functional_link_rls(weights, covariance, phi, target, rule[4], rule[5], learn, y_out)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _push(u_history: np.ndarray, y_history: np.ndarray, counts: np.ndarray, u: float, y: float) -> bool:
+    """Newest first, as ``Identifier._push``; True once the history is full."""
+    window = len(y_history)
+    for i in range(window - 1, 0, -1):
+        y_history[i] = y_history[i - 1]
+        u_history[i] = u_history[i - 1]
+    y_history[0] = y
+    u_history[0] = u
+    if counts[0] < window:
+        counts[0] += 1
+    return counts[0] >= window
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _regressor(
+    x: np.ndarray,
+    u_history: np.ndarray,
+    y_history: np.ndarray,
+    geometry: np.ndarray,
+    lags: np.ndarray,
+    known_a: np.ndarray,
+    known_b: np.ndarray,
+) -> tuple[float, int]:
+    """x(k) clipped into [-1, 1] and lin(k), as ``ModelStructure.regressor_row``; (lin, clipped or -1 if non-finite)."""
+    y_lags, u_lags = lags[0], lags[1]
+    for i in range(y_lags):
+        x[0, i] = (y_history[i] - geometry[0]) / geometry[1]
+    for i in range(u_lags):
+        x[0, y_lags + i] = (u_history[i] - geometry[2]) / geometry[3]
+    linear = geometry[4]
+    for i in range(len(known_a)):
+        linear = linear + known_a[i] * y_history[i]
+    for i in range(len(known_b)):
+        linear = linear + known_b[i] * u_history[i]
+    clipped = 0
+    for i in range(y_lags + u_lags):
+        value = x[0, i]
+        if not math.isfinite(value):
+            return linear, -1
+        if value > 1.0 or value < -1.0:
+            x[0, i] = min(1.0, max(-1.0, value))
+            clipped += 1
+    return linear, clipped
+
+
+@njit(cache=True, nogil=True)
+def functional_link_step(
+    u: float,
+    y: float,
+    learn: bool,
+    score: bool,
+    u_history: np.ndarray,
+    y_history: np.ndarray,
+    counts: np.ndarray,
+    linear_pending: np.ndarray,
+    x: np.ndarray,
+    phi: np.ndarray,
+    scratch: np.ndarray,
+    geometry: np.ndarray,
+    lags: np.ndarray,
+    known_a: np.ndarray,
+    known_b: np.ndarray,
+    exponents: np.ndarray,
+    basis: int,
+    solver: int,
+    weights: np.ndarray,
+    momentum: np.ndarray,
+    covariance: np.ndarray,
+    feature_branch: np.ndarray,
+    n_branches: int,
+    rule: np.ndarray,
+    tanh_output: bool,
+    out: np.ndarray,
+) -> None:
+    """The pair (u(k), y_p(k)): learn from y^(k)'s error, then predict y^(k+1).
+
+    ``geometry`` = y_offset, y_scale, u_offset, u_scale, output_offset; ``lags`` =
+    y_lags, u_lags. With ``score`` the pending prediction is scored (and learnt from
+    if ``learn``); a learning step that would make the model non-finite stops the
+    call there with STATUS DIVERGED and nothing pushed, so the caller can roll the
+    model back and call again without ``score``. ``out`` gets PRIOR (the network's
+    part of y^(k), nan if none), Y_HAT_NEXT (nan until the history is full),
+    CLIPPED (network inputs outside [-1, 1]), STATUS and LINEAR_PREVIOUS.
+    """
+    out[PRIOR] = math.nan
+    out[Y_HAT_NEXT] = math.nan
+    out[CLIPPED] = 0.0
+    out[STATUS] = OK
+    out[LINEAR_PREVIOUS] = linear_pending[0]
+    target, y_out = scratch[0:1], scratch[1:2]
+    if score and counts[1]:
+        target[0] = y - linear_pending[0]
+        done = _rule(
+            solver,
+            weights,
+            momentum,
+            covariance,
+            phi,
+            target,
+            feature_branch,
+            n_branches,
+            rule,
+            tanh_output,
+            learn,
+            y_out,
+        )
+        out[PRIOR] = y_out[0]
+        if done < 1:
+            out[STATUS] = DIVERGED
+            return
+    counts[1] = 0
+    if not _push(u_history, y_history, counts, u, y):
+        return
+    linear, clipped = _regressor(x, u_history, y_history, geometry, lags, known_a, known_b)
+    if clipped < 0:
+        out[STATUS] = NON_FINITE
+        return
+    out[CLIPPED] = clipped
+    term_expansion(x, exponents, basis, phi)
+    _rule(
+        solver, weights, momentum, covariance, phi, target, feature_branch, n_branches, rule, tanh_output, False, y_out
+    )
+    out[Y_HAT_NEXT] = linear + y_out[0]
+    linear_pending[0] = linear
+    counts[1] = 1
+
+
+@dataclass
+class StepPlan:
+    """What :func:`functional_link_step` needs of one model and structure, fixed while the model lives.
+
+    The learned arrays and the rule's hyper-parameters are read from the model on every
+    call: a rollback replaces the arrays, and alpha or the forgetting factor may be
+    changed live.
+    """
+
+    state: StepState
+    geometry: np.ndarray
+    lags: np.ndarray
+    known_a: np.ndarray
+    known_b: np.ndarray
+    exponents: np.ndarray
+    basis: int
+    solver: int
+    tanh_output: bool
+
+    @classmethod
+    def for_model(cls, model: object, structure: object) -> StepPlan | None:
+        """The plan, or None where the model has no compiled step (MLP, trigonometric basis, or no numba)."""
+        from lenn_ros.core import kernels
+        from lenn_ros.core.expansions import COMPILED_BASES
+
+        term_exponents = getattr(model, "term_exponents", None)
+        if not (
+            kernels.JIT
+            and term_exponents is not None
+            and getattr(model, "basis", None) in COMPILED_BASES
+            and getattr(model, "solver", None) in SOLVER_CODES
+            and getattr(model, "out_of_range", None) == "clip"  # "error" raises from Python, with its text
+        ):
+            return None
+        if not model.is_initialised:
+            model._initialise()
+        exponents, _branch_of = term_exponents()
+        return cls(
+            state=StepState.empty(structure.warm_up, structure.n_inputs, exponents.shape[0]),
+            geometry=np.array(
+                [structure.y_offset, structure.y_scale, structure.u_offset, structure.u_scale, structure.output_offset],
+                dtype=np.float64,
+            ),
+            lags=np.array([structure.y_lags, structure.u_lags], dtype=np.int64),
+            known_a=np.asarray(structure.known_a, dtype=np.float64),
+            known_b=np.asarray(structure.known_b, dtype=np.float64),
+            exponents=np.ascontiguousarray(exponents, dtype=np.int64),
+            basis=kernels.BASIS_CODES[model.basis],
+            solver=SOLVER_CODES[model.solver],
+            tanh_output=model.output == "tanh",
+        )
+
+    def run(self, model: object, u: float, y: float, learn: bool, score: bool) -> np.ndarray:
+        """One :func:`functional_link_step`; returns its ``out`` (read it before the next call)."""
+        state = self.state
+        rule = np.array(
+            [model.alpha, model.beta, model.output_scale, model.nlms_step, model.forgetting, model.max_trace],
+            dtype=np.float64,
+        )
+        functional_link_step(
+            float(u),
+            float(y),
+            bool(learn),
+            bool(score),
+            state.u_history,
+            state.y_history,
+            state.counts,
+            state.linear,
+            state.x,
+            state.phi,
+            state.scratch,
+            self.geometry,
+            self.lags,
+            self.known_a,
+            self.known_b,
+            self.exponents,
+            self.basis,
+            self.solver,
+            model.weights_,
+            model.momentum_,
+            model.covariance_,
+            model.feature_branch_,
+            int(model.feature_branch_.max(initial=0)) + 1,
+            rule,
+            self.tanh_output,
+            state.out,
+        )
+        if learn and score and state.out[STATUS] != DIVERGED and not math.isnan(state.out[PRIOR]):
+            model.n_samples_seen_ += 1
+        return state.out

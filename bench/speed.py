@@ -208,6 +208,7 @@ def _cost_markdown(report: dict[str, Any]) -> list[str]:
                     _num(c["expansion_us"], 3) if kind == "lenn" else "-",
                     _num(c["predict_us"], 3),
                     _num(c["single_call_us"], 1),
+                    _num(c["live_step_us"], 1),
                 ]
             )
     out += _table(
@@ -222,12 +223,22 @@ def _cost_markdown(report: dict[str, Any]) -> list[str]:
             "of which expansion",
             "predict",
             "1-sample update() call",
+            "live Identifier.step",
         ],
         rows,
     )
     out += ["", "MLP / LeNN cost ratio, measured in the same run, vs Table I's multiplication ratio:", ""]
     out += _table(
-        ["Ex.", "Table I mult.", "kernel only", "partial_fit", "predict", "1-sample call", "why they differ"],
+        [
+            "Ex.",
+            "Table I mult.",
+            "kernel only",
+            "partial_fit",
+            "predict",
+            "1-sample call",
+            "live step",
+            "why they differ",
+        ],
         [
             [
                 row["example"],
@@ -236,6 +247,7 @@ def _cost_markdown(report: dict[str, Any]) -> list[str]:
                 _num(row["ratio_partial_fit"], 1),
                 _num(row["ratio_predict"], 1),
                 _num(row["ratio_single_call"], 2),
+                _num(row["ratio_live_step"], 2),
                 offline.explain(row),  # from the row's figures (same text as row["explanation"] of this version)
             ]
             for row in report["cost_per_update"]

@@ -228,11 +228,26 @@ def cost_per_update(sizes: Sizes) -> list[dict[str, Any]]:
             row[kind] = _update_costs(example, kind, x, d, sizes)
         lenn, mlp = row["lenn"], row["mlp"]
         row["table1_mult_ratio"] = mlp["multiplications"] / lenn["multiplications"]
-        for key in ("partial_fit_us", "kernel_us", "predict_us", "single_call_us"):
+        for key in ("partial_fit_us", "kernel_us", "predict_us", "single_call_us", "live_step_us"):
             row[f"ratio_{key.removesuffix('_us')}"] = mlp[key] / lenn[key]
         row["explanation"] = explain(row)
         rows.append(row)
     return rows
+
+
+def live_step_case(example: PaperExample, kind: str, calls: int) -> Case:
+    """The node's path: ``Identifier.step``, one pair at a time (one compiled call for the LeNN)."""
+    u_series, y_series = (series.tolist() for series in example_series(example.number, calls))
+
+    def setup() -> Identifier:
+        return Identifier(example.structure, example.make_network(kind, 0))
+
+    def live(identifier: Identifier) -> None:
+        for k in range(calls):
+            identifier.step(k + 1, u_series[k], y_series[k], True)
+
+    live(setup())  # the first call compiles (or loads) the step
+    return live, setup
 
 
 def _update_costs(example: PaperExample, kind: str, x: np.ndarray, d: np.ndarray, sizes: Sizes) -> dict[str, Any]:
@@ -262,6 +277,7 @@ def _update_costs(example: PaperExample, kind: str, x: np.ndarray, d: np.ndarray
         "kernel": (lambda state: run_kernel(state[0], state[1], d), kernel_setup),
         "predict": (lambda _: trained.predict(x), None),
         "single": (single, setup),
+        "live": live_step_case(example, kind, calls),
     }
     if kind == "lenn":
         cases["expansion"] = (lambda _: trained.features(x), None)
@@ -276,6 +292,7 @@ def _update_costs(example: PaperExample, kind: str, x: np.ndarray, d: np.ndarray
         "expansion_us": expansion / n * 1e6,
         "predict_us": predict / n * 1e6,
         "single_call_us": one / calls * 1e6,
+        "live_step_us": medians["live"] / calls * 1e6,
         "single_call_expansion_us": one_expansion / calls * 1e6,
         "weights": counts.weights,
         "multiplications": counts.multiplications,
@@ -316,7 +333,12 @@ def explain(row: dict[str, Any]) -> str:
         f"{lenn['single_call_expansion_us']:.0f} us), {mlp['single_call_us']:.0f} us per MLP call: Python and "
         "numpy work per call (input checks, array wrapping, kernel dispatch) that does not grow with the network"
     )
-    return "; ".join((head, fit, single))
+    live = (
+        f"live step {row['ratio_live_step']:.2f}x: the node's Identifier.step is {lenn['live_step_us']:.1f} us for "
+        f"the LeNN (regressor, expansion, rule and prediction in one compiled call), {mlp['live_step_us']:.1f} us "
+        "for the MLP (a Python regressor and two kernel calls)"
+    )
+    return "; ".join((head, fit, single, live))
 
 
 # --------------------------------------------------------------------------- 2. throughput

@@ -84,6 +84,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_bag_info(commands)
     _add_bag_repair(commands)
     _add_demo(commands)
+    _add_bench(commands)
     return parser
 
 
@@ -208,6 +209,42 @@ def _add_demo(commands: Any) -> None:
     p.add_argument("--rate", type=float, default=0.0, help="plant steps per second (0: as fast as kept up with)")
     p.add_argument("--output", default="demo_output", help="directory for the bag and the plot")
     p.set_defaults(handler=_demo)
+
+
+#: ``lenn-ros bench NAME``: the benchmark scripts of the source tree's bench/ (README "Benchmarks")
+BENCHMARKS = {
+    "speed": ("speed.py", "everything: offline costs and throughput, online loops, memory (the README's tables)"),
+    "online": ("speed_online.py", "loss-free rate and latency through ROS, nodes compared in one run"),
+    "reproduce": ("reproduce_marginal.py", "marginal end-to-end cost of `lenn-ros reproduce`"),
+    "evaluate": ("evaluate_large.py", "`evaluate` of a 10^6-sample bag, read to result"),
+    "soak": ("soak.py", "a long live run (10^6 samples) through simulator, identifier and recorder"),
+    "bag-read": ("bag_read.py", "bag reading speed against rosbags' AnyReader"),
+    "peers": ("peer_narx.py", "against SysIdentPy's FROLS polynomial NARX on real data"),
+}
+
+
+def _add_bench(commands: Any) -> None:
+    listing = "; ".join(f"{name}: {text}" for name, (_, text) in BENCHMARKS.items())
+    p = commands.add_parser(
+        "bench",
+        help="run a benchmark of the source tree's bench/ (default: speed)",
+        description=f"Benchmarks ({listing}). Arguments after NAME go to the script (e.g. -h).",
+    )
+    p.add_argument("name", nargs="?", choices=list(BENCHMARKS), default="speed", metavar="NAME")
+    p.add_argument("script_args", nargs=argparse.REMAINDER, help="passed to the benchmark script")
+    p.set_defaults(handler=_bench)
+
+
+def _bench(args: argparse.Namespace) -> int:
+    """The scripts live beside the package in a source checkout; an installed wheel has none."""
+    import subprocess
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "bench" / BENCHMARKS[args.name][0]
+    if not script.is_file():
+        print(f"lenn-ros bench: error: {script} not found: benchmarks run from a source checkout", file=sys.stderr)
+        return 2
+    return subprocess.call([sys.executable, str(script), *args.script_args], cwd=script.parents[1])
 
 
 def _positive_int(text: str) -> int:

@@ -191,3 +191,14 @@ def test_evaluate_help_says_what_test_from_and_weights_in_mean() -> None:
     text = " ".join(lenn_ros("evaluate", "-h").stdout.split())
     assert "1-based index of the first test sample" in text
     assert "weights_in" in text and "current directory" in text
+
+
+def test_bench_runs_the_source_tree_benchmarks() -> None:
+    """`lenn-ros bench NAME ARGS` is the script of bench/ with ARGS; every listed script exists."""
+    from lenn_ros.cli import BENCHMARKS
+
+    assert all((REPO / "bench" / script).is_file() for script, _ in BENCHMARKS.values())
+    result = lenn_ros("bench", "reproduce", "-h")
+    assert result.returncode == 0 and "usage: reproduce_marginal.py" in result.stdout, result.stderr
+    unknown = lenn_ros("bench", "nonsense")
+    assert unknown.returncode == 2 and "invalid choice: 'nonsense'" in unknown.stderr

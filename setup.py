@@ -60,6 +60,7 @@ setup(
         "console_scripts": [
             "lenn-ros = lenn_ros.cli:main",
             "identifier = lenn_ros.nodes.identifier:main",
+            "fleet = lenn_ros.nodes.fleet:main",
             "plant_simulator = lenn_ros.nodes.plant_simulator:main",
             "recorder = lenn_ros.nodes.recorder:main",
             "replay = lenn_ros.nodes.replay:main",

@@ -49,7 +49,9 @@ def wait_for_acknowledgements(node: Node, timeout_s: float = 5.0) -> bool:
     return all(publisher.wait_for_all_acked(Duration(seconds=timeout_s)) for publisher in node.publishers)
 
 
-def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = None, executor: str = "single") -> int:
+def run_node(
+    factory: Callable[[], Node | list[Node]], name: str, args: list[str] | None = None, executor: str = "single"
+) -> int:
     """The Jazzy ``main`` of ros2/demos, with a graceful stop and one-line startup errors.
 
     SIGINT and SIGTERM only request the stop: rclpy's own handlers would shut the
@@ -73,6 +75,7 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
 
     All three run timers, parameter services and the ``drain`` / ``shutdown`` hooks
     the same way; the choice changes the cost per message, not the behaviour.
+    ``factory`` may return several nodes (a fleet of identifiers): one loop serves them all.
     """
     if executor not in EXECUTORS:
         print(f"{name}: cannot start: unknown executor {executor!r} (one of: {', '.join(EXECUTORS)})", file=sys.stderr)
@@ -84,12 +87,14 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
         return 2
     loop = _new_executor(executor)
     stop = _stop_requested_by_signals()  # after the executor: nothing it sets up may take the signals over
-    node = None
+    nodes: list[Node] = []
     code = 0
     try:
-        node = factory()
-        loop.add_node(node)
-        _spin(node, loop, executor, stop)
+        made = factory()
+        nodes = list(made) if isinstance(made, list | tuple) else [made]
+        for node in nodes:
+            loop.add_node(node)
+        _spin(nodes, loop, executor, stop)
     except ExternalShutdownException:
         pass
     except SystemExit as exit_request:
@@ -97,13 +102,13 @@ def run_node(factory: Callable[[], Node], name: str, args: list[str] | None = No
             print(exit_request.code, file=sys.stderr)
             code = 2
     except Exception as error:
-        if node is not None:
+        if nodes:
             raise
         print(_cannot_start(name, error), file=sys.stderr)
         code = 2
     finally:
-        if node is not None:
-            _close_node(node, loop)
+        if nodes:
+            _close_nodes(nodes, loop)
         loop.shutdown()
         rclpy.try_shutdown()
     return code
@@ -150,7 +155,7 @@ def _pass_message_info(node: Node) -> None:
             subscription.callback = _MessageInfoCallback(subscription.callback)
 
 
-def _spin(node: Node, executor: Any, kind: str, stop: threading.Event) -> None:
+def _spin(nodes: list[Node], executor: Any, kind: str, stop: threading.Event) -> None:
     """Hand messages and timer ticks to ``node`` until a stop is requested or the context ends.
 
     Always ``spin_once`` with a timeout: the events executor of rclpy 7.1.6 busy-loops
@@ -158,11 +163,12 @@ def _spin(node: Node, executor: Any, kind: str, stop: threading.Event) -> None:
     cannot drive it); with a timeout it runs one event per call.
     """
     if kind == "waitset":
-        _WaitSetLoop(node, executor).spin(stop)
+        _WaitSetLoop(nodes, executor).spin(stop)
         return
     if kind == "events":
-        _pass_message_info(node)  # subscriptions created later (none in the identifier) are not wrapped
-    ok, spin_once = node.context.ok, executor.spin_once
+        for node in nodes:
+            _pass_message_info(node)  # subscriptions created later (none in the identifier) are not wrapped
+    ok, spin_once = nodes[0].context.ok, executor.spin_once
     while not stop.is_set() and ok():
         spin_once(timeout_sec=_TURN_SECONDS)
 
@@ -179,8 +185,8 @@ class _WaitSetLoop:
     their behaviour is rclpy's own.
     """
 
-    def __init__(self, node: Node, executor: SingleThreadedExecutor) -> None:
-        self.node, self.executor = node, executor
+    def __init__(self, nodes: list[Node], executor: SingleThreadedExecutor) -> None:
+        self.nodes, self.executor = nodes, executor
         self._stack = contextlib.ExitStack()
         self._snapshot: tuple[tuple[Any, ...], ...] = ()
         self._subscriptions: list[tuple[Any, Any, Any, bool, bool]] = []
@@ -189,7 +195,7 @@ class _WaitSetLoop:
 
     def spin(self, stop: threading.Event) -> None:
         """Until a stop is requested or the context ends; the executor runs at least every ``_TURN_SECONDS``."""
-        context = self.node.context
+        context = self.nodes[0].context
         period_ns = int(_TURN_SECONDS * 1e9)
         try:
             self._refresh()
@@ -206,9 +212,13 @@ class _WaitSetLoop:
             self._stack.close()
 
     def _refresh(self) -> None:
-        """Enter the handles of the node's current entities (again, if any was added or destroyed)."""
-        node = self.node
-        snapshot = (tuple(node.subscriptions), tuple(node.timers), tuple(node.services))
+        """Enter the handles of the nodes' current entities (again, if any was added or destroyed)."""
+        nodes = self.nodes
+        snapshot = (
+            tuple(s for node in nodes for s in node.subscriptions),
+            tuple(t for node in nodes for t in node.timers),
+            tuple(s for node in nodes for s in node.services),
+        )
         if snapshot == self._snapshot:
             return
         from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
@@ -227,9 +237,10 @@ class _WaitSetLoop:
         self._subscriptions = [
             (s.handle, s.msg_type, s.callback, s.raw, s._callback_type is message_only) for s in alive[0]
         ]
-        self._stack.enter_context(node.context.handle)
+        context = nodes[0].context
+        self._stack.enter_context(context.handle)
         counts = [len(handles) for handles in self._handles]
-        self._wait_set = _rclpy.WaitSet(counts[0], 0, counts[1], 0, counts[2], 0, node.context.handle)
+        self._wait_set = _rclpy.WaitSet(counts[0], 0, counts[1], 0, counts[2], 0, context.handle)
 
     def _wait(self, timeout_ns: int) -> bool:
         """Wait for a message, a timer or a service request; whether a timer or service is ready."""
@@ -287,22 +298,25 @@ def _stop_requested_by_signals() -> threading.Event:
     return stop
 
 
-def _close_node(node: Node, executor: Any) -> None:
-    """Take in what is still queued, save the final state, wait for the recorder, and only then destroy the node.
+def _close_nodes(nodes: list[Node], executor: Any) -> None:
+    """Take in what is still queued, save the final state, wait for the recorder, and only then destroy the nodes.
 
     The order matters: a node destroyed before its publishers are acknowledged takes
     its last messages with it, and ``shutdown()`` may still publish. The executor is
-    shut down before the node is destroyed: the events executor drops its callbacks
-    on the node's subscriptions and timers only then.
+    shut down before the nodes are destroyed: the events executor drops its callbacks
+    on a node's subscriptions and timers only then.
     """
-    drain = getattr(node, "drain", None)  # e.g. the recorder takes what DDS still holds
-    if drain is not None and rclpy.ok():
-        drain(executor)
-    shutdown = getattr(node, "shutdown", None)
-    if shutdown is not None:
-        shutdown()
-    if rclpy.ok():
-        wait_for_acknowledgements(node)
-    executor.remove_node(node)
+    for node in nodes:
+        drain = getattr(node, "drain", None)  # e.g. the recorder takes what DDS still holds
+        if drain is not None and rclpy.ok():
+            drain(executor)
+        shutdown = getattr(node, "shutdown", None)
+        if shutdown is not None:
+            shutdown()
+    for node in nodes:
+        if rclpy.ok():
+            wait_for_acknowledgements(node)
+        executor.remove_node(node)
     executor.shutdown()
-    node.destroy_node()
+    for node in nodes:
+        node.destroy_node()

@@ -107,9 +107,13 @@ def _set_stamp(stamp: Any, seconds: float) -> None:
 class IdentifierNode(Node):
     """Learns a LeNN or MLP model of the plant online, sample by sample."""
 
-    def __init__(self, node_name: str = "identifier", **node_options: Any) -> None:
+    def __init__(
+        self, node_name: str = "identifier", sibling_parameters: tuple[str, ...] = (), **node_options: Any
+    ) -> None:
         """``node_options`` go to rclpy's Node (namespace, parameter_overrides, context...),
-        so several identifiers can share one process (a fleet)."""
+        so several identifiers can share one process (a fleet); ``sibling_parameters`` are
+        names a ``-p`` gives to another node of that process (not reported as unknown here)."""
+        self._sibling_parameters = frozenset(sibling_parameters)
         super().__init__(node_name, automatically_declare_parameters_from_overrides=False, **node_options)
         self._started = time.monotonic()
         self.values = self._declare_all()
@@ -215,7 +219,7 @@ class IdentifierNode(Node):
 
     def _warn_unknown_parameters(self) -> None:
         """rclpy drops ``-p name:=value`` for a name never declared: say so."""
-        known = set(self.table) | {"example", "network", "parameters"}
+        known = set(self.table) | {"example", "network", "parameters"} | self._sibling_parameters
         for name in self._parameter_overrides:
             if name in known or name.startswith(_FOREIGN_PARAMETERS):
                 continue
@@ -416,7 +420,7 @@ class IdentifierNode(Node):
         (``get_subscription_count`` is a cheap call; a recorder or a plot is a reader).
         ``y_hat`` is always published: its publication sequence number counts samples.
         """
-        if self.session.holding:
+        if self.session.holding and self.session.held:  # (vouching starts with the first pair, not before)
             if self._outputs_matched() and self._publishers_vouched():
                 samples = self.session.release() + samples
             else:

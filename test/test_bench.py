@@ -104,3 +104,38 @@ def test_quick_offline_bench_runs_and_reports_every_figure() -> None:
     # both outputs render; the JSON is strict (no NaN)
     assert "### Targets" in bench.markdown(report)
     json.loads(json.dumps(bench._finite_only(report), allow_nan=False))
+
+
+def test_fleet_bench_judges_loss_and_backlog() -> None:
+    """A trial passes only with every plant's samples paired, none lost, and no plant behind."""
+    import fleet
+
+    plants = ["p0", "p1"]
+
+    def statuses(paired: int, lost: int = 0) -> dict[str, dict]:
+        counters = {"paired": paired, "lost": lost, "stale": 0, "samples": paired}
+        return {plant: {"counters": dict(counters)} for plant in plants}
+
+    cases = {
+        "clean": (statuses(500), 0, True),
+        "lost": (statuses(498, lost=2), 0, False),
+        "behind": (statuses(500), 7, False),
+        "silent plant": ({"p0": statuses(500)["p0"]}, 0, False),
+    }
+    for name, (given, lag, passed) in cases.items():
+        trial = fleet.Trial("fleet", len(plants), sent=500, worst_lag_samples=lag)
+        fleet.judge(trial, given, plants)
+        assert trial.passed == passed and (passed or trial.reason), name
+
+
+@pytest.mark.ros
+@pytest.mark.timeout(120)
+def test_fleet_bench_runs_a_real_trial(domain: int) -> None:
+    """Two plants in one fleet process for 2 s at 100 Hz, through DDS: all of it paired."""
+    pytest.importorskip("rclpy")
+    import fleet
+
+    trial = fleet.run_trial("fleet", 2, 2.0, domain)
+    assert trial.passed, trial
+    assert trial.sent == int((fleet.WARM_UP + 2.0) * fleet.RATE_HZ) and trial.counters["paired"] == 2 * trial.sent
+    assert trial.cpu_us_per_sample > 0 and trial.rss_mb > 50

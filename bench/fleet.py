@@ -14,9 +14,11 @@ A driver in this process (its own private domain, discovery on this machine) pub
 u(k) then y_p(k) for every plant every 10 ms (one lockstep publisher node for all
 plants, RELIABLE, depth ``topics.DATA_DEPTH``) for ``--seconds``, after a 1 s warm-up. A
 set-up *passes* at N when every identifier's final status reports all samples paired,
-none lost, none stale, and every plant's ``status`` had caught up (paired == sent)
-within ``CATCH_UP`` seconds of the last publication: an identifier that falls behind
-would otherwise only build a backlog. Also reported: the CPU time the node processes
+none lost, none stale, every plant's ``status`` had caught up (paired == sent)
+within ``CATCH_UP`` seconds of the last publication (an identifier that falls behind
+would otherwise only build a backlog), and the driver really published at the rate
+(``MIN_RATE_FRACTION`` of it: on a saturated machine it cannot, and the plants then run
+slower than 100 Hz). Also reported: the CPU time the node processes
 used per plant-sample over the timed part (utime + stime from /proc, both cores
 counted) and their resident memory at the end. The search per set-up stops at its first
 failing N.
@@ -44,6 +46,7 @@ from lenn_ros import topics  # noqa: E402
 RATE_HZ = 100.0
 CATCH_UP = 3.0  # s after the last sample by which every plant must have paired everything
 WARM_UP = 1.0  # s at the rate before the timed part (discovery, first compile of the step)
+MIN_RATE_FRACTION = 0.98  # of RATE_HZ the driver must reach in the timed part, or the trial is not at the rate
 TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 
 
@@ -60,6 +63,7 @@ class Trial:
     rss_mb: float = 0.0
     worst_lag_samples: int = 0
     driver_late_ticks: int = 0
+    rate_hz: float = 0.0  # what the driver reached in the timed part
     counters: dict[str, int] = field(default_factory=dict)
 
 
@@ -158,12 +162,13 @@ class Driver:
             time.sleep(0.1)
         return False
 
-    def run(self, seconds: float) -> int:
-        """Publish for ``seconds`` at the rate; returns how many ticks started late by more than a period."""
+    def run(self, seconds: float) -> tuple[int, float]:
+        """Publish for ``seconds`` at the rate; (ticks started over a period late, rate reached in Hz)."""
         period = 1.0 / RATE_HZ
         start = time.monotonic()
         late = 0
         ticks = int(seconds * RATE_HZ)
+        u_message, y_message = self.float64(), self.float64()  # refilled: publish serialises at once
         for tick in range(ticks):
             due = start + tick * period
             wait = due - time.monotonic()
@@ -171,12 +176,13 @@ class Driver:
                 time.sleep(wait)
             elif wait < -period:
                 late += 1
-            value = 0.5 * ((self.sent * 7919) % 1000) / 1000.0  # a fixed pseudo-random input in [0, 0.5)
+            u_message.data = 0.5 * ((self.sent * 7919) % 1000) / 1000.0  # a fixed pseudo-random input in [0, 0.5)
+            y_message.data = 0.3 * u_message.data
             for u_pub, y_pub in self.publishers.values():
-                u_pub.publish(self.float64(data=value))
-                y_pub.publish(self.float64(data=0.3 * value))
+                u_pub.publish(u_message)
+                y_pub.publish(y_message)
             self.sent += 1
-        return late
+        return late, ticks / (time.monotonic() - start)
 
     def close(self) -> None:
         self.executor.shutdown()
@@ -201,7 +207,7 @@ def run_trial(setup: str, count: int, seconds: float, domain: int) -> Trial:
             driver.run(WARM_UP)
             cpu_before = cpu_seconds(processes)
             timed_from = driver.sent
-            trial.driver_late_ticks = driver.run(seconds)
+            trial.driver_late_ticks, trial.rate_hz = driver.run(seconds)
             cpu = cpu_seconds(processes) - cpu_before
             deadline = time.monotonic() + CATCH_UP
             while time.monotonic() < deadline and min(driver.paired.values()) < driver.sent:
@@ -235,7 +241,9 @@ def judge(trial: Trial, statuses: dict[str, dict], plants: list[str]) -> None:
     expected = trial.sent * len(plants)
     if trial.reason:
         return
-    if missing:
+    if trial.rate_hz < MIN_RATE_FRACTION * RATE_HZ:
+        trial.reason = f"not at {RATE_HZ:.0f} Hz: the driver reached {trial.rate_hz:.0f} Hz (the machine is saturated)"
+    elif missing:
         trial.reason = f"no final status from {len(missing)} plants"
     elif totals["paired"] != expected or totals["lost"] or totals["stale"]:
         trial.reason = f"paired {totals['paired']} of {expected}, lost {totals['lost']}, stale {totals['stale']}"
@@ -247,12 +255,12 @@ def judge(trial: Trial, statuses: dict[str, dict], plants: list[str]) -> None:
 
 def table(trials: list[Trial]) -> str:
     lines = [
-        "| set-up | plants at 100 Hz | result | node CPU us per plant-sample | node RSS MB (total) | driver late |",
+        "| set-up | plants at 100 Hz | result | node CPU us per plant-sample | node RSS MB (total) | driver rate Hz |",
         "|---|---|---|---|---|---|",
     ]
     for t in trials:
         result = "zero loss" if t.passed else f"FAIL: {t.reason}"
-        cost = f"{t.cpu_us_per_sample:.0f} | {t.rss_mb:.0f} | {t.driver_late_ticks}"
+        cost = f"{t.cpu_us_per_sample:.0f} | {t.rss_mb:.0f} | {t.rate_hz:.1f}"
         lines.append(f"| {t.setup} | {t.plants} | {result} | {cost} |")
     best = {s: max((t.plants for t in trials if t.setup == s and t.passed), default=0) for s in ("fleet", "processes")}
     lines += ["", f"Most plants identified with zero loss: fleet {best['fleet']}, processes {best['processes']}."]

@@ -123,9 +123,12 @@ def test_fleet_bench_judges_loss_and_backlog() -> None:
         "silent plant": ({"p0": statuses(500)["p0"]}, 0, False),
     }
     for name, (given, lag, passed) in cases.items():
-        trial = fleet.Trial("fleet", len(plants), sent=500, worst_lag_samples=lag)
+        trial = fleet.Trial("fleet", len(plants), sent=500, worst_lag_samples=lag, rate_hz=fleet.RATE_HZ)
         fleet.judge(trial, given, plants)
         assert trial.passed == passed and (passed or trial.reason), name
+    slow = fleet.Trial("fleet", len(plants), sent=500, rate_hz=0.9 * fleet.RATE_HZ)
+    fleet.judge(slow, statuses(500), plants)
+    assert not slow.passed and "the driver reached 90 Hz" in slow.reason
 
 
 @pytest.mark.ros

@@ -246,6 +246,7 @@ class StepPlan:
     basis: int
     solver: int
     tanh_output: bool
+    n_branches: int
 
     @classmethod
     def for_model(cls, model: object, structure: object) -> StepPlan | None:
@@ -278,6 +279,7 @@ class StepPlan:
             basis=kernels.BASIS_CODES[model.basis],
             solver=SOLVER_CODES[model.solver],
             tanh_output=model.output == "tanh",
+            n_branches=int(model.feature_branch_.max(initial=0)) + 1,
         )
 
     def run(self, model: object, u: float, y: float, learn: bool, score: bool) -> np.ndarray:
@@ -310,7 +312,7 @@ class StepPlan:
             model.momentum_,
             model.covariance_,
             model.feature_branch_,
-            int(model.feature_branch_.max(initial=0)) + 1,
+            self.n_branches,
             rule,
             self.tanh_output,
             state.out,

@@ -314,8 +314,12 @@ def _close_nodes(nodes: list[Node], executor: Any) -> None:
         if shutdown is not None:
             shutdown()
     for node in nodes:
-        if rclpy.ok():
-            wait_for_acknowledgements(node)
+        timeout = float(getattr(node, "ack_timeout", 5.0))
+        if rclpy.ok() and not wait_for_acknowledgements(node, timeout):
+            node.get_logger().warning(
+                f"not every subscriber had acknowledged our last messages after {timeout:.0f} s: "
+                "a lagging reader (a recorder) may lack them"
+            )
         executor.remove_node(node)
     executor.shutdown()
     for node in nodes:

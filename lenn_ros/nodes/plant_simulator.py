@@ -40,6 +40,11 @@ def _describe(text: str, low: float | None = None, high: float | None = None, re
 class PlantSimulator(Node):
     """Simulates one of the paper's examples (or a user-defined plant) in real time."""
 
+    #: s to wait on the way out until every reader has our samples: a recorder can lag the
+    #: lockstep run by many seconds (it writes every topic), and what a writer leaves
+    #: unacknowledged when it goes away is lost to the bag
+    ack_timeout = 60.0
+
     def __init__(self) -> None:
         super().__init__("plant_simulator")
         declare = self.declare_parameter

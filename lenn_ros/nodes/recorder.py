@@ -291,8 +291,11 @@ class Recorder(Node):
                     self._on_message(name, waiting[0], waiting[1])
                     taken = True
 
+    _latest_received_ns = 0  # receive time of the last message taken (system clock, as the middleware's)
+
     def _on_message(self, name: str, data: bytes, info: dict[str, int]) -> None:
         stamp = info.get("received_timestamp") or self.get_clock().now().nanoseconds
+        self._latest_received_ns = stamp
         sequence = int(info.get("publication_sequence_number", 0))
         self.bag.write_raw(
             self._bag_topic[name], data, stamp, publish_time_ns=info.get("source_timestamp", 0), sequence=sequence
@@ -316,15 +319,29 @@ class Recorder(Node):
             self.get_logger().info(f"{name}: sequence restarted at {seq} (new publisher?)")
 
     # -- stopping
-    def drain(self, executor: SingleThreadedExecutor, quiet: float = 0.2, limit: float = 5.0) -> None:
-        """Take what the DDS queues still hold: spin until nothing arrives for ``quiet`` seconds."""
-        end = time.monotonic() + limit
-        calm_until = time.monotonic() + quiet
-        while time.monotonic() < min(calm_until, end):
+    def drain(self, executor: SingleThreadedExecutor, quiet: float = 0.2, limit: float = 30.0) -> None:
+        """Take what the DDS queues held when the stop came: until nothing arrives for ``quiet`` s.
+
+        A recorder lags a fast lockstep run by seconds (it writes every topic), and what
+        its readers hold when it stops is already acknowledged to the publishers, which
+        may be gone: it exists nowhere else. With publishers still running it never goes
+        quiet: it ends once it takes a message received after the stop (the backlog is
+        in), and ``limit`` ends it in any case, saying so.
+        """
+        start = time.monotonic()
+        stop_ns = time.time_ns()
+        end = start + limit
+        calm_until = start + quiet
+        while time.monotonic() < min(calm_until, end) and self._latest_received_ns <= stop_ns:
             before = self.counts.total()
             executor.spin_once(timeout_sec=0.02)
             if self.counts.total() != before:
                 calm_until = time.monotonic() + quiet
+        if time.monotonic() >= end and self._latest_received_ns <= stop_ns:
+            self.get_logger().warning(
+                f"messages were still arriving {limit:.0f} s after the stop: the bag ends there, "
+                "what came later is not in it"
+            )
 
     def shutdown(self) -> None:
         """On the way out (after :meth:`drain`): close the bag, say what is in it."""

@@ -45,6 +45,37 @@ def stop(proc: subprocess.Popen[str], sig: int = signal.SIGINT, timeout: float =
             proc.communicate()
 
 
+class ParameterClient:
+    """Sets a node's parameters through its ``set_parameters`` service, as ``ros2 param set`` does."""
+
+    def __init__(self, domain_id: int, node_name: str = "/identifier") -> None:
+        from rcl_interfaces.srv import SetParameters
+
+        self.ctx = Context()
+        rclpy.init(context=self.ctx, domain_id=domain_id)
+        self.node = rclpy.create_node("test_parameter_client", context=self.ctx)
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.request_type = SetParameters.Request
+        self.client = self.node.create_client(SetParameters, f"{node_name}/set_parameters")
+
+    def __enter__(self) -> ParameterClient:
+        assert self.client.wait_for_service(timeout_sec=20)
+        return self
+
+    def __exit__(self, *_: object) -> None:
+        self.node.destroy_node()
+        self.ctx.try_shutdown()
+
+    def set(self, name: str, value):
+        """The service's result for this one parameter (``successful``, ``reason``)."""
+        from rclpy.parameter import Parameter
+
+        future = self.client.call_async(self.request_type(parameters=[Parameter(name, value=value).to_parameter_msg()]))
+        rclpy.spin_until_future_complete(self.node, future, executor=self.executor, timeout_sec=10)
+        assert future.result() is not None, f"no answer from the parameter service setting {name}"
+        return future.result().results[0]
+
+
 class Talker:
     """Publishes u(k) = k and y_p(k) = -k like the plant simulator (one node, u then y_p)."""
 

@@ -20,7 +20,7 @@ import pytest
 import rclpy
 from rclpy.context import Context
 from rclpy.executors import SingleThreadedExecutor
-from rosutil import final_status, start_node, stop
+from rosutil import ParameterClient, final_status, start_node, stop
 
 from lenn_ros import topics
 from lenn_ros.core.examples import EXAMPLES
@@ -81,22 +81,8 @@ def _wait(condition, timeout: float, what: str) -> None:
 
 def _set_parameter(domain: int, name: str, value) -> bool:
     """Through the node's parameter service, as ``ros2 param set`` does."""
-    from rcl_interfaces.srv import SetParameters
-    from rclpy.parameter import Parameter
-
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=domain)
-    node = rclpy.create_node("test_parameter_client", context=ctx)
-    executor = SingleThreadedExecutor(context=ctx)
-    try:
-        client = node.create_client(SetParameters, "/identifier/set_parameters")
-        assert client.wait_for_service(timeout_sec=20)
-        future = client.call_async(SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()]))
-        rclpy.spin_until_future_complete(node, future, executor=executor, timeout_sec=10)
-        return bool(future.result() and future.result().results[0].successful)
-    finally:
-        node.destroy_node()
-        ctx.try_shutdown()
+    with ParameterClient(domain) as client:
+        return bool(client.set(name, value).successful)
 
 
 def _check_outputs(outputs: Outputs) -> None:

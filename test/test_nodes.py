@@ -142,44 +142,26 @@ def check_lost_and_reordered_messages(bag: Path, tmp_path: Path, params: Path, l
 
 
 def test_live_parameters_are_validated_and_applied(tmp_path: Path, domain: int) -> None:
-    from rcl_interfaces.srv import SetParameters
-    from rclpy.context import Context
-    from rclpy.parameter import Parameter
+    from rosutil import ParameterClient
 
     identifier = start_node("identifier", "example:=1")
-    ctx = Context()
-    rclpy.init(context=ctx, domain_id=domain)
-    node = rclpy.create_node("test_parameter_client", context=ctx)
-    from rclpy.executors import SingleThreadedExecutor
-
-    executor = SingleThreadedExecutor(context=ctx)
     try:
-        client = node.create_client(SetParameters, "/identifier/set_parameters")
-        assert client.wait_for_service(timeout_sec=20)
-
-        def set_parameter(name: str, value):
-            future = client.call_async(
-                SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
-            )
-            rclpy.spin_until_future_complete(node, future, executor=executor, timeout_sec=10)
-            return future.result().results[0]
-
-        refused = set_parameter("alpha", -0.5)
-        assert not refused.successful and "alpha" in refused.reason
-        refused = set_parameter("network", "svm")
-        assert not refused.successful and "read-only" in refused.reason
-        refused = set_parameter("out_of_range", "ignore")
-        assert not refused.successful and "reject" in refused.reason
-        assert set_parameter("alpha", 0.02).successful
-        assert set_parameter("alpha", 1).successful  # an integer for a double, as `ros2 param set` sends it
-        refused = set_parameter("alpha", 100)
-        assert not refused.successful and "alpha must be <=" in refused.reason
-        refused = set_parameter("alpha", "fast")
-        assert not refused.successful and "number" in refused.reason
-        assert set_parameter("learning", False).successful
+        with ParameterClient(domain) as client:
+            set_parameter = client.set
+            refused = set_parameter("alpha", -0.5)
+            assert not refused.successful and "alpha" in refused.reason
+            refused = set_parameter("network", "svm")
+            assert not refused.successful and "read-only" in refused.reason
+            refused = set_parameter("out_of_range", "ignore")
+            assert not refused.successful and "reject" in refused.reason
+            assert set_parameter("alpha", 0.02).successful
+            assert set_parameter("alpha", 1).successful  # an integer for a double, as `ros2 param set` sends it
+            refused = set_parameter("alpha", 100)
+            assert not refused.successful and "alpha must be <=" in refused.reason
+            refused = set_parameter("alpha", "fast")
+            assert not refused.successful and "number" in refused.reason
+            assert set_parameter("learning", False).successful
     finally:
-        node.destroy_node()
-        ctx.try_shutdown()
         _, err = stop(identifier)
     assert identifier.returncode == 0, err
 

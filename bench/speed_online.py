@@ -47,7 +47,7 @@ import sys
 import tempfile
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -803,6 +803,24 @@ ONLINE_NODES = ("echo", "echo_waitset", "identifier")
 COMPARED_NODES = ("echo", "echo_waitset", "echo_events", "identifier_single", "identifier_waitset", "identifier_events")
 
 
+def search_rates(
+    names: Iterable[str],
+    nodes: dict[str, NodeUnderTest],
+    seconds: float,
+    context: Any,
+    payload: Any,
+    bisections: int,
+    log: Callable[[str], None],
+) -> dict[str, dict[str, Any]]:
+    """The highest loss-free rate of each named node, with its latency and cost summary, by name."""
+    found = {}
+    for name in names:
+        log(f"online: highest loss-free rate of the {name} node, {seconds:g} s trials")
+        found[name] = find_max_rate(nodes[name], seconds, context, payload, bisections, log)
+        summarise_rates(found[name], nodes[name], seconds, context, payload, log)
+    return found
+
+
 def summarise_rates(
     entry: dict[str, Any],
     node: NodeUnderTest,
@@ -873,10 +891,7 @@ def compare(
         rclpy.init(context=context, domain_id=domain)
         try:
             payload = make_payload()
-            for name in names:
-                log(f"online: highest loss-free rate of the {name} node, {seconds:g} s trials")
-                result[name] = find_max_rate(nodes[name], seconds, context, payload, bisections, log)
-                summarise_rates(result[name], nodes[name], seconds, context, payload, log)
+            result |= search_rates(names, nodes, seconds, context, payload, bisections, log)
         finally:
             context.try_shutdown()
     result["load_at_end"] = os.getloadavg()
@@ -1053,10 +1068,7 @@ def online(seconds: float, quick: bool, log: Callable[[str], None]) -> dict[str,
         rclpy.init(context=context, domain_id=domain)
         try:
             payload = make_payload()
-            for name in ONLINE_NODES:
-                log(f"online: highest loss-free rate of the {name} node, {seconds:g} s trials")
-                result[name] = find_max_rate(nodes[name], seconds, context, payload, bisections, log)
-                summarise_rates(result[name], nodes[name], seconds, context, payload, log)
+            result |= search_rates(ONLINE_NODES, nodes, seconds, context, payload, bisections, log)
             best = result["identifier"]["max_rate_hz"] or RATE_MIN
             memory_rate = max(RATE_MIN / 2, 0.8 * best)
             memory_seconds = 10 * seconds

@@ -291,11 +291,12 @@ class Recorder(Node):
                     self._on_message(name, waiting[0], waiting[1])
                     taken = True
 
-    _latest_received_ns = 0  # receive time of the last message taken (system clock, as the middleware's)
+    #: earliest receive time (system clock, as the middleware's) of the messages taken since :meth:`drain` reset it
+    _oldest_taken_ns = 0
 
     def _on_message(self, name: str, data: bytes, info: dict[str, int]) -> None:
         stamp = info.get("received_timestamp") or self.get_clock().now().nanoseconds
-        self._latest_received_ns = stamp
+        self._oldest_taken_ns = min(self._oldest_taken_ns, stamp)
         sequence = int(info.get("publication_sequence_number", 0))
         self.bag.write_raw(
             self._bag_topic[name], data, stamp, publish_time_ns=info.get("source_timestamp", 0), sequence=sequence
@@ -325,19 +326,23 @@ class Recorder(Node):
         A recorder lags a fast lockstep run by seconds (it writes every topic), and what
         its readers hold when it stops is already acknowledged to the publishers, which
         may be gone: it exists nowhere else. With publishers still running it never goes
-        quiet: it ends once it takes a message received after the stop (the backlog is
-        in), and ``limit`` ends it in any case, saying so.
+        quiet: it ends after a wake-up in which every message taken was received after the
+        stop (one wake-up takes from every subscription in turn, each queue oldest first,
+        so then no queue holds backlog), and ``limit`` ends it in any case, saying so.
         """
         start = time.monotonic()
         stop_ns = time.time_ns()
         end = start + limit
         calm_until = start + quiet
-        while time.monotonic() < min(calm_until, end) and self._latest_received_ns <= stop_ns:
+        backlog_in = False
+        while not backlog_in and time.monotonic() < min(calm_until, end):
             before = self.counts.total()
+            self._oldest_taken_ns = sys.maxsize
             executor.spin_once(timeout_sec=0.02)
             if self.counts.total() != before:
                 calm_until = time.monotonic() + quiet
-        if time.monotonic() >= end and self._latest_received_ns <= stop_ns:
+                backlog_in = self._oldest_taken_ns > stop_ns
+        if not backlog_in and time.monotonic() >= end:
             self.get_logger().warning(
                 f"messages were still arriving {limit:.0f} s after the stop: the bag ends there, "
                 "what came later is not in it"

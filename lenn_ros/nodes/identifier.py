@@ -464,9 +464,7 @@ class IdentifierNode(Node):
     _holding_since: float | None = None
 
     def _say_holding(self) -> None:
-        """Held pairs are not learnt: after the start grace, say what they wait for."""
-        if not self.session.held:
-            return
+        """Held pairs are not learnt: after the start grace, say what they wait for (called with pairs held)."""
         now = time.monotonic()
         if self._holding_since is None:
             self._holding_since = now

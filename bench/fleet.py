@@ -41,13 +41,14 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
+from speed_online import read_cpu_seconds, read_memory_kb  # noqa: E402  (a script of bench/, beside this one)
+
 from lenn_ros import topics  # noqa: E402
 
 RATE_HZ = 100.0
 CATCH_UP = 3.0  # s after the last sample by which every plant must have paired everything
 WARM_UP = 1.0  # s at the rate before the timed part (discovery, first compile of the step)
 MIN_RATE_FRACTION = 0.98  # of RATE_HZ the driver must reach in the timed part, or the trial is not at the rate
-TICKS_PER_S = os.sysconf("SC_CLK_TCK")
 
 
 @dataclass
@@ -90,26 +91,13 @@ def start_nodes(setup: str, plants: list[str], env: dict[str, str], logs: Path) 
 
 
 def cpu_seconds(processes: list[subprocess.Popen]) -> float:
-    total = 0
-    for process in processes:
-        try:
-            fields = Path(f"/proc/{process.pid}/stat").read_text().rsplit(")", 1)[1].split()
-            total += int(fields[11]) + int(fields[12])  # utime, stime
-        except (FileNotFoundError, IndexError, ValueError):
-            continue
-    return total / TICKS_PER_S
+    """User + system CPU seconds of the node processes together (a process gone counts 0)."""
+    return sum(read_cpu_seconds(process.pid) or 0.0 for process in processes)
 
 
 def rss_mb(processes: list[subprocess.Popen]) -> float:
-    total = 0
-    for process in processes:
-        try:
-            for line in Path(f"/proc/{process.pid}/status").read_text().splitlines():
-                if line.startswith("VmRSS:"):
-                    total += int(line.split()[1])
-        except FileNotFoundError:
-            continue
-    return total / 1024
+    """Their resident memory together."""
+    return sum((read_memory_kb(process.pid) or (0, 0))[0] for process in processes) / 1024
 
 
 def final_statuses(logs: Path) -> dict[str, dict]:

@@ -207,7 +207,7 @@ class Replay(Node):
         if self.pub_start is not None:
             self._wait_test_start_readers(executor)
             self.pub_start.publish(topics.message_class(topics.INT64)(data=int(self.test_start)))
-            if not self.pub_start.wait_for_all_acked(Duration(seconds=float(self._param("wait_timeout")) or 30.0)):
+            if not self.pub_start.wait_for_all_acked(Duration(seconds=self._settle_timeout())):
                 self.get_logger().warning("test_start not acknowledged by every reader before sample 1")
         self._next_slot = time.monotonic()
 
@@ -222,7 +222,7 @@ class Replay(Node):
         wanted = int(self._param("wait_for_subscribers"))
         if not wanted:
             return
-        end = time.monotonic() + (float(self._param("wait_timeout")) or 30.0)
+        end = time.monotonic() + self._settle_timeout()
         while not self.stop.is_set() and time.monotonic() < end:
             graph_caught_up = self.count_subscribers(topics.U) >= wanted  # the matched readers' nodes are known
             if graph_caught_up and self.pub_start.get_subscription_count() >= self.count_subscribers(topics.TEST_START):
@@ -239,7 +239,7 @@ class Replay(Node):
         """
         if self.count_publishers(topics.Y_HAT) == 0:
             return
-        end = time.monotonic() + (float(self._param("wait_timeout")) or 30.0)
+        end = time.monotonic() + self._settle_timeout()
         last, calm_until = self._progress(), time.monotonic() + quiet
         while not self.stop.is_set() and time.monotonic() < min(calm_until, end):
             executor.spin_once(timeout_sec=0.02)
@@ -255,7 +255,7 @@ class Replay(Node):
         would see, say, y_p 1..2000 before u 1: all but sample 1 look like old indices of
         the previous pass. An acknowledgement comes from a reader that knows the writer.
         """
-        if not self.wait_acked(timeout=float(self._param("wait_timeout")) or 30.0):
+        if not self.wait_acked(timeout=self._settle_timeout()):
             self.get_logger().warning("sample 1 of the new pass not acknowledged by every subscriber")
 
     def _declare(self, name: str, default: Any, description: str, **ranges: Any) -> None:
@@ -273,6 +273,10 @@ class Replay(Node):
 
     def _param(self, name: str) -> Any:
         return self.get_parameter(name).value
+
+    def _settle_timeout(self) -> float:
+        """How long a settling step waits (acks, matching, an idle identifier): ``wait_timeout``, 0 meaning 30 s."""
+        return float(self._param("wait_timeout")) or 30.0
 
     def _spin_until(self, executor: SingleThreadedExecutor, deadline: float) -> None:
         while not self.stop.is_set() and (left := deadline - time.monotonic()) > 0:

@@ -16,7 +16,7 @@ from lenn_ros.core import kernels
 from lenn_ros.core.examples import TEST_SAMPLES, TRAIN_SAMPLES, PaperExample
 from lenn_ros.core.metrics import nmse_db, rmse
 from lenn_ros.core.networks import FunctionalLinkNetwork
-from lenn_ros.core.plants import Plant
+from lenn_ros.core.plants import MimoPlant, Plant
 from lenn_ros.core.signals import Excitation
 from lenn_ros.core.structure import Identifier
 
@@ -82,6 +82,30 @@ def simulate(
     excitation = Excitation(seed, "paper", train_samples, test_samples, noise_db, test_noise)
     u, noise = excitation.series()
     applied = u + noise
+    plant.reset()
+    y = plant.run(applied)[:-1]
+    return Series(u=u, y=y, test_start=train_samples)
+
+
+def simulate_mimo(
+    plant: MimoPlant,
+    noise_db: float | None,
+    seed: int,
+    train_samples: int = TRAIN_SAMPLES,
+    test_samples: int = TEST_SAMPLES,
+    test_noise: bool = False,
+) -> Series:
+    """:func:`simulate` for a plant with several inputs: ``u`` and ``y`` have one column per channel.
+
+    Input i is :class:`Excitation` channel i (own streams, its test sinusoid shifted), so
+    the plant simulator node stepping channel by channel publishes the same numbers.
+    """
+    columns = [
+        Excitation(seed, "paper", train_samples, test_samples, noise_db, test_noise, channel=i).series()
+        for i in range(plant.n_u)
+    ]
+    u = np.stack([column[0] for column in columns], axis=1)
+    applied = u + np.stack([column[1] for column in columns], axis=1)
     plant.reset()
     y = plant.run(applied)[:-1]
     return Series(u=u, y=y, test_start=train_samples)

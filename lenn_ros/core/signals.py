@@ -66,7 +66,11 @@ class Excitation:
         test_samples: int = 600,
         noise_db: float | None = None,
         test_noise: bool = False,
+        channel: int = 0,
     ) -> None:
+        """``channel`` > 0: input i of a MIMO plant, its own random streams (channel 0 is the SISO
+        excitation, unchanged) and its test sinusoid a quarter period (62 samples) later per channel,
+        so the inputs of a test are not one and the same signal."""
         if signal not in SIGNALS:
             raise ValueError(f"signal must be one of {', '.join(SIGNALS)}, not {signal!r}")
         self.signal = signal
@@ -74,8 +78,10 @@ class Excitation:
         self.test_samples = test_samples
         self.sigma = noise_std(noise_db)
         self.test_noise = test_noise
-        self._input_rng = np.random.default_rng([seed, 0])
-        self._noise_rng = np.random.default_rng([seed, 1])
+        streams = [seed] if channel == 0 else [seed, 2 + channel]  # [seed, 0 / 1] are channel 0's
+        self._input_rng = np.random.default_rng([*streams, 0])
+        self._noise_rng = np.random.default_rng([*streams, 1])
+        self._test_shift = 62 * channel
         self._u = np.empty(0)
         self._noise = np.empty(0)
         self._offset = 0  # k of self._u[0]
@@ -128,7 +134,7 @@ class Excitation:
         u[train] = uniform_input(int(train.sum()), self._input_rng)
         test_k = k[~train] - max(self.train_samples, 0) + 1
         if len(test_k):
-            u[~train] = test_sinusoid(len(test_k), start=int(test_k[0]))
+            u[~train] = test_sinusoid(len(test_k), start=int(test_k[0]) + self._test_shift)
         noise = self._noise_rng.normal(0.0, 1.0, count) * self.sigma
         if not self.test_noise:
             noise[~train] = 0.0

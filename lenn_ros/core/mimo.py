@@ -1,0 +1,387 @@
+"""Several inputs, several outputs: one MISO series-parallel model per output.
+
+A robot arm's joints or a process's tanks are coupled: output j's next value depends
+on the other outputs and on every actuator, not only on "its own" input. The MIMO
+identifier gives each output j one network over the lags of the channels that are
+allowed to feed it (``couplings``: all by default, or a configured subset such as
+``y0 u0 u1``) and learns them side by side from the same paired vector samples.
+
+Nothing new is learnt here: output j's model is an ordinary
+:class:`~lenn_ros.core.structure.Identifier` whose "input" is the vector of the other
+channels it sees (the other outputs at k, k-1, ... are measured like inputs in
+series-parallel mode), so gaps, duplicates, rejection, the divergence guard and the
+batch :meth:`~lenn_ros.core.structure.Identifier.run` are those of the SISO path,
+bit for bit. What only a MIMO model has is the parallel (free-run) model, where every
+output is fed the *model's* other outputs: :meth:`MimoIdentifier.free_run`.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from lenn_ros.core.structure import FREE_RUN_DIVERGENCE_BOUND, Identifier, StepResult
+
+COUPLING_PRESETS = ("full", "diagonal")
+_CHANNEL = re.compile(r"([uy])(\d+)")
+
+
+def parse_couplings(text: str, n_u: int, n_y: int) -> tuple[tuple[str, ...], ...]:
+    """Which channels feed each output: ``full``, ``diagonal`` or ``y0 u0 u1; y1 y0 u1``.
+
+    ``full``: every output and input (the MIMO model); ``diagonal``: output j sees only
+    its own past and input j (one SISO model per output, for comparison; needs as many
+    inputs as outputs). An explicit list names the channels of output 0, 1, ... in
+    order, ``;``-separated. Raises ValueError with the reason in one line.
+    """
+    text = text.strip()
+    names_y = [f"y{j}" for j in range(n_y)]
+    names_u = [f"u{i}" for i in range(n_u)]
+    if text in ("", "full"):
+        return tuple(tuple(names_y + names_u) for _ in range(n_y))
+    if text == "diagonal":
+        if n_u != n_y:
+            raise ValueError(
+                f"couplings 'diagonal' pairs output j with input j: needs as many inputs ({n_u}) as outputs ({n_y})"
+            )
+        return tuple((f"y{j}", f"u{j}") for j in range(n_y))
+    groups = [group.split() for group in text.split(";")]
+    if len(groups) != n_y:
+        raise ValueError(f"couplings {text!r} lists {len(groups)} output(s) (';'-separated), the plant has {n_y}")
+    known = set(names_y + names_u)
+    result = []
+    for j, group in enumerate(groups):
+        unknown = [name for name in group if name not in known]
+        if unknown:
+            raise ValueError(f"couplings of y{j}: no channel {unknown[0]!r} (channels: {', '.join(names_y + names_u)})")
+        if not group:
+            raise ValueError(f"couplings of y{j}: empty; name at least one of {', '.join(names_y + names_u)}")
+        result.append(tuple(dict.fromkeys(group)))
+    return tuple(result)
+
+
+@dataclass(frozen=True)
+class ChannelStructure:
+    """Output j's regressor: its own lags, then the lags of each other channel it sees.
+
+    Duck-types :class:`~lenn_ros.core.structure.ModelStructure` for the Identifier: the
+    network input is (value - offset) / scale per channel and lag; ``u`` handed to
+    :meth:`regressors` is the matrix of the other channels (one column each), ``y``
+    output j itself. ``history`` is the MIMO model's common warm-up, so every output
+    predicts from the same sample on.
+    """
+
+    y_lags: int
+    other_lags: tuple[int, ...]
+    y_scale: float = 1.0
+    y_offset: float = 0.0
+    other_scales: tuple[float, ...] = ()
+    other_offsets: tuple[float, ...] = ()
+    history: int = 1
+    output_offset: float = 0.0
+    known_a: tuple[float, ...] = ()
+    known_b: tuple[float, ...] = ()
+    separate: bool = False
+
+    def __post_init__(self) -> None:
+        if self.n_inputs == 0:
+            raise ValueError("an output's model needs at least one input channel")
+        if not len(self.other_lags) == len(self.other_scales) == len(self.other_offsets):
+            raise ValueError("one lag count, scale and offset per other channel")
+        if self.y_scale <= 0 or any(scale <= 0 for scale in self.other_scales):
+            raise ValueError("scale factors must be positive")
+
+    @property
+    def u_lags(self) -> int:
+        return sum(self.other_lags)
+
+    @property
+    def n_inputs(self) -> int:
+        return self.y_lags + sum(self.other_lags)
+
+    @property
+    def warm_up(self) -> int:
+        return max(self.history, self.y_lags, *self.other_lags, 1)
+
+    def branches(self) -> None:
+        return None
+
+    def regressors(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Network inputs x(k) for k = warm_up - 1 .. N - 1; ``u``: (N, channels), ``y``: (N,)."""
+        u = np.asarray(u, dtype=np.float64).reshape(len(y), -1) if len(y) else np.empty((0, len(self.other_lags)))
+        y = np.asarray(y, dtype=np.float64)
+        first = self.warm_up - 1
+        count = max(len(y) - first, 0)
+        columns = [(y[first - i : len(y) - i] - self.y_offset) / self.y_scale for i in range(self.y_lags)]
+        for c, lags in enumerate(self.other_lags):
+            values = u[:, c]
+            columns += [
+                (values[first - i : len(y) - i] - self.other_offsets[c]) / self.other_scales[c] for i in range(lags)
+            ]
+        x = np.stack(columns, axis=1) if count else np.empty((0, self.n_inputs))
+        return x, np.full(count, float(self.output_offset))
+
+    def regressor_row(self, u_past: list, y_past: list[float]) -> tuple[np.ndarray, float]:
+        """The last row of :meth:`regressors` from histories kept newest first (same arithmetic)."""
+        row = [(y_past[i] - self.y_offset) / self.y_scale for i in range(self.y_lags)]
+        for c, lags in enumerate(self.other_lags):
+            row += [(u_past[i][c] - self.other_offsets[c]) / self.other_scales[c] for i in range(lags)]
+        return np.array([row], dtype=np.float64), float(self.output_offset)
+
+    def pairs_from_regressors(
+        self, x: np.ndarray, linear: np.ndarray, y: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        targets = np.asarray(y, dtype=np.float64)[self.warm_up :] - linear[:-1]
+        return x[:-1], targets, linear[:-1]
+
+
+@dataclass(frozen=True)
+class MimoStructure:
+    """Lags, scales and couplings of a model with ``n_u`` inputs and ``n_y`` outputs.
+
+    Scales/offsets are per channel (the network sees (value - offset) / scale in
+    [-1, 1]); ``couplings[j]`` names the channels (``y0``, ``u1``...) output j sees.
+    """
+
+    n_u: int
+    n_y: int
+    y_lags: int = 1
+    u_lags: int = 1
+    y_scale: tuple[float, ...] = ()
+    y_offset: tuple[float, ...] = ()
+    u_scale: tuple[float, ...] = ()
+    u_offset: tuple[float, ...] = ()
+    couplings: tuple[tuple[str, ...], ...] = ()
+
+    def __post_init__(self) -> None:
+        if self.n_u < 1 or self.n_y < 1:
+            raise ValueError("a MIMO model needs at least one input and one output channel")
+        if self.y_lags < 0 or self.u_lags < 0 or self.y_lags + self.u_lags == 0:
+            raise ValueError("the networks need inputs: y_lags + u_lags >= 1")
+        for name, values, count in (
+            ("y_scale", self.y_scale, self.n_y),
+            ("y_offset", self.y_offset, self.n_y),
+            ("u_scale", self.u_scale, self.n_u),
+            ("u_offset", self.u_offset, self.n_u),
+        ):
+            if values and len(values) != count:
+                raise ValueError(f"{name} has {len(values)} value(s), one per channel needs {count}")
+        if not self.couplings:
+            object.__setattr__(self, "couplings", parse_couplings("full", self.n_u, self.n_y))
+
+    def _scale(self, kind: str, index: int) -> tuple[float, float]:
+        scales, offsets = (self.y_scale, self.y_offset) if kind == "y" else (self.u_scale, self.u_offset)
+        return (float(scales[index]) if scales else 1.0), (float(offsets[index]) if offsets else 0.0)
+
+    def others(self, output: int) -> list[tuple[str, int]]:
+        """The channels output ``output`` sees besides itself, in regressor order: (kind, index)."""
+        seen = [(match.group(1), int(match.group(2))) for match in map(_CHANNEL.fullmatch, self.couplings[output])]
+        return [channel for channel in seen if channel != ("y", output)]
+
+    def channel(self, output: int) -> ChannelStructure:
+        others = self.others(output)
+        own = f"y{output}" in self.couplings[output]
+        scale, offset = self._scale("y", output)
+        return ChannelStructure(
+            y_lags=self.y_lags if own else 0,
+            other_lags=tuple(self.y_lags if kind == "y" else self.u_lags for kind, _ in others),
+            y_scale=scale,
+            y_offset=offset,
+            other_scales=tuple(self._scale(kind, index)[0] for kind, index in others),
+            other_offsets=tuple(self._scale(kind, index)[1] for kind, index in others),
+            history=max(self.y_lags, self.u_lags, 1),
+            output_offset=offset,
+        )
+
+    def other_values(self, output: int, u: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The columns (or, for one sample, the vector) of the other channels output ``output`` sees."""
+        picked = [(y if kind == "y" else u)[..., index] for kind, index in self.others(output)]
+        return np.stack(picked, axis=-1) if picked else np.empty((*np.shape(u)[:-1], 0))
+
+
+@dataclass
+class MimoStepResult:
+    """What one paired vector sample produced: per-output arrays (None before the warm-up)."""
+
+    index: int
+    y_hat_next: np.ndarray | None = None
+    error: np.ndarray | None = None
+    y_hat: np.ndarray | None = None
+    learned: bool = False
+    event: str = ""
+    events: tuple[str, ...] = ()
+
+
+def _stack(values: list[float | None]) -> np.ndarray | None:
+    return None if any(value is None for value in values) else np.array(values, dtype=np.float64)
+
+
+@dataclass
+class MimoIdentifier:
+    """One :class:`Identifier` per output, stepped together on vector samples.
+
+    Offers the interface a :class:`~lenn_ros.core.session.Session` drives (``step``,
+    ``skip``, ``restart_stream``, ``run``, ``counters``, ``diverged``), so the node,
+    ``evaluate`` and replay handle a MIMO plant with the session code they use for one
+    output. ``counters`` adds up the outputs' counters except ``samples`` and the
+    indexing ones, which every output counts alike.
+    """
+
+    structure: MimoStructure
+    outputs: list[Identifier]
+    names: tuple[str, ...] = ()
+    _learning: bool = field(default=True, repr=False)
+
+    def __post_init__(self) -> None:
+        if len(self.outputs) != self.structure.n_y:
+            raise ValueError(f"{len(self.outputs)} models for {self.structure.n_y} outputs")
+        if not self.names:
+            self.names = tuple(f"y{j}" for j in range(self.structure.n_y))
+
+    @property
+    def model(self):
+        """Output 0's model: what a status reports as the model (weights per output: ``outputs``)."""
+        return self.outputs[0].model
+
+    @property
+    def models(self) -> list:
+        return [identifier.model for identifier in self.outputs]
+
+    @property
+    def learning(self) -> bool:
+        return self._learning
+
+    @learning.setter
+    def learning(self, value: bool) -> None:
+        self._learning = bool(value)
+        for identifier in self.outputs:
+            identifier.learning = bool(value)
+
+    @property
+    def diverged(self) -> bool:
+        return any(identifier.diverged for identifier in self.outputs)
+
+    @property
+    def health_interval(self) -> int:
+        return self.outputs[0].health_interval
+
+    @health_interval.setter
+    def health_interval(self, value: int) -> None:
+        for identifier in self.outputs:
+            identifier.health_interval = int(value)
+
+    @property
+    def divergence_ratio(self) -> float:
+        return self.outputs[0].divergence_ratio
+
+    @divergence_ratio.setter
+    def divergence_ratio(self, value: float) -> None:
+        for identifier in self.outputs:
+            identifier.divergence_ratio = float(value)
+
+    @property
+    def counters(self) -> dict[str, int]:
+        shared = ("samples", "gaps", "lost", "duplicates", "rejected")
+        totals = dict(self.outputs[0].counters)
+        for identifier in self.outputs[1:]:
+            for name, value in identifier.counters.items():
+                if name not in shared:
+                    totals[name] = totals.get(name, 0) + value
+        return totals
+
+    def mark_healthy(self) -> None:
+        for identifier in self.outputs:
+            identifier.mark_healthy()
+
+    def step(self, index: int, u: np.ndarray, y: np.ndarray, learn: bool | None = None) -> MimoStepResult:
+        """Process the vector pair (u(k), y_p(k)) with sample index k: every output's model steps."""
+        u = np.asarray(u, dtype=np.float64)
+        y = np.asarray(y, dtype=np.float64)
+        results: list[StepResult] = [
+            identifier.step(index, self.structure.other_values(j, u, y), float(y[j]), learn)
+            for j, identifier in enumerate(self.outputs)
+        ]
+        events = tuple(result.event for result in results)
+        event = "diverged" if "diverged" in events else next((e for e in events if e), "")
+        return MimoStepResult(
+            index=index,
+            y_hat_next=_stack([result.y_hat_next for result in results]),
+            error=_stack([result.error for result in results]),
+            y_hat=_stack([result.y_hat for result in results]),
+            learned=any(result.learned for result in results),
+            event=event,
+            events=events,
+        )
+
+    def skip(self, index: int | None = None) -> None:
+        for identifier in self.outputs:
+            identifier.skip(index)
+
+    def restart_stream(self) -> None:
+        for identifier in self.outputs:
+            identifier.restart_stream()
+
+    def run(self, u: np.ndarray, y: np.ndarray, learn: np.ndarray | bool = True) -> np.ndarray:
+        """Series-parallel pass over paired (N, n_u) / (N, n_y) series; returns y^ (N, n_y), nan where none."""
+        u = np.asarray(u, dtype=np.float64).reshape(len(y), self.structure.n_u)
+        y = np.asarray(y, dtype=np.float64).reshape(len(y), self.structure.n_y)
+        columns = [
+            identifier.run(self.structure.other_values(j, u, y), y[:, j], learn)
+            for j, identifier in enumerate(self.outputs)
+        ]
+        return np.stack(columns, axis=1) if columns else np.empty((len(y), 0))
+
+    def free_run(self, u: np.ndarray, y: np.ndarray, start: int) -> np.ndarray:
+        """Parallel model from ``start`` on: every output fed the model's own outputs (frozen weights).
+
+        Inputs outside [-1, 1] are clipped (counted per output in ``clipped_free_run``);
+        an output further than the SISO bound from its offset ends the run there
+        (``last_free_run['diverged_at']``), the rest is NaN.
+        """
+        structure = self.structure
+        u = np.asarray(u, dtype=np.float64).reshape(-1, structure.n_u)
+        y_model = np.array(y, dtype=np.float64, copy=True).reshape(len(u), structure.n_y)
+        window = max(identifier.structure.warm_up for identifier in self.outputs)
+        if start < window:
+            raise ValueError(f"free run needs {window} samples of history before it starts")
+        channels = [identifier.structure for identifier in self.outputs]
+        clipped, diverged_at = 0, None
+        for k in range(start - 1, len(u) - 1):
+            rows = slice(k - window + 1, k + 1)
+            values = np.empty(structure.n_y)
+            for j, identifier in enumerate(self.outputs):
+                x, linear = channels[j].regressors(structure.other_values(j, u[rows], y_model[rows]), y_model[rows, j])
+                clipped += int(np.count_nonzero(np.abs(x[-1]) > 1.0))
+                values[j] = float(linear[-1] + identifier.model.predict(np.clip(x[-1:], -1.0, 1.0))[0])
+            bounds = [FREE_RUN_DIVERGENCE_BOUND * channel.y_scale for channel in channels]
+            offsets = [channel.y_offset for channel in channels]
+            if not all(math.isfinite(v) and abs(v - o) <= b for v, o, b in zip(values, offsets, bounds, strict=True)):
+                y_model[k + 1 :] = np.nan
+                diverged_at = k + 1
+                break
+            y_model[k + 1] = values
+        self.outputs[0].counters["clipped_free_run"] += clipped
+        self.last_free_run = {
+            "samples": len(u) - start,
+            "clipped_inputs": clipped,
+            "diverged": diverged_at is not None,
+            "diverged_at": diverged_at,
+        }
+        return y_model[start:]
+
+
+def build_mimo_identifier(
+    structure: MimoStructure,
+    make_model,
+    names: Sequence[str] = (),
+) -> MimoIdentifier:
+    """A MIMO identifier whose output j's network is ``make_model(n_inputs, j)`` (a fresh OnlineRegressor)."""
+    outputs = []
+    for j in range(structure.n_y):
+        channel = structure.channel(j)
+        outputs.append(Identifier(channel, make_model(channel.n_inputs, j)))
+    return MimoIdentifier(structure, outputs, tuple(names))

@@ -99,3 +99,39 @@ def test_a_nan_sample_is_skipped_by_every_output_and_never_learnt() -> None:
     assert result.y_hat is None and not result.learned  # history restarted: nothing to score
     for before, model in zip(weights, identifier.models, strict=True):
         np.testing.assert_array_equal(before, model.weights_)
+
+
+def test_a_session_pairs_vector_halves_screens_each_channel_and_scores_per_channel() -> None:
+    from lenn_ros.core.pairing import U, Y
+    from lenn_ros.core.session import Session, SessionConfig
+
+    series = simulate_mimo(narendra_mimo_plant(), -30.0, seed=1, train_samples=600, test_samples=100)
+    session = Session(_identifier(), SessionConfig(pairing="sequence", y_limit=100.0))
+    reference = _identifier()
+    y = series.y.copy()
+    y[300, 1] = np.nan  # one bad channel: the whole sample is skipped
+    y[301, 0] = 1e6  # beyond y_limit: skipped too
+    samples = []
+    for k in range(len(y)):
+        samples += session.offer(U, series.u[k], time=k * 0.01, sequence=k + 1)
+        samples += session.offer(Y, y[k], time=k * 0.01, sequence=k + 1)
+    assert len(samples) == len(y)
+    status = session.status()
+    assert status["counters"]["nan"] == 1 and status["counters"]["out_of_range"] == 1
+    assert status["counters"]["rejected"] == 2
+    assert set(status["channels"]) == {"y1", "y2"}
+    assert all(channel["phase_nmse_db"] < -10 for channel in status["channels"].values())
+    kinds = {notice.kind for notice in session.take_notices()}
+    assert {"nan", "out_of_range"} <= kinds
+    # the batch path (evaluate) gives the same numbers from the same samples
+    index = np.array([sample.index for sample in samples])
+    u = np.array([sample.u for sample in samples])
+    y_seen = np.array([sample.y for sample in samples])
+    offline = Session(reference, SessionConfig(pairing="sequence"))
+    y_hat = offline.run_samples(index, u, y_seen, np.ones(len(index), dtype=bool))
+    live = np.array(
+        [s.result.y_hat if s.result is not None and s.result.y_hat is not None else [np.nan] * 2 for s in samples]
+    )
+    np.testing.assert_array_equal(live, y_hat)
+    offline_db = offline.status()["channels"]["y1"]["phase_nmse_db"]
+    assert offline_db == pytest.approx(status["channels"]["y1"]["phase_nmse_db"], rel=1e-12)  # Welford vs Chan

@@ -83,3 +83,51 @@ class RunningNMSE:
     @property
     def rmse(self) -> float:
         return float(np.sqrt(self.squared_error / self.count)) if self.count else float("nan")
+
+
+class ChannelsNMSE:
+    """:class:`RunningNMSE` per output channel of a MIMO model, with one summary figure.
+
+    The summary is the mean of the channels' linear NMSE, in dB: each channel is
+    normalised by its own variance first, so a channel in volts does not drown one
+    in millivolts (pooling the squared errors would).
+    """
+
+    def __init__(self, names: list[str] | tuple[str, ...]) -> None:
+        self.names = tuple(names)
+        self.channels = [RunningNMSE() for _ in self.names]
+
+    def reset(self) -> None:
+        for channel in self.channels:
+            channel.reset()
+
+    @property
+    def count(self) -> int:
+        return self.channels[0].count
+
+    def add(self, y: np.ndarray, y_hat: np.ndarray) -> None:
+        for channel, value, estimate in zip(self.channels, y, y_hat, strict=True):
+            channel.add(float(value), float(estimate))
+
+    def extend(self, y: np.ndarray, y_hat: np.ndarray) -> None:
+        """Rows of samples (N, channels)."""
+        y = np.asarray(y, dtype=np.float64).reshape(-1, len(self.channels))
+        y_hat = np.asarray(y_hat, dtype=np.float64).reshape(-1, len(self.channels))
+        for j, channel in enumerate(self.channels):
+            channel.extend(y[:, j], y_hat[:, j])
+
+    @property
+    def channels_db(self) -> dict[str, float]:
+        return {name: channel.nmse_db for name, channel in zip(self.names, self.channels, strict=True)}
+
+    @property
+    def nmse_db(self) -> float:
+        values = [10.0 ** (db / 10.0) for db in self.channels_db.values()]
+        if not values or any(not np.isfinite(value) for value in values):
+            return float("nan")
+        mean = float(np.mean(values))
+        return float(10.0 * np.log10(mean)) if mean > 0 else float("-inf")
+
+    @property
+    def rmse(self) -> float:
+        return float(np.sqrt(np.mean([channel.rmse**2 for channel in self.channels])))

@@ -18,6 +18,8 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
+
 U, Y = "u", "y"
 
 
@@ -112,3 +114,20 @@ def screen(value: float, limit: float, policy: str = "reject") -> tuple[float, s
             return (limit if value > 0 else -limit), "clipped"
         return float("nan"), "out_of_range"
     return value, "ok"
+
+
+def screen_values(values: np.ndarray, limit: float, policy: str = "reject") -> tuple[np.ndarray, str]:
+    """:func:`screen` for a vector half (several channels of one message): one verdict for the message.
+
+    A NaN/inf in any channel or (policy "reject") any channel beyond the limit marks
+    the whole vector NaN: a sample is learnt from every channel or from none.
+    """
+    values = np.array(values, dtype=np.float64)
+    if not np.isfinite(values).all():
+        return np.full_like(values, np.nan), "nan"
+    beyond = np.abs(values) > limit
+    if beyond.any():
+        if policy == "clip":
+            return np.clip(values, -limit, limit), "clipped"
+        return np.full_like(values, np.nan), "out_of_range"
+    return values, "ok"

@@ -40,8 +40,9 @@ from typing import Any
 import numpy as np
 
 from lenn_ros.core.alignment import GridSampler, Pair, StampAligner
-from lenn_ros.core.metrics import RunningNMSE
-from lenn_ros.core.pairing import Pairer, U, Y, screen
+from lenn_ros.core.metrics import ChannelsNMSE, RunningNMSE
+from lenn_ros.core.mimo import MimoIdentifier, MimoStepResult
+from lenn_ros.core.pairing import Pairer, U, Y, screen, screen_values
 from lenn_ros.core.structure import Identifier, StepResult
 
 PAIRING_MODES = ("sequence", "stamp", "sample")
@@ -103,16 +104,16 @@ class Sample:
 
     index: int
     time: float
-    u: float
-    y: float
-    result: StepResult | None
+    u: float | np.ndarray  # a vector for a MIMO identifier, one element per channel
+    y: float | np.ndarray
+    result: StepResult | MimoStepResult | None
 
 
 @dataclass
 class Session:
     """Raw halves in, samples and model results out; see the module docstring."""
 
-    identifier: Identifier
+    identifier: Identifier | MimoIdentifier
     config: SessionConfig = field(default_factory=SessionConfig)
 
     def __post_init__(self) -> None:
@@ -127,7 +128,8 @@ class Session:
             self.aligner = GridSampler(config.sample_period, max_delay=delay, y_max_age=config.y_max_age)
         self.test_start: int | None = None
         self.phase_learning: bool | None = None
-        self.phase_nmse = RunningNMSE()
+        self.mimo = isinstance(self.identifier, MimoIdentifier)
+        self.phase_nmse = ChannelsNMSE(self.identifier.names) if self.mimo else RunningNMSE()
         self.refusal: str | None = None  # set by the caller when it knows pairing cannot work
         self.holding = False  # hold formed samples (unprocessed) until release()
         self._held: list[Pair] = []
@@ -169,11 +171,16 @@ class Session:
             self.counters[f"lone_{channel}"] += 1
         name = config.u_name if channel == U else config.y_name
         limit = config.u_limit if channel == U else config.y_limit
-        value, verdict = screen(float(value), limit, config.out_of_range)
+        raw = value
+        if self.mimo:
+            value, verdict = screen_values(value, limit, config.out_of_range)
+        else:
+            value, verdict = screen(float(value), limit, config.out_of_range)
         if verdict != "ok":
             self.counters[verdict] += 1
             consequence = "clipped to the limit" if verdict == "clipped" else "its sample is skipped, never learnt"
-            self._say(verdict, f"{name} = {value!r} at t={time:.6f}: {verdict.replace('_', ' ')}; {consequence}")
+            shown = np.asarray(raw).tolist() if self.mimo else value
+            self._say(verdict, f"{name} = {shown!r} at t={time:.6f}: {verdict.replace('_', ' ')}; {consequence}")
         if self.refusal is not None:
             self.counters["refused"] += 1
             self._say("refused", self.refusal)
@@ -391,7 +398,7 @@ class Session:
         return not (following and self.test_start is not None and index >= self.test_start)
 
     def _step(self, pair: Pair) -> Sample:
-        if math.isnan(pair.u) or math.isnan(pair.y):
+        if np.isnan(pair.u).any() or np.isnan(pair.y).any():
             self.identifier.skip(pair.index)
             return Sample(pair.index, pair.time, pair.u, pair.y, None)
         learn = self._learns(pair.index)
@@ -423,10 +430,11 @@ class Session:
         u = np.asarray(u, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
         learn = np.asarray(learn, dtype=bool)
-        y_hat = np.full(len(y), np.nan)
-        valid = np.isfinite(u) & np.isfinite(y)
+        y_hat = np.full(y.shape, np.nan)
+        valid = _finite_rows(u) & _finite_rows(y)
         breaks = np.flatnonzero((np.diff(index) != 1) | ~valid[1:] | ~valid[:-1]) + 1
-        counters = self.identifier.counters
+        # a MIMO identifier's index counters are its outputs' (they count alike): output 0's hold them
+        counters = self.identifier.outputs[0].counters if self.mimo else self.identifier.counters
         counters["gaps"] += int(np.count_nonzero(np.diff(index) > 1))
         counters["lost"] += int(np.sum(np.clip(np.diff(index) - 1, 0, None)))
         counters["rejected"] += int(np.count_nonzero(~valid))
@@ -440,7 +448,7 @@ class Session:
                 self.phase_nmse.reset()
             self.phase_learning = bool(phases[-1])
             last = np.flatnonzero(valid)[changes[-1]] if changes.size else 0
-            scored = valid & np.isfinite(y_hat) & (np.arange(len(y)) >= last)
+            scored = valid & _finite_rows(y_hat) & (np.arange(len(y)) >= last)
             self.phase_nmse.extend(y[scored], y_hat[scored])
         if self.identifier.counters["clipped"] > self._seen_clipped:
             self._say_clipped(None)
@@ -501,8 +509,24 @@ class Session:
                 "phase_rmse": self.phase_nmse.rmse,
                 "counters": self.all_counters(),
                 "samples_seen": int(getattr(self.identifier.model, "n_samples_seen_", 0)),
+                **({"channels": self._channel_status()} if self.mimo else {}),
             }
         )
+
+    def _channel_status(self) -> dict[str, Any]:
+        """Per output channel of a MIMO model: its phase NMSE and whether its model diverged."""
+        assert isinstance(self.phase_nmse, ChannelsNMSE) and isinstance(self.identifier, MimoIdentifier)
+        return {
+            name: {"phase_nmse_db": channel.nmse_db, "phase_rmse": channel.rmse, "diverged": output.diverged}
+            for name, channel, output in zip(
+                self.phase_nmse.names, self.phase_nmse.channels, self.identifier.outputs, strict=True
+            )
+        }
+
+
+def _finite_rows(values: np.ndarray) -> np.ndarray:
+    """Per sample (row): every channel finite. A 1-D series is one channel."""
+    return np.isfinite(values).reshape(len(values), -1).all(axis=1)
 
 
 def json_safe(value: Any) -> Any:

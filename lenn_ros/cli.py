@@ -78,6 +78,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     _add_reproduce(commands)
+    _add_reproduce_mimo(commands)
     _add_evaluate(commands)
     _add_fit(commands)
     _add_import_csv(commands)
@@ -104,6 +105,30 @@ def _add_reproduce(commands: Any) -> None:
     p.add_argument("--json", action="store_true", help="print a JSON list instead of a table")
     p.add_argument("--beyond", action="store_true", help="RLS, cross terms and other expansions vs the paper")
     p.set_defaults(handler=_reproduce)
+
+
+def _reproduce_mimo(args: argparse.Namespace) -> int:
+    from lenn_ros.experiments import mimo
+
+    return mimo.main(args)
+
+
+def _add_reproduce_mimo(commands: Any) -> None:
+    from lenn_ros.experiments.mimo import NOISE_DB, SEEDS, TEST_SAMPLES, TRAIN_SAMPLES
+
+    p = commands.add_parser(
+        "reproduce-mimo",
+        help="the 2x2 Narendra plant offline: MIMO LeNN vs one SISO LeNN per output vs an MLP, over seeds",
+    )
+    p.add_argument("--seeds", type=_positive_int, default=SEEDS, help=f"seeds 0..K-1 (default {SEEDS})")
+    p.add_argument("--train-samples", type=_positive_int, default=TRAIN_SAMPLES, help=f"default {TRAIN_SAMPLES}")
+    p.add_argument("--test-samples", type=_positive_int, default=TEST_SAMPLES, help=f"default {TEST_SAMPLES}")
+    p.add_argument(
+        "--noise-db", type=float, default=NOISE_DB, help=f"training plant-input noise (default {NOISE_DB:g})"
+    )
+    p.add_argument("--plot", metavar="DIR", help="write the last seed's figure as DIR/mimo_narendra2x2.png")
+    p.add_argument("--json", action="store_true", help="print JSON (settings and one row per output and model)")
+    p.set_defaults(handler=_reproduce_mimo)
 
 
 def _add_evaluate(commands: Any) -> None:

@@ -20,6 +20,8 @@ import yaml
 
 from lenn_ros.core.examples import PARAMETER_SETS, get_example
 from lenn_ros.core.expansions import parse_terms
+from lenn_ros.core.fields import FieldError, channel_names, is_vector
+from lenn_ros.core.mimo import MimoIdentifier, MimoStructure, build_mimo_identifier, parse_couplings
 from lenn_ros.core.networks import OUTPUTS, SOLVERS
 from lenn_ros.core.structure import Identifier, ModelStructure
 
@@ -170,10 +172,28 @@ def identifier_parameters(example: int, network: str, parameters: str = "calibra
         Parameter("forgetting", float(net.get("forgetting", 1.0)), "RLS forgetting factor lambda", 0.5, 1.0, live=True),
         Parameter("nlms_step", float(net.get("nlms_step", 0.5)), "NLMS step size mu", 1e-6, 1.999, live=True),
         Parameter("seed", 0, "seed of the initial weights", 0, 2**31 - 1),
+        *MIMO_PARAMETERS,
     ]
 
 
-def build_identifier(values: dict[str, Any], network: str) -> Identifier:
+#: Several channels (u_field / y_field naming several: a list, or ``name[*]``): README "MIMO"
+MIMO_PARAMETERS = [
+    Parameter(
+        "couplings",
+        "full",
+        "MIMO: channels that feed each output's network: full, diagonal (output j: y_j and u_j only), "
+        "or per output ';'-separated, e.g. 'y0 u0 u1; y1 y0 u1'",
+    ),
+    Parameter("u_names", [""], "MIMO: names of the input channels (needed with u_field name[*]; [''] = from fields)"),
+    Parameter("y_names", [""], "MIMO: names of the output channels (needed with y_field name[*])"),
+    Parameter("u_scales", [0.0], "MIMO: u_scale per input channel (one value: u_scale for every channel)"),
+    Parameter("u_offsets", [0.0], "MIMO: u_offset per input channel (one value: u_offset for every channel)"),
+    Parameter("y_scales", [0.0], "MIMO: y_scale per output channel (one value: y_scale for every channel)"),
+    Parameter("y_offsets", [0.0], "MIMO: y_offset per output channel (one value: y_offset for every channel)"),
+]
+
+
+def build_identifier(values: dict[str, Any], network: str) -> Identifier | MimoIdentifier:
     """An :class:`Identifier` from parameter values (node, params file or CLI).
 
     The values are the user's, so what the model's own checks refuse (a term list that
@@ -187,7 +207,14 @@ def build_identifier(values: dict[str, Any], network: str) -> Identifier:
         raise ConfigError(str(error)) from error
 
 
-def _build_identifier(values: dict[str, Any], network: str) -> Identifier:
+def is_mimo(values: dict[str, Any]) -> bool:
+    """Whether the values name several u or y_p channels (then the model is a MimoIdentifier)."""
+    return is_vector(str(values.get("u_field", "data"))) or is_vector(str(values.get("y_field", "data")))
+
+
+def _build_identifier(values: dict[str, Any], network: str) -> Identifier | MimoIdentifier:
+    if is_mimo(values):
+        return _build_mimo(values, network)
     structure = ModelStructure(
         y_lags=int(values["y_lags"]),
         u_lags=int(values["u_lags"]),
@@ -200,9 +227,21 @@ def _build_identifier(values: dict[str, Any], network: str) -> Identifier:
         u_offset=float(values.get("u_offset", 0.0)),
         output_offset=float(values.get("output_offset", 0.0)),
     )
+    terms = [str(t) for t in values.get("terms", [""]) if str(t).strip()]
+    selected = terms and network == "lenn"  # the MLP takes every input (terms are the LeNN's)
+    exponents = parse_terms(terms, structure.y_lags, structure.u_lags).tolist() if selected else None
+    if exponents is not None and structure.separate:
+        raise ConfigError("terms select one combiner over all inputs: set separate: false")
+    return Identifier(structure, _make_model(values, network, structure.n_inputs, structure.branches(), exponents))
+
+
+def _make_model(
+    values: dict[str, Any], network: str, n_inputs: int, branches: list[list[int]] | None, exponents: list | None
+) -> Any:
+    """One network from the parameter values (the SISO model, or one output's of a MIMO model)."""
     common = {
-        "n_inputs": structure.n_inputs,
-        "branches": structure.branches(),
+        "n_inputs": n_inputs,
+        "branches": branches,
         "output": values["output"],
         "output_scale": float(values["output_scale"]),
         "alpha": float(values["alpha"]),
@@ -216,10 +255,6 @@ def _build_identifier(values: dict[str, Any], network: str) -> Identifier:
     elif network == "lenn":
         from lenn_ros.core.networks import FunctionalLinkNetwork
 
-        terms = [str(t) for t in values.get("terms", [""]) if str(t).strip()]
-        exponents = parse_terms(terms, structure.y_lags, structure.u_lags).tolist() if terms else None
-        if exponents is not None and structure.separate:
-            raise ConfigError("terms select one combiner over all inputs: set separate: false")
         model = FunctionalLinkNetwork(
             exponents=exponents,
             order=int(values["order"]),
@@ -232,7 +267,53 @@ def _build_identifier(values: dict[str, Any], network: str) -> Identifier:
         )
     else:
         raise ConfigError(f"unknown network {network!r}; use 'lenn' or 'mlp'")
-    return Identifier(structure, model)
+    return model
+
+
+def _per_channel(values: dict[str, Any], name: str, count: int) -> tuple[float, ...]:
+    """``u_scales`` etc.: one value per channel, or the scalar parameter for all of them."""
+    listed = [float(value) for value in values.get(f"{name}s", [0.0])]
+    if len(listed) == count:
+        return tuple(listed)
+    if len(listed) == 1:
+        return (float(values.get(name, 1.0 if name.endswith("scale") else 0.0)),) * count
+    raise ConfigError(f"{name}s has {len(listed)} values for {count} channels: give one per channel, or one")
+
+
+def _build_mimo(values: dict[str, Any], network: str) -> MimoIdentifier:
+    """One network per output over the coupled channels; SISO-only structure options are refused."""
+    try:
+        u_names = channel_names(str(values["u_field"]), [str(n) for n in values.get("u_names", [""])])
+        y_names = channel_names(str(values["y_field"]), [str(n) for n in values.get("y_names", [""])])
+    except FieldError as error:
+        raise ConfigError(str(error)) from None
+    unsupported = [
+        name
+        for name, given in (
+            ("terms", any(str(t).strip() for t in values.get("terms", [""]))),
+            ("separate", bool(values.get("separate", False))),
+            ("known_a", any(float(a) for a in values.get("known_a", [0.0]))),
+            ("known_b", any(float(b) for b in values.get("known_b", [0.0]))),
+        )
+        if given
+    ]
+    if unsupported:
+        raise ConfigError(f"{', '.join(unsupported)}: SISO structure options, not supported with several channels")
+    n_u, n_y = len(u_names), len(y_names)
+    structure = MimoStructure(
+        n_u=n_u,
+        n_y=n_y,
+        y_lags=int(values["y_lags"]),
+        u_lags=int(values["u_lags"]),
+        y_scale=_per_channel(values, "y_scale", n_y),
+        y_offset=_per_channel(values, "y_offset", n_y),
+        u_scale=_per_channel(values, "u_scale", n_u),
+        u_offset=_per_channel(values, "u_offset", n_u),
+        couplings=parse_couplings(str(values.get("couplings", "full")), n_u, n_y),
+    )
+    return build_mimo_identifier(
+        structure, lambda n_inputs, _output: _make_model(values, network, n_inputs, None, None), y_names
+    )
 
 
 def _coefficients(values: Any) -> tuple[float, ...]:

@@ -43,6 +43,21 @@ STRING = "std_msgs/msg/String"
 JOINT_STATE = "sensor_msgs/msg/JointState"
 SAMPLE_LABELS = ("index", "time", "u", "y_p", "learn")
 
+
+def sample_labels(u_names: list[str] | tuple[str, ...], y_names: list[str] | tuple[str, ...]) -> tuple[str, ...]:
+    """``samples`` labels of a MIMO identifier: ``[index, time, u.<name>.., y_p.<name>.., learn]``.
+
+    With several channels ``y_hat`` and ``error`` are Float64MultiArray (one element per
+    output, the names comma-joined in ``layout.dim[0].label``) and ``y_hat_stamped`` /
+    ``error_stamped`` JointState with one named position per output: README "MIMO".
+    """
+    return ("index", "time", *(f"{U}.{name}" for name in u_names), *(f"{Y_P}.{name}" for name in y_names), "learn")
+
+
+def channel_layout_label(names: list[str] | tuple[str, ...]) -> str:
+    """``layout.dim[0].label`` of a vector u, y_p, y_hat or error message: the channel names."""
+    return ",".join(names)
+
 #: Depth of the RELIABLE data queues: 10 s at 1 kHz, so a subscriber that stalls
 #: for a garbage-collection pause or a disk flush loses nothing.
 DATA_DEPTH = 10_000

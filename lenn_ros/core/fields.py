@@ -21,6 +21,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+
 _STEP = re.compile(r"([A-Za-z_][A-Za-z0-9_]*)((?:\[[^\[\]]+\])*)")
 _INDEX = re.compile(r"\[([^\[\]]+)\]")
 
@@ -168,3 +170,94 @@ def has_header(message_class: Any) -> bool:
     if fields is None:
         return hasattr(message_class, "header")
     return fields.get("header") == "std_msgs/Header"
+
+
+# -- several channels from one message (MIMO) -----------------------------------------------------
+ALL = "[*]"
+
+
+def is_vector(text: str) -> bool:
+    """A field setting that names several channels: a comma-separated list, or ``name[*]``."""
+    return "," in text or ALL in text
+
+
+def split_paths(text: str) -> list[str]:
+    return [part.strip() for part in text.split(",") if part.strip()]
+
+
+def channel_names(text: str, names: list[str] | tuple[str, ...] = ()) -> list[str]:
+    """The channels a field setting names, as they are shown in outputs and status.
+
+    ``names`` (the ``u_names``/``y_names`` parameter; empty: none given) wins; a list
+    of paths names each channel by its joint name (``position[elbow]`` -> ``elbow``) or
+    its path; ``name[*]`` takes all elements and needs ``names`` for how many.
+    """
+    names = [name for name in names if name]
+    if ALL in text:
+        if len(split_paths(text)) != 1 or not text.strip().endswith(ALL) or text.count(ALL) != 1:
+            raise FieldError(f"{text!r}: [*] takes all elements of one array, as in 'effort[*]'; no list around it")
+        if not names:
+            raise FieldError(
+                f"{text!r} takes all elements, so give the channels' names (and so their number): "
+                "u_names / y_names, e.g. [shoulder, elbow]; or list the fields: 'effort[0], effort[1]'"
+            )
+        return names
+    paths = split_paths(text)
+    if names and len(names) != len(paths):
+        raise FieldError(f"{len(names)} names for {len(paths)} fields in {text!r}")
+    if names:
+        return names
+    shown = []
+    for path in paths:
+        last = parse_path(path)[-1]
+        shown.append(last.index if isinstance(last.index, str) else path)
+    if len(set(shown)) != len(shown):
+        raise FieldError(f"{text!r} names one channel twice")
+    return shown
+
+
+def check_vector(message_class: Any, text: str, type_name: str = "") -> None:
+    """:func:`check_path` for each channel of a vector setting (``[*]`` checked as element 0)."""
+    for path in split_paths(text):
+        check_path(message_class, path.replace(ALL, "[0]"), type_name)
+
+
+def compile_vector(text: str, names: list[str] | tuple[str, ...] = ()) -> Callable[[Any], np.ndarray]:
+    """A function message -> vector of the channels ``text`` names (see :func:`channel_names`).
+
+    ``name[*]`` on a message with a ``name`` list (JointState) picks the named joints in
+    the order of ``names`` when the message names them all (drivers reorder joints);
+    otherwise it takes the array as it is, which must hold exactly one value per channel.
+    """
+    wanted = channel_names(text, names)
+    if ALL not in text:
+        extractors = [compile_path(path) for path in split_paths(text)]
+        return lambda message: np.array([extract(message) for extract in extractors], dtype=np.float64)
+    array_path = text.strip()[: -len(ALL)]
+    steps = parse_path(array_path)
+
+    def extract(message: Any) -> np.ndarray:
+        parent = message
+        for step in steps[:-1]:
+            parent = _walk(parent, step, array_path)
+        values = getattr(parent, steps[-1].attribute, None)
+        if values is None:
+            raise FieldError(f"message has no field {steps[-1].attribute!r} ({text!r})")
+        listed = list(getattr(parent, "name", ()) or ())
+        if listed and all(name in listed for name in wanted) and len(values) == len(listed):
+            return np.array([values[listed.index(name)] for name in wanted], dtype=np.float64)
+        if len(values) != len(wanted):
+            raise FieldError(f"{text!r} has {len(values)} elements, the model has {len(wanted)} channels {wanted}")
+        return np.asarray(values, dtype=np.float64).copy()
+
+    return extract
+
+
+def _walk(current: Any, step: _Step, path: str) -> Any:
+    try:
+        current = getattr(current, step.attribute)
+    except AttributeError:
+        raise FieldError(f"message has no field {step.attribute!r} ({path!r})") from None
+    if step.index is not None:
+        current = current[step.index]
+    return current

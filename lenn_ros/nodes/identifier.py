@@ -29,6 +29,7 @@ import time
 from array import array
 from typing import Any
 
+import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.event_handler import SubscriptionEventCallbacks
@@ -46,9 +47,20 @@ from lenn_ros.config import (
     build_identifier,
     check_value,
     identifier_parameters,
+    is_mimo,
     unmatched_params_files,
 )
-from lenn_ros.core.fields import FieldError, check_path, compile_path, has_header, stamp_seconds
+from lenn_ros.core.fields import (
+    FieldError,
+    channel_names,
+    check_path,
+    check_vector,
+    compile_path,
+    compile_vector,
+    has_header,
+    stamp_seconds,
+)
+from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.networks import ModelFileError
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.session import Notice, Sample, Session, SessionConfig, json_safe
@@ -123,10 +135,11 @@ class IdentifierNode(Node):
         self.node_counters = {"type_mismatch": 0, "qos_incompatible": 0, "field_errors": 0, "unknown_parameters": 0}
         self._warn_unknown_parameters()
         self._warn_unmatched_params_files()
+        self.mimo = is_mimo(self.values)
         message_types = {channel: self._message_class(channel) for channel in (U, Y)}
         self.identifier = self._build_model()
         self.session = Session(self.identifier, self._session_config())
-        self._extract = {U: compile_path(self.values["u_field"]), Y: compile_path(self.values["y_field"])}
+        self._extract = {channel: self._extractor(channel) for channel in (U, Y)}
         self._stamped = {
             channel: has_header(cls) and self.values["use_header_stamp"] for channel, cls in message_types.items()
         }
@@ -152,18 +165,9 @@ class IdentifierNode(Node):
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
 
-        qos = topics.data_qos()
-        self.y_hat_publisher = self.create_publisher(Float64, topics.Y_HAT, qos)
-        self.error_publisher = self.create_publisher(Float64, topics.ERROR, qos)
-        self.y_hat_stamped_publisher = self.create_publisher(JointState, topics.Y_HAT_STAMPED, qos)
-        self.error_stamped_publisher = self.create_publisher(JointState, topics.ERROR_STAMPED, qos)
-        self.samples_publisher = self.create_publisher(Float64MultiArray, topics.SAMPLES, qos)
-        self._sample_layout = Float64MultiArray().layout
-        labels = topics.SAMPLE_LABELS
-        self._sample_layout.dim = [MultiArrayDimension(label=",".join(labels), size=len(labels), stride=len(labels))]
-        self._reuse_messages()
-        self.nmse_publisher = self.create_publisher(Float64, topics.NMSE, qos)
-        self.status_publisher = self.create_publisher(String, topics.STATUS, qos)
+        self._create_outputs()
+        self.nmse_publisher = self.create_publisher(Float64, topics.NMSE, topics.data_qos())
+        self.status_publisher = self.create_publisher(String, topics.STATUS, topics.data_qos())
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
         config_publisher = self.create_publisher(String, topics.IDENTIFIER_CONFIG, topics.latched_qos())
         config_publisher.publish(String(data=json.dumps(json_safe({**self.values, "network": self.network}))))
@@ -180,15 +184,30 @@ class IdentifierNode(Node):
         self._schedule_autosave()
         self.errors_since_report = 0
         self._warned_kinds: set[str] = set()
-        model = self.identifier.model
+        weights = sum(model.n_weights for model in self._models())
+        shape = f"{len(self.identifier.names)} outputs ({self.values['couplings']} couplings), " if self.mimo else ""
         self.get_logger().info(
-            f"{self.network} with {model.n_weights} weights, example preset {self.example or 'none'}, "
+            f"{self.network} with {shape}{weights} weights, example preset {self.example or 'none'}, "
             f"{self.u_name} ({self.values['u_type']} {self.values['u_field']}) and {self.y_name} "
             f"({self.values['y_type']} {self.values['y_field']}) paired by {self.values['pairing']}, "
             f"learning {'on' if self.values['learning'] else 'off'}"
         )
 
     # -- set-up ----------------------------------------------------------------------------
+    def _create_outputs(self) -> None:
+        """y_hat, error (plain and stamped) and samples: scalars, or one element per output channel."""
+        qos = topics.data_qos()
+        value_type = Float64MultiArray if self.mimo else Float64  # one element per output channel
+        self.y_hat_publisher = self.create_publisher(value_type, topics.Y_HAT, qos)
+        self.error_publisher = self.create_publisher(value_type, topics.ERROR, qos)
+        self.y_hat_stamped_publisher = self.create_publisher(JointState, topics.Y_HAT_STAMPED, qos)
+        self.error_stamped_publisher = self.create_publisher(JointState, topics.ERROR_STAMPED, qos)
+        self.samples_publisher = self.create_publisher(Float64MultiArray, topics.SAMPLES, qos)
+        self._sample_layout = Float64MultiArray().layout
+        labels = topics.sample_labels(*self._channel_names()) if self.mimo else topics.SAMPLE_LABELS
+        self._sample_layout.dim = [MultiArrayDimension(label=",".join(labels), size=len(labels), stride=len(labels))]
+        self._reuse_messages()
+
     def _declare_all(self) -> dict[str, Any]:
         presets = (
             ("example", 1, "paper example whose structure and parameters are the defaults (0 = none)"),
@@ -253,10 +272,30 @@ class IdentifierNode(Node):
         type_key, field_key = ("u_type", "u_field") if channel == U else ("y_type", "y_field")
         try:
             cls = topics.message_class(self.values[type_key])
-            check_path(cls, self.values[field_key], self.values[type_key])
+            check = check_vector if self.mimo else check_path
+            check(cls, self.values[field_key], self.values[type_key])
         except (ValueError, FieldError) as error:
             raise SystemExit(f"identifier: {type_key}/{field_key}: {error}") from None
         return cls
+
+    def _extractor(self, channel: str) -> Any:
+        """message -> the number (SISO) or the vector of channels (MIMO) the field setting names."""
+        field = self.values["u_field" if channel == U else "y_field"]
+        if not self.mimo:
+            return compile_path(field)
+        return compile_vector(field, self._channel_names()[0 if channel == U else 1])
+
+    def _channel_names(self) -> tuple[list[str], list[str]]:
+        """Input and output channel names of a MIMO model (checked when the model was built)."""
+        names = [
+            channel_names(self.values[field], [str(n) for n in self.values[key]])
+            for field, key in (("u_field", "u_names"), ("y_field", "y_names"))
+        ]
+        return names[0], names[1]
+
+    def _models(self) -> list[Any]:
+        """Every network the node learns: one, or one per output channel."""
+        return self.identifier.models if self.mimo else [self.identifier.model]
 
     def _build_model(self) -> Any:
         try:
@@ -267,7 +306,8 @@ class IdentifierNode(Node):
         identifier.divergence_ratio = self.values["divergence_ratio"]
         if self.values["weights_in"]:
             try:
-                identifier.model.load_state(os.path.expanduser(self.values["weights_in"]))
+                loader = identifier if isinstance(identifier, MimoIdentifier) else identifier.model
+                loader.load_state(os.path.expanduser(self.values["weights_in"]))
             except ModelFileError as error:
                 raise SystemExit(f"identifier: {error}") from None
             identifier.mark_healthy()
@@ -321,7 +361,8 @@ class IdentifierNode(Node):
             value = _normalise(self.table[name], parameter.value)
             self.values[name] = value
             if name in ("alpha", "beta", "forgetting", "nlms_step") and name in model.get_params():
-                model.set_params(**{name: value})
+                for each in self._models():
+                    each.set_params(**{name: value})
             elif name == "divergence_ratio":
                 self.identifier.divergence_ratio = value
             elif name in SessionConfig.__dataclass_fields__:
@@ -407,10 +448,18 @@ class IdentifierNode(Node):
         self._y_hat_message = Float64()
         self._error_message = Float64()
         self._sample_message = Float64MultiArray(layout=self._sample_layout)
+        outputs = list(self.identifier.names) if self.mimo else [self.y_name]
         self._joint_messages = {
-            publisher: JointState(name=[self.y_name], position=[0.0])
+            publisher: JointState(name=outputs, position=[0.0] * len(outputs))
             for publisher in (self.y_hat_stamped_publisher, self.error_stamped_publisher)
         }
+        if self.mimo:
+            layout = Float64MultiArray().layout
+            layout.dim = [
+                MultiArrayDimension(label=topics.channel_layout_label(outputs), size=len(outputs), stride=len(outputs))
+            ]
+            self._y_hat_message = Float64MultiArray(layout=layout)
+            self._error_message = Float64MultiArray(layout=layout)
 
     def _publish(self, samples: list[Sample]) -> None:
         """Every output of each sample; y_hat first, since a lockstep plant is waiting for it.
@@ -425,6 +474,9 @@ class IdentifierNode(Node):
                 samples = self.session.release() + samples
             else:
                 self._say_holding()
+        if self.mimo:
+            self._publish_vectors(samples)
+            return
         for sample in samples:
             result = sample.result
             if result is not None and result.y_hat_next is not None:
@@ -437,16 +489,34 @@ class IdentifierNode(Node):
             if result is not None and result.error is not None and result.y_hat is not None:
                 self._publish_error(sample.time, result.y_hat, result.error)
 
-    def _publish_error(self, seconds: float, y_hat: float, error: float) -> None:
+    def _publish_vectors(self, samples: list[Sample]) -> None:
+        """:meth:`_publish` for a MIMO model: every output is one vector message, in the same order."""
+        for sample in samples:
+            result = sample.result
+            if result is not None and result.y_hat_next is not None:
+                self._y_hat_message.data = array("d", result.y_hat_next.tolist())
+                self.y_hat_publisher.publish(self._y_hat_message)
+            if self.samples_publisher.get_subscription_count():
+                learn = float(result.learned) if result is not None else 0.0
+                values = [float(sample.index), sample.time, *np.ravel(sample.u), *np.ravel(sample.y), learn]
+                self._sample_message.data = array("d", values)
+                self.samples_publisher.publish(self._sample_message)
+            if result is not None and result.error is not None and result.y_hat is not None:
+                self._publish_error(sample.time, result.y_hat, result.error)
+
+    def _publish_error(self, seconds: float, y_hat: Any, error: Any) -> None:
         """e(k) and y^(k) of a learnt sample (plain and stamped), and the NMSE every ``report_every`` errors."""
         if self.error_publisher.get_subscription_count():
-            self._error_message.data = error
+            self._error_message.data = array("d", error.tolist()) if self.mimo else error
             self.error_publisher.publish(self._error_message)
         for publisher, value in ((self.y_hat_stamped_publisher, y_hat), (self.error_stamped_publisher, error)):
             if publisher.get_subscription_count():
                 message = self._joint_messages[publisher]
                 _set_stamp(message.header.stamp, seconds)
-                message.position[0] = value  # in place: the array the message serialises
+                if self.mimo:
+                    message.position = array("d", value.tolist())
+                else:
+                    message.position[0] = value  # in place: the array the message serialises
                 publisher.publish(message)
         self.errors_since_report += 1
         if self.errors_since_report >= self.values["report_every"]:
@@ -591,6 +661,8 @@ class IdentifierNode(Node):
         status["topics"] = {"u": self.u_name, "y_p": self.y_name}
         status["readers"] = self._readers()
         status["held"] = self.session.held
+        if self.mimo:
+            status["u_channels"], status["y_channels"] = self._channel_names()
         return status
 
     def _on_status_timer(self) -> None:
@@ -614,6 +686,8 @@ class IdentifierNode(Node):
         values = [KeyValue(key=key, value=str(value)) for key, value in counters.items()]
         for key in ("pairing", "learning", "phase_samples", "phase_nmse_db", "phase_rmse", "samples_seen"):
             values.append(KeyValue(key=key, value=str(status[key])))
+        for name, channel in status.get("channels", {}).items():
+            values.append(KeyValue(key=f"phase_nmse_db.{name}", value=str(channel["phase_nmse_db"])))
         entry = DiagnosticStatus(
             level=level, name=f"lenn_ros identifier: {self.get_fully_qualified_name()}", message=text, values=values
         )
@@ -637,7 +711,10 @@ class IdentifierNode(Node):
 
     def _save(self, path: str) -> None:
         try:
-            self.identifier.model.save(os.path.expanduser(path))
+            if self.mimo:
+                self.identifier.save_state(os.path.expanduser(path))
+            else:
+                self.identifier.model.save(os.path.expanduser(path))
         except OSError as error:
             self.get_logger().error(f"could not save weights to {path}: {error}")
 

@@ -16,14 +16,15 @@ from __future__ import annotations
 import sys
 import time
 
+import numpy as np
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
-from std_msgs.msg import Float64, Int64
+from std_msgs.msg import Float64, Float64MultiArray, Int64, MultiArrayDimension
 
 from lenn_ros import topics
 from lenn_ros.core.examples import get_example
 from lenn_ros.core.expression import ExpressionError
-from lenn_ros.core.plants import Plant, plant_from_expressions
+from lenn_ros.core.plants import MIMO_PLANTS, MimoPlant, Plant, plant_from_expressions
 from lenn_ros.core.signals import SIGNALS, Excitation
 from lenn_ros.nodes import run_node
 
@@ -56,6 +57,11 @@ class PlantSimulator(Node):
         declare("g", "", _describe("user-defined g over u1..um; arithmetic only"))
         declare("a", [0.0], _describe("user-defined Model 1 coefficients a_0..a_{n-1}"))
         declare("b", [0.0], _describe("user-defined Model 2 coefficients b_0..b_{m-1}"))
+        declare(
+            "mimo_plant",
+            "",
+            _describe(f"several inputs and outputs: {', '.join(MIMO_PLANTS)} (u, y_p as Float64MultiArray); '' = SISO"),
+        )
         declare("signal", "paper", _describe(f"input signal: {', '.join(SIGNALS)} (paper: uniform, then eq. 11)"))
         declare("train_samples", 50_000, _describe("samples of uniform random input before the test", 0, 10**9))
         declare("test_samples", 600, _describe("samples of the eq. 11 test sinusoid", 0, 10**9))
@@ -90,22 +96,29 @@ class PlantSimulator(Node):
 
         self.plant = self._make_plant()
         p = self.get_parameter
-        self.excitation = Excitation(
-            p("seed").value,
-            p("signal").value,
-            p("train_samples").value,
-            p("test_samples").value,
-            p("noise_db").value,
-            p("test_noise").value,
-        )
+        self.mimo = isinstance(self.plant, MimoPlant)
+        self.excitations = [
+            Excitation(
+                p("seed").value,
+                p("signal").value,
+                p("train_samples").value,
+                p("test_samples").value,
+                p("noise_db").value,
+                p("test_noise").value,
+                channel=channel,
+            )
+            for channel in range(self.plant.n_u if self.mimo else 1)
+        ]
+        self.excitation = self.excitations[0]
         self.k = 0
         self.acknowledged = 0
         self._last_acknowledged = 0
         self._stalled_since = time.monotonic()
-        self.u_publisher = self.create_publisher(Float64, topics.U, topics.data_qos())
-        self.y_publisher = self.create_publisher(Float64, topics.Y_P, topics.data_qos())
+        value_type = Float64MultiArray if self.mimo else Float64
+        self.u_publisher = self.create_publisher(value_type, topics.U, topics.data_qos())
+        self.y_publisher = self.create_publisher(value_type, topics.Y_P, topics.data_qos())
         self.test_start_publisher = self.create_publisher(Int64, topics.TEST_START, topics.latched_qos())
-        self.create_subscription(Float64, topics.Y_HAT, self._on_y_hat, topics.data_qos())
+        self.create_subscription(value_type, topics.Y_HAT, self._on_y_hat, topics.data_qos())
         if self.excitation.test_start is not None:
             self.test_start_publisher.publish(Int64(data=self.excitation.test_start + 1))
         self.started: float | None = None
@@ -116,9 +129,14 @@ class PlantSimulator(Node):
             f"noise {p('noise_db').value} dB, rate {p('rate_hz').value or 'lockstep'}"
         )
 
-    def _make_plant(self) -> Plant:
+    def _make_plant(self) -> Plant | MimoPlant:
         p = self.get_parameter
         example = p("example").value
+        mimo = p("mimo_plant").value
+        if mimo:
+            if mimo not in MIMO_PLANTS:
+                raise SystemExit(f"plant_simulator: mimo_plant {mimo!r}: choose one of {', '.join(MIMO_PLANTS)}")
+            return MIMO_PLANTS[mimo]()
         if example:
             return get_example(example).plant()
         try:
@@ -154,7 +172,7 @@ class PlantSimulator(Node):
         rate = self.get_parameter("rate_hz").value
         return 0.001 if rate <= 0 else max(1.0 / rate, 0.001)
 
-    def _on_y_hat(self, _message: Float64) -> None:
+    def _on_y_hat(self, _message: Float64 | Float64MultiArray) -> None:
         self.acknowledged += 1
 
     def _ready(self) -> bool:
@@ -195,6 +213,8 @@ class PlantSimulator(Node):
             return False
         if self.k and self.k == self.get_parameter("change_step").value:
             self._change_plant()
+        if self.mimo:
+            return self._step_vectors()
         u, noise = self.excitation.sample(self.k)
         self.u_publisher.publish(Float64(data=u))
         self.y_publisher.publish(Float64(data=self.plant.output))
@@ -207,11 +227,30 @@ class PlantSimulator(Node):
         self.k += 1
         return True
 
+    def _step_vectors(self) -> bool:
+        """:meth:`_step` for a MIMO plant: u(k) and y_p(k) as one vector message each, channels labelled."""
+        drawn = [excitation.sample(self.k) for excitation in self.excitations]
+        u = np.array([value for value, _ in drawn])
+        noise = np.array([value for _, value in drawn])
+        self.u_publisher.publish(self._vector(u, "u"))
+        self.y_publisher.publish(self._vector(self.plant.output, "y"))
+        self.plant.step(u + noise)
+        self.k += 1
+        return True
+
+    @staticmethod
+    def _vector(values: np.ndarray, prefix: str) -> Float64MultiArray:
+        names = [f"{prefix}{i + 1}" for i in range(len(values))]
+        dimension = MultiArrayDimension(label=topics.channel_layout_label(names), size=len(names), stride=len(names))
+        message = Float64MultiArray(data=values.tolist())
+        message.layout.dim = [dimension]
+        return message
+
     def _change_plant(self) -> None:
         """Tracking scenario: the unknown part's gain jumps; the plant's state carries over."""
         example = self.get_parameter("example").value
-        if not example:
-            self.get_logger().warning("change_step applies to the paper's examples only; ignored")
+        if not example or self.mimo:
+            self.get_logger().warning("change_step applies to the paper's (SISO) examples only; ignored")
             return
         changed = get_example(example).plant(gain=self.get_parameter("change_gain").value)
         changed.y_past, changed.u_past = self.plant.y_past, self.plant.u_past

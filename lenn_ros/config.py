@@ -298,7 +298,10 @@ def _build_mimo(values: dict[str, Any], network: str) -> MimoIdentifier:
         if given
     ]
     if unsupported:
-        raise ConfigError(f"{', '.join(unsupported)}: SISO structure options, not supported with several channels")
+        raise ConfigError(
+            f"{', '.join(unsupported)}: SISO structure options, not supported with several channels (the paper's "
+            "examples set them: example:=0 for a model of your own plant)"
+        )
     n_u, n_y = len(u_names), len(y_names)
     structure = MimoStructure(
         n_u=n_u,

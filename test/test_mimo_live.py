@@ -38,3 +38,59 @@ def test_two_output_plant_identified_live_beats_one_siso_model_per_output(tmp_pa
         mimo = live["full"]["channels"][name]["phase_nmse_db"]
         siso = live["diagonal"]["channels"][name]["phase_nmse_db"]
         assert mimo < siso - 5.0, (name, mimo, siso)
+
+
+def test_robot_vector_topics_from_two_nodes_are_learnt_per_named_joint(domain: int) -> None:
+    """A controller's Float64MultiArray command and a driver's JointState, joints picked by name.
+
+    The driver lists its joints in another order (and one more); the identifier takes the
+    named ones (y_names) from ``position[*]``. A command with the wrong number of elements
+    is said in one line and counted, never learnt.
+    """
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rosutil import start_node, stop
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64MultiArray
+    from test_robot_topics import Graph, publish_for
+
+    from lenn_ros import topics
+
+    identifier = start_node(
+        "identifier",
+        "example:=0",
+        "status_period:=0.2",
+        "pairing:=sample",
+        "sample_period:=0.01",
+        "u_type:=std_msgs/msg/Float64MultiArray",
+        "u_field:=data[*]",
+        "u_names:=[cmd_shoulder, cmd_elbow]",
+        "y_type:=sensor_msgs/msg/JointState",
+        "y_field:=position[*]",
+        "y_names:=[shoulder, elbow]",
+        ros_args=("-r", "u:=/robot/cmd", "-r", "y_p:=/robot/joint_states"),
+    )
+    graph = Graph(domain)
+    best_effort = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+    u_pub = graph.node("controller").create_publisher(Float64MultiArray, "/robot/cmd", best_effort)
+    y_pub = graph.node("driver").create_publisher(JointState, "/robot/joint_states", topics.data_qos())
+    graph.listen()
+    graph.spin()
+
+    def send(k: int) -> None:
+        a, b = 0.5 * ((k * 7919) % 13 / 13.0 - 0.5), 0.5 * ((k * 104729) % 17 / 17.0 - 0.5)
+        u_pub.publish(Float64MultiArray(data=[a, b]))
+        state = JointState(name=["elbow", "wrist", "shoulder"], position=[0.3 * a + 0.1 * b, 9.0, 0.5 * a])
+        state.header.stamp = graph.nodes[1].get_clock().now().to_msg()  # a driver stamps its measurement
+        y_pub.publish(state)
+
+    try:
+        graph.wait(lambda s: True)  # the identifier is up
+        publish_for(4.0, 100, send)
+        publish_for(0.3, 100, lambda k: u_pub.publish(Float64MultiArray(data=[0.1, 0.2, 0.3])))
+        status = graph.wait(lambda s: s["counters"]["learned"] > 400 and s["counters"]["field_errors"] >= 10)
+    finally:
+        _, err = stop(identifier)
+        graph.close()
+    assert set(status["channels"]) == {"shoulder", "elbow"} and status["u_channels"] == ["cmd_shoulder", "cmd_elbow"]
+    assert graph.stamped and graph.stamped[-1].name == ["shoulder", "elbow"]
+    assert "has 3 elements, the model has 2 channels" in err and err.count("has 3 elements") == 1  # said once

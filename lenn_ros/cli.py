@@ -168,8 +168,17 @@ def _add_fit(commands: Any) -> None:
         "weights the identifier node starts from.",
     )
     p.add_argument("data", help="CSV file (columns by name or 0-based index) or bag directory with u and y_p")
-    p.add_argument("--u", help="CSV column of the plant input (default: 'u', or the first of two columns)")
-    p.add_argument("--y", help="CSV column of the plant output (default: 'y', or the second of two columns)")
+    p.add_argument(
+        "--u",
+        action="append",
+        help="CSV column of the plant input (default: 'u', or the first of two columns); repeat for several "
+        "inputs (MIMO: one model per output over every channel, compared with one SISO model per output)",
+    )
+    p.add_argument(
+        "--y",
+        action="append",
+        help="CSV column of the plant output (default: 'y', or the second of two columns); repeat for several outputs",
+    )
     p.add_argument("--dt", type=float, help="sample time in seconds (reported only)")
     p.add_argument(
         "--test-from",
@@ -204,8 +213,14 @@ def _add_fit(commands: Any) -> None:
 def _add_import_csv(commands: Any) -> None:
     p = commands.add_parser("import-csv", help="make a bag (u, y_p) from a logged CSV file")
     p.add_argument("file")
-    p.add_argument("--u", required=True, help="column of the plant input (name or 0-based index)")
-    p.add_argument("--y", required=True, help="column of the plant output (name or 0-based index)")
+    p.add_argument(
+        "--u",
+        required=True,
+        action="append",
+        help="column of the plant input (name or 0-based index); repeat for several inputs: u and y_p then "
+        "carry Float64MultiArray samples labelled with the column names",
+    )
+    p.add_argument("--y", required=True, action="append", help="column of the plant output; repeat for several outputs")
     p.add_argument("--dt", type=float, required=True, help="sample time in seconds")
     p.add_argument("--test-from", type=int, help="first test sample index (1-based), stored in the bag")
     p.add_argument("-o", "--output", required=True, help="bag directory to create")

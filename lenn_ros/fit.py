@@ -19,6 +19,8 @@ What it does, each step reported:
    series-parallel to parallel would), counting clipped inputs and flagging divergence;
 6. with ``-o DIR`` writes ``params.yaml`` and ``weights.npz`` from which the
    identifier node starts and keeps adapting live (RLS with forgetting).
+
+Several ``--u`` / ``--y`` columns, or a vector bag, go to :mod:`lenn_ros.fit_mimo`.
 """
 
 from __future__ import annotations
@@ -161,11 +163,16 @@ def build_identifier(model: TermModel, u: np.ndarray, y: np.ndarray, forgetting:
     network._initialise()
     network.weights_ = np.array(model.weights, dtype=np.float64)
     features, _ = model.regression(u, y)
+    network.covariance_ = rls_covariance(features, forgetting)
+    return Identifier(model.structure, network, learning=False)
+
+
+def rls_covariance(features: np.ndarray, forgetting: float) -> np.ndarray:
+    """The RLS covariance as if live adaptation had seen ``features`` (see :func:`build_identifier`)."""
     gram = features.T @ features
     gram += max(RLS_RIDGE * float(np.linalg.eigvalsh(gram)[-1]), 1e-9) * np.eye(features.shape[1])
     memory = len(features) if forgetting >= 1.0 else min(len(features), 1.0 / (1.0 - forgetting))
-    network.covariance_ = np.linalg.inv(gram) * (len(features) / memory)
-    return Identifier(model.structure, network, learning=False)
+    return np.linalg.inv(gram) * (len(features) / memory)
 
 
 def fit(
@@ -529,7 +536,12 @@ def _jsonable(report: dict[str, Any]) -> dict[str, Any]:
 def main(args: Any) -> int:
     import sys
 
-    data = load_data(args.data, args.u, args.y)
+    u_columns, y_columns = _columns(args.u), _columns(args.y)
+    if len(u_columns) > 1 or len(y_columns) > 1 or _is_vector_bag(args.data):
+        from lenn_ros import fit_mimo
+
+        return fit_mimo.main(args, u_columns, y_columns)
+    data = load_data(args.data, u_columns[0] if u_columns else None, y_columns[0] if y_columns else None)
     progress = None if args.json else (lambda text: print(text, file=sys.stderr, flush=True))
     network = getattr(args, "network", "lenn") or "lenn"
     test_from = args.test_from if args.test_from is not None else data.test_start
@@ -548,6 +560,23 @@ def main(args: Any) -> int:
         return 0
     print(format_report(report, args.dt))
     return 0
+
+
+def _columns(given: str | list[str] | None) -> list[str]:
+    """``--u`` / ``--y`` as a list: the command line repeats them (MIMO), a caller may pass one name."""
+    if given is None:
+        return []
+    return [given] if isinstance(given, str) else list(given)
+
+
+def _is_vector_bag(path: str | Path) -> bool:
+    """A bag whose u holds Float64MultiArray samples is a MIMO run (``import-csv`` with several columns)."""
+    path = Path(path)
+    if not (path.is_dir() or path.suffix == ".mcap") or not path.exists():
+        return False
+    from lenn_ros.bag.vectors import is_vector_run
+
+    return is_vector_run(path)
 
 
 def format_report(report: dict[str, Any], dt: float | None = None) -> str:

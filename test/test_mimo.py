@@ -135,3 +135,27 @@ def test_a_session_pairs_vector_halves_screens_each_channel_and_scores_per_chann
     np.testing.assert_array_equal(live, y_hat)
     offline_db = offline.status()["channels"]["y1"]["phase_nmse_db"]
     assert offline_db == pytest.approx(status["channels"]["y1"]["phase_nmse_db"], rel=1e-12)  # Welford vs Chan
+
+
+def test_save_state_and_load_state_round_trip_every_output_in_one_file(tmp_path) -> None:
+    from lenn_ros.core.networks import ModelFileError
+
+    series = simulate_mimo(narendra_mimo_plant(), -30.0, seed=4, train_samples=1500, test_samples=200)
+    learnt = _identifier()
+    learnt.run(series.u, series.y, np.arange(len(series.y)) < series.test_start)
+    learnt.save_state(tmp_path / "weights.npz")
+    fresh = _identifier(seed=9)
+    fresh.load_state(tmp_path / "weights.npz")
+    for a, b in zip(learnt.models, fresh.models, strict=True):
+        np.testing.assert_array_equal(a.weights_, b.weights_)
+        np.testing.assert_array_equal(a.covariance_, b.covariance_)
+    np.testing.assert_array_equal(
+        learnt.free_run(series.u, series.y, series.test_start), fresh.free_run(series.u, series.y, series.test_start)
+    )
+    with pytest.raises(ModelFileError, match=r"output 0 \(y1\): weights are for a different network.*n_inputs"):
+        _identifier("diagonal").load_state(tmp_path / "weights.npz")  # 2 inputs per output, not 4
+    learnt.models[0].save(tmp_path / "one.npz")
+    with pytest.raises(ModelFileError, match="weights of a single-output model, this model has 2 outputs"):
+        fresh.load_state(tmp_path / "one.npz")
+    with pytest.raises(ModelFileError, match=r"with 2 outputs \(MIMO\)"):
+        learnt.models[0].load_state(tmp_path / "weights.npz")

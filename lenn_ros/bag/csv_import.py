@@ -7,11 +7,15 @@ from __future__ import annotations
 
 import csv
 import math
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from lenn_ros import topics
 from lenn_ros.bag.errors import BagError
+from lenn_ros.bag.vectors import write_vector_run
 from lenn_ros.bag.writer import BagWriter
 
 __all__ = ["import_csv"]
@@ -42,10 +46,13 @@ def is_number(text: str) -> bool:
     return True
 
 
+Column = str | int
+
+
 def import_csv(
     csv_path: str | Path,
-    u_column: str | int,
-    y_column: str | int,
+    u_column: Column | Sequence[Column],
+    y_column: Column | Sequence[Column],
     dt: float,
     out_path: str | Path,
     test_from: int | None = None,
@@ -57,28 +64,55 @@ def import_csv(
     Columns are names or 0-based indices (a digit string counts as an index unless the
     header has a column of that name). The first row is a header when its cells are not
     all numbers. Errors name the file line, so a user can fix the CSV instead of guessing.
+    A list of several u or y columns makes a vector run (:mod:`lenn_ros.bag.vectors`):
+    Float64MultiArray samples labelled with the column names; one of each stays Float64.
     """
     csv_path, out_path = Path(csv_path), Path(out_path)
+    u_columns, y_columns = _as_columns(u_column), _as_columns(y_column)
     if not (dt > 0 and math.isfinite(dt)):
         raise BagError(f"dt must be a positive number of seconds, got {dt}")
     if not csv_path.is_file():
         raise BagError(f"{csv_path}: no such file; pass the CSV with the logged input and output")
     rows = _read_rows(csv_path)
     first = [cell.strip() for cell in rows[0][1]]
-    named = any(isinstance(c, str) and not c.isdigit() for c in (u_column, y_column))
+    named = any(isinstance(c, str) and not c.isdigit() for c in (*u_columns, *y_columns))
     has_header = named or not all(is_number(c) for c in first if c)
     header = first if has_header else None
-    iu = _column_index(header, u_column, csv_path)
-    iy = _column_index(header, y_column, csv_path)
-    u_vals, y_vals = _read_values(csv_path, rows[1:] if has_header else rows, ((iu, u_column), (iy, y_column)))
-    if not u_vals:
+    columns = [(_column_index(header, column, csv_path), column) for column in (*u_columns, *y_columns)]
+    values = _read_values(csv_path, rows[1:] if has_header else rows, tuple(columns))
+    if not values[0]:
         raise BagError(f"{csv_path}: no data rows after the header")
-    if test_from is not None and not 1 <= test_from <= len(u_vals):
+    if test_from is not None and not 1 <= test_from <= len(values[0]):
         raise BagError(
-            f"test_from={test_from} is outside samples 1..{len(u_vals)} of {csv_path} (1-based, like test_start)"
+            f"test_from={test_from} is outside samples 1..{len(values[0])} of {csv_path} (1-based, like test_start)"
         )
-    _write_run_bag(out_path, u_vals, y_vals, dt, test_from)
-    return out_path
+    if len(u_columns) == len(y_columns) == 1:
+        _write_run_bag(out_path, values[0], values[1], dt, test_from)
+        return out_path
+    names = [header[index] if header else str(index) for index, _ in columns]
+    split = len(u_columns)
+    _check_names(csv_path, names[:split], "--u")
+    _check_names(csv_path, names[split:], "--y")
+    matrix = np.array(values, dtype=np.float64).T
+    u_rows, y_rows = matrix[:, :split], matrix[:, split:]
+    return write_vector_run(out_path, u_rows, y_rows, (names[:split], names[split:]), dt, test_from)
+
+
+def _as_columns(column: Column | Sequence[Column]) -> list[Column]:
+    """One column or several, as a list (a str is one column name, not a sequence of letters)."""
+    columns = [column] if isinstance(column, str | int) else list(column)
+    if not columns:
+        raise BagError("name at least one u and one y column")
+    return columns
+
+
+def _check_names(csv_path: Path, names: list[str], option: str) -> None:
+    """Channel names go into a comma-joined label: each must be there once and hold no comma."""
+    for name in names:
+        if "," in name or not name:
+            raise BagError(f"{csv_path}: column name {name!r} cannot name a channel (empty or with a comma); rename it")
+        if names.count(name) > 1:
+            raise BagError(f"{csv_path}: column {name!r} given twice as {option}; name each channel once")
 
 
 def _read_rows(csv_path: Path) -> list[tuple[int, list[str]]]:

@@ -18,6 +18,7 @@ output is fed the *model's* other outputs: :meth:`MimoIdentifier.free_run`.
 from __future__ import annotations
 
 import math
+import os
 import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -372,6 +373,70 @@ class MimoIdentifier:
             "diverged_at": diverged_at,
         }
         return y_model[start:]
+
+    def save_state(self, path: str | os.PathLike[str]) -> None:
+        """Every output's model in one .npz (atomic, like ``OnlineRegressor.save``).
+
+        One file, not one per output: in free run each output's model feeds the others,
+        so the outputs are one model, and a restart must never pair output 0 of one save
+        with output 1 of another.
+        """
+        from lenn_ros.core.networks import FORMAT_VERSION, write_weights_file
+
+        arrays, outputs = {}, []
+        for j, model in enumerate(self.models):
+            if not model.is_initialised:
+                model._initialise()
+            seen = int(getattr(model, "n_samples_seen_", 0))
+            outputs.append(
+                {"name": self.names[j], "kind": model._kind, "params": model.get_params(), "n_samples_seen": seen}
+            )
+            arrays.update({f"y{j}_{name}": value for name, value in model.state().items()})
+        header = {"format": FORMAT_VERSION, "kind": "mimo", "n_u": self.structure.n_u, "outputs": outputs}
+        write_weights_file(path, header, arrays)
+
+    def load_state(self, path: str | os.PathLike[str]) -> None:
+        """Start every output from a file of :meth:`save_state`; all or nothing.
+
+        Every output is checked (the file's output count, each network's configuration
+        and array shapes) before any is installed, so a refused file leaves the running
+        model whole instead of half replaced. Raises ModelFileError with the reason in one line.
+        """
+        from lenn_ros.core.networks import ModelFileError, read_weights_file
+
+        header, arrays = read_weights_file(path)
+        saved = header.get("outputs", []) if header.get("kind") == "mimo" else None
+        if saved is None or len(saved) != len(self.outputs):
+            found = "a single-output model" if saved is None else f"{len(saved)} output(s)"
+            raise ModelFileError(
+                f"{path}: weights of {found}, this model has {len(self.outputs)} outputs; "
+                "configure the same channels or start without the file"
+            )
+        states = []
+        for j, (model, entry) in enumerate(zip(self.models, saved, strict=True)):
+            where = f"{path}: output {j} ({self.names[j]})"
+            structural = {k: v for k, v in model.get_params().items() if k in model._structural_params}
+            differing = sorted(k for k, v in structural.items() if entry.get("params", {}).get(k) != v)
+            if entry.get("kind") != model._kind or differing:
+                raise ModelFileError(
+                    f"{where}: weights are for a different network ({entry.get('kind')}, differs in "
+                    f"{', '.join(differing) or 'kind'}); configure the same network or start without the file"
+                )
+            fresh = type(model)(**model.get_params())
+            fresh._initialise()
+            state = {name: arrays.get(f"y{j}_{name}") for name in model._state_names}
+            wrong = [
+                name for name, value in state.items() if value is None or value.shape != getattr(fresh, name).shape
+            ]
+            if wrong:
+                raise ModelFileError(
+                    f"{where}: array {wrong[0]!r} missing or of shape "
+                    f"{getattr(state[wrong[0]], 'shape', None)}, the network needs {getattr(fresh, wrong[0]).shape}"
+                )
+            states.append(state)
+        for model, entry, state in zip(self.models, saved, states, strict=True):
+            model._install(state, entry, path)
+        self.mark_healthy()
 
 
 def build_mimo_identifier(

@@ -157,25 +157,13 @@ class OnlineRegressor:
         """
         if not self.is_initialised:
             self._initialise()
-        path = Path(path)
-        arrays = self.state()
         header = {
             "format": FORMAT_VERSION,
             "kind": self._kind,
             "params": self.get_params(),
             "n_samples_seen": int(getattr(self, "n_samples_seen_", 0)),
         }
-        path.parent.mkdir(parents=True, exist_ok=True)
-        handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-        try:
-            with os.fdopen(handle, "wb") as stream:
-                np.savez(stream, header=np.array(json.dumps(header)), **arrays)
-                stream.flush()
-                os.fsync(stream.fileno())
-            os.replace(temporary, path)
-        except BaseException:
-            Path(temporary).unlink(missing_ok=True)
-            raise
+        write_weights_file(path, header, self.state())
 
     @staticmethod
     def load(path: str | os.PathLike[str]) -> OnlineRegressor:
@@ -215,7 +203,28 @@ class OnlineRegressor:
         raise NotImplementedError
 
 
-def _read_model_file(path: str | os.PathLike[str]) -> tuple[dict, dict[str, np.ndarray]]:
+def write_weights_file(path: str | os.PathLike[str], header: dict, arrays: dict[str, np.ndarray]) -> None:
+    """A JSON ``header`` and named arrays as one .npz, written next to ``path`` and renamed over it.
+
+    Shared by one model's :meth:`OnlineRegressor.save` and a MIMO model's ``save_state``,
+    so both keep the guarantee that a crash mid-write leaves the previous file intact.
+    """
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    handle, temporary = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(handle, "wb") as stream:
+            np.savez(stream, header=np.array(json.dumps(header)), **arrays)
+            stream.flush()
+            os.fsync(stream.fileno())
+        os.replace(temporary, path)
+    except BaseException:
+        Path(temporary).unlink(missing_ok=True)
+        raise
+
+
+def read_weights_file(path: str | os.PathLike[str]) -> tuple[dict, dict[str, np.ndarray]]:
+    """(header, arrays) of a file :func:`write_weights_file` wrote; any unreadable file is a ModelFileError."""
     try:
         with np.load(path, allow_pickle=False) as archive:
             header = json.loads(str(archive["header"]))
@@ -224,7 +233,19 @@ def _read_model_file(path: str | os.PathLike[str]) -> tuple[dict, dict[str, np.n
         raise ModelFileError(f"{path}: no such weights file") from None
     except (OSError, ValueError, KeyError) as error:
         raise ModelFileError(f"{path}: not a lenn_ros weights file ({error})") from None
-    if header.get("format") != FORMAT_VERSION or header.get("kind") not in ("functional_link", "mlp"):
+    if not isinstance(header, dict) or header.get("format") != FORMAT_VERSION:
+        raise ModelFileError(f"{path}: unsupported weights file format")
+    return header, arrays
+
+
+def _read_model_file(path: str | os.PathLike[str]) -> tuple[dict, dict[str, np.ndarray]]:
+    header, arrays = read_weights_file(path)
+    if header.get("kind") == "mimo":
+        raise ModelFileError(
+            f"{path}: weights of a model with {len(header.get('outputs', []))} outputs (MIMO); "
+            "this one has one output: configure y_names/u_names as the file's model or start without it"
+        )
+    if header.get("kind") not in ("functional_link", "mlp"):
         raise ModelFileError(f"{path}: unsupported weights file format")
     return header, arrays
 

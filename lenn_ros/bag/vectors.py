@@ -1,0 +1,114 @@
+"""Vector runs (MIMO): ``u`` and ``y_p`` as ``std_msgs/msg/Float64MultiArray``, one message per sample.
+
+The channel names travel in every message, as ``layout.dim[0].label`` (comma-joined,
+``size`` = ``stride`` = the channel count): a bag then says which column is which in
+``ros2 bag``, Foxglove or PlotJuggler too, without a side file that can get lost. A
+SISO run stays ``std_msgs/msg/Float64`` (:mod:`lenn_ros.bag.csv_import`), so every
+existing bag and consumer is untouched.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from lenn_ros import topics
+from lenn_ros.bag.errors import BagError
+from lenn_ros.bag.msgtypes import TYPESTORE
+from lenn_ros.bag.reader import _types, find_topic, iter_messages, read_summary
+from lenn_ros.bag.scalars import read_series
+from lenn_ros.bag.writer import BagWriter
+
+__all__ = ["VectorRun", "is_vector_run", "read_vector_run", "vector_message", "write_vector_run"]
+
+
+@dataclass(frozen=True)
+class VectorRun:
+    """A vector run's paired samples: ``u`` (N, n_u), ``y`` (N, n_y), channel names, 1-based test start."""
+
+    u: np.ndarray
+    y: np.ndarray
+    u_names: tuple[str, ...]
+    y_names: tuple[str, ...]
+    test_start: int | None = None
+
+
+def vector_message(values: Sequence[float], names: Sequence[str]):
+    """One sample as a Float64MultiArray whose single dimension's label names the channels."""
+    types = TYPESTORE.types
+    dim = types["std_msgs/msg/MultiArrayDimension"](label=",".join(names), size=len(names), stride=len(names))
+    layout = types["std_msgs/msg/MultiArrayLayout"](dim=[dim], data_offset=0)
+    return types[topics.FLOAT64_ARRAY](layout=layout, data=np.ascontiguousarray(values, dtype=np.float64))
+
+
+def write_vector_run(
+    out_path: str | Path,
+    u_rows: np.ndarray,
+    y_rows: np.ndarray,
+    names: tuple[Sequence[str], Sequence[str]],
+    dt: float,
+    test_from: int | None = None,
+) -> Path:
+    """/u and /y_p (rows: samples, columns: channels) stamped at k*dt, the latched /test_start first."""
+    u_names, y_names = names
+    out_path = Path(out_path)
+    with BagWriter(out_path, flush_period=None) as bag:
+        bag.add_topic("/" + topics.U, topics.FLOAT64_ARRAY)
+        bag.add_topic("/" + topics.Y_P, topics.FLOAT64_ARRAY)
+        if test_from is not None:
+            bag.add_topic("/" + topics.TEST_START)
+            bag.write_value("/" + topics.TEST_START, int(test_from), 0)
+        for k, (u, y) in enumerate(zip(u_rows, y_rows, strict=True)):
+            stamp = round(k * dt * 1e9)
+            bag.write_message("/" + topics.U, vector_message(u, u_names), stamp)
+            bag.write_message("/" + topics.Y_P, vector_message(y, y_names), stamp)
+    return out_path
+
+
+def is_vector_run(path: str | Path) -> bool:
+    """Whether the bag's ``u`` topic holds Float64MultiArray samples (a MIMO run)."""
+    available = _types(read_summary(path)[1])
+    topic = find_topic(available, topics.U)
+    return topic is not None and available[topic] == topics.FLOAT64_ARRAY
+
+
+def read_vector_run(path: str | Path) -> VectorRun:
+    """u and y_p of a vector run, paired by message order (as import-csv writes them), with their names."""
+    path = Path(path)
+    file, summary = read_summary(path)
+    available = _types(summary)
+    columns, names = [], []
+    for name, kind in ((topics.U, "u"), (topics.Y_P, "y")):
+        topic = find_topic(available, name)
+        if topic is None or available[topic] != topics.FLOAT64_ARRAY:
+            found = f"type {available[topic]}" if topic else "missing"
+            raise BagError(f"{path}: topic {name!r} is {found}; a vector run needs {topics.FLOAT64_ARRAY} on u and y_p")
+        values = read_series(path, file, summary, topic).values
+        if values is None or not len(values):
+            raise BagError(f"{path}: topic {topic!r} has no messages; record a run that publishes it")
+        values = np.asarray(values, dtype=np.float64).reshape(len(values), -1)
+        columns.append(values)
+        names.append(_labels(path, topic, values.shape[1], kind))
+    pairs = min(len(columns[0]), len(columns[1]))
+    start = find_topic(available, topics.TEST_START)
+    starts = read_series(path, file, summary, start).values if start else None
+    return VectorRun(
+        u=columns[0][:pairs],
+        y=columns[1][:pairs],
+        u_names=names[0],
+        y_names=names[1],
+        test_start=int(starts[-1]) if starts is not None and len(starts) else None,
+    )
+
+
+def _labels(path: Path, topic: str, width: int, kind: str) -> tuple[str, ...]:
+    """The channel names of the topic's first message; u0, u1... when its label does not name each channel."""
+    first = next(iter_messages(path, [topic])).message
+    dims = list(first.layout.dim)
+    names = tuple(part.strip() for part in dims[0].label.split(",")) if dims else ()
+    if len(names) != width or not all(names):
+        return tuple(f"{kind}{i}" for i in range(width))
+    return names

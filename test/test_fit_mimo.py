@@ -1,0 +1,161 @@
+"""``import-csv`` and ``fit`` with several --u / --y columns, on data simulated from the coupled 2x2 plant."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+
+from lenn_ros.bag import BagError, import_csv, read_run
+from lenn_ros.config import build_identifier, read_params_file, resolve
+from lenn_ros.core.evaluation import simulate_mimo
+from lenn_ros.core.mimo import MimoIdentifier
+from lenn_ros.core.networks import ModelFileError
+from lenn_ros.core.plants import narendra_mimo_plant
+from lenn_ros.fit_mimo import fit_mimo, load_mimo_data, write_outputs
+
+REPO = Path(__file__).resolve().parents[1]
+TRAIN, TEST = 2000, 400
+
+
+def simulated_csv(path: Path, seed: int = 0) -> Path:
+    """Training (random inputs, -30 dB input noise) then test (sinusoids) of narendra2x2, with a time column."""
+    series = simulate_mimo(narendra_mimo_plant(), -30.0, seed=seed, train_samples=TRAIN, test_samples=TEST)
+    k = np.arange(len(series.y)) * 0.01
+    np.savetxt(path, np.c_[k, series.u, series.y], delimiter=",", header="t,u1,u2,y1,y2", comments="")
+    return path
+
+
+def lenn_ros(*arguments: str) -> subprocess.CompletedProcess[str]:
+    command = [sys.executable, "-m", "lenn_ros.cli", *arguments]
+    return subprocess.run(command, capture_output=True, text=True, timeout=300, cwd=REPO, check=False)
+
+
+def identifier_from_params(values: dict) -> MimoIdentifier:
+    """What the identifier node builds from the params file's values (``_build_model``)."""
+    resolved, network = resolve(values)
+    identifier = build_identifier({**values, **resolved}, network)
+    assert isinstance(identifier, MimoIdentifier)
+    return identifier
+
+
+@pytest.fixture(scope="module")
+def fitted(tmp_path_factory: pytest.TempPathFactory) -> dict:
+    """One fit of a simulated log, shared: the fit is the slow part (a few seconds)."""
+    directory = tmp_path_factory.mktemp("mimo")
+    data = load_mimo_data(simulated_csv(directory / "log.csv"), ["u1", "u2"], ["y1", "y2"])
+    result = fit_mimo(data, TRAIN + 1)
+    files = write_outputs(directory / "model", result, data.u[:TRAIN], data.y)
+    return {"data": data, "result": result, "files": files}
+
+
+def test_mimo_fit_beats_one_siso_model_per_output_on_both_outputs(fitted: dict) -> None:
+    report = fitted["result"]["report"]
+    assert report["samples"] == TEST and report["outputs"] == ["y1", "y2"]
+    assert report["warnings"] == [] and not report["free_run"]["diverged"]
+    assert report["model"]["y_lags"] == 1  # the plant is first order
+    mimo, siso = report["per_output"], report["comparison"]["per_output"]
+    for full, diagonal in zip(mimo, siso, strict=True):
+        assert full["nmse_free_run_db"] < diagonal["nmse_free_run_db"] - 5.0, (full, diagonal)
+        assert full["nmse_db"] < diagonal["nmse_db"] - 5.0
+        assert full["rmse_free_run"] < 0.5 * diagonal["rmse_free_run"]
+    assert report["comparison"]["model"]["couplings"] == "diagonal"
+
+
+def test_params_and_weights_rebuild_the_fitted_model(fitted: dict) -> None:
+    document = yaml.safe_load(Path(fitted["files"]["params"]).read_text())
+    assert list(document) == ["/**"]
+    values = document["/**"]["ros__parameters"]
+    assert values["u_type"] == values["y_type"] == "std_msgs/msg/Float64MultiArray"
+    assert values["u_field"] == values["y_field"] == "data[*]"
+    assert (values["u_names"], values["y_names"], values["couplings"]) == (["u1", "u2"], ["y1", "y2"], "full")
+    assert all(len(values[key]) == 2 for key in ("u_scales", "u_offsets", "y_scales", "y_offsets"))
+    assert Path(values["weights_in"]).is_absolute() and Path(values["weights_in"]).exists()
+    assert not {"terms", "separate", "known_a", "known_b"} & set(values)
+    assert read_params_file(fitted["files"]["params"]) == values
+    identifier = identifier_from_params(values)
+    identifier.load_state(values["weights_in"])
+    data, report = fitted["data"], fitted["result"]["report"]
+    np.testing.assert_array_equal(identifier.free_run(data.u, data.y, TRAIN), report["y_free_test"])
+    np.testing.assert_array_equal(identifier.run(data.u, data.y, learn=False)[TRAIN:], report["y_hat_test"])
+
+
+def test_weights_of_another_shape_or_output_count_are_refused(fitted: dict, tmp_path: Path) -> None:
+    values = yaml.safe_load(Path(fitted["files"]["params"]).read_text())["/**"]["ros__parameters"]
+    other = identifier_from_params({**values, "y_lags": values["y_lags"] + 1})
+    with pytest.raises(ModelFileError, match=r"output 0 \(y1\): weights are for a different network.*n_inputs"):
+        other.load_state(values["weights_in"])
+    one = identifier_from_params({**values, "y_names": ["y1"], "y_scales": [1.0], "y_offsets": [0.0]})
+    with pytest.raises(ModelFileError, match=r"weights of 2 output\(s\), this model has 1 outputs"):
+        one.load_state(values["weights_in"])
+    with np.load(values["weights_in"]) as archive:
+        arrays = {name: archive[name] for name in archive.files}
+    arrays["y1_weights_"] = arrays["y1_weights_"][:-1]
+    np.savez(tmp_path / "cut.npz", **arrays)
+    whole = identifier_from_params(values)
+    before = [model.weights_.copy() for model in whole.models]
+    with pytest.raises(ModelFileError, match=r"output 1 \(y2\): array 'weights_' missing or of shape"):
+        whole.load_state(tmp_path / "cut.npz")
+    for weights, model in zip(before, whole.models, strict=True):  # all or nothing: output 0 untouched
+        np.testing.assert_array_equal(weights, model.weights_)
+
+
+def test_import_csv_with_several_columns_writes_labelled_vector_samples(tmp_path: Path) -> None:
+    csv = tmp_path / "log.csv"
+    csv.write_text("t,a,b,c,d\n" + "".join(f"{k / 10},{k},{-k},{2 * k},{k / 4}\n" for k in range(12)))
+    bag = import_csv(csv, ["a", "b"], ["d", "c"], 0.1, tmp_path / "bag", test_from=9)
+    with (bag / "bag.mcap").open("rb") as f:  # an independent reader: mcap + mcap_ros2
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        decoded = [(c.topic, s.name, m, d) for s, c, m, d in reader.iter_decoded_messages(log_time_order=True)]
+    u = [d for topic, *_, d in decoded if topic == "/u"]
+    y = [d for topic, *_, d in decoded if topic == "/y_p"]
+    assert {name for topic, name, *_ in decoded if topic in ("/u", "/y_p")} == {"std_msgs/msg/Float64MultiArray"}
+    assert [list(d.data) for d in u] == [[float(k), float(-k)] for k in range(12)]
+    assert [list(d.data) for d in y] == [[k / 4, 2.0 * k] for k in range(12)]
+    assert [(dim.label, dim.size, dim.stride) for dim in u[0].layout.dim] == [("a,b", 2, 2)]
+    assert [(dim.label, dim.size, dim.stride) for dim in y[5].layout.dim] == [("d,c", 2, 2)]
+    assert [m.log_time for topic, _n, m, _d in decoded if topic == "/u"][:2] == [0, 100_000_000]
+    assert [d.data for topic, *_, d in decoded if topic == "/test_start"] == [9]
+    siso = read_run(import_csv(csv, ["a"], ["c"], 0.1, tmp_path / "siso"))  # one of each: the Float64 bag as before
+    assert siso.u.tolist() == [float(k) for k in range(12)] and siso.topics["u"] == "/u"
+
+
+@pytest.mark.parametrize(
+    ("text", "u", "y", "pattern"),
+    [
+        ("a,b,c\n1,2,3\n", ["a", "x"], ["c"], r"no column 'x' \(columns: a, b, c\)"),
+        ("a,b,c\n1,2,3\n4,5,z\n", ["a", "b"], ["c"], r"line 3, column 'c': 'z' is not a number"),
+        ("a,b,c\n1,2,3\n", ["a", "a"], ["c"], r"column 'a' given twice as --u"),
+    ],
+)
+def test_import_csv_several_columns_errors(tmp_path: Path, text: str, u: list, y: list, pattern: str) -> None:
+    csv = tmp_path / "log.csv"
+    csv.write_text(text)
+    with pytest.raises(BagError, match=pattern):
+        import_csv(csv, u, y, 0.1, tmp_path / "bag")
+    assert not (tmp_path / "bag").exists()
+
+
+def test_cli_import_csv_then_fit_the_vector_bag(tmp_path: Path) -> None:
+    csv = simulated_csv(tmp_path / "log.csv", seed=1)
+    bag, model = tmp_path / "bag", tmp_path / "model"
+    done = lenn_ros("import-csv", str(csv), "--u", "u1", "--u", "u2", "--y", "y1", "--y", "y2",
+                    "--dt", "0.01", "-o", str(bag), "--test-from", str(TRAIN + 1))  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    done = lenn_ros("fit", str(bag), "--json", "-o", str(model), "--plot", str(tmp_path / "fit.png"))
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout, parse_constant=lambda c: pytest.fail(f"non-JSON constant {c}"))
+    assert report["test_from"] == TRAIN + 1 and report["inputs"] == ["u1", "u2"]  # test start and names from the bag
+    for full, diagonal in zip(report["per_output"], report["comparison"]["per_output"], strict=True):
+        assert full["nmse_free_run_db"] < diagonal["nmse_free_run_db"] - 5.0
+    assert (model / "weights.npz").exists() and (tmp_path / "fit.png").stat().st_size > 0
+    text = lenn_ros("fit", str(csv), "--u", "u1", "--u", "u2", "--y", "y1", "--y", "speed", "--test-from", "2001")
+    assert text.returncode == 2 and text.stderr.count("\n") == 1
+    assert "no column 'speed'; columns are t, u1, u2, y1, y2" in text.stderr

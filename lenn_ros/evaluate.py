@@ -36,10 +36,11 @@ import numpy as np
 
 from lenn_ros import bag as bags
 from lenn_ros import topics
-from lenn_ros.config import NODE_PARAMETERS, build_identifier, read_params_file, resolve
+from lenn_ros.config import NODE_PARAMETERS, build_identifier, is_mimo, read_params_file, resolve
 from lenn_ros.core.evaluation import Evaluation, free_run_problems
-from lenn_ros.core.fields import compile_path, stamp_seconds
+from lenn_ros.core.fields import compile_path, compile_vector, stamp_seconds
 from lenn_ros.core.metrics import nmse_db, rmse
+from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.session import Session, SessionConfig
 from lenn_ros.core.structure import Identifier
@@ -109,7 +110,9 @@ def identifier_from_params(path: str | None) -> tuple[Identifier, dict]:
     values = read_params_file(path) if path else {}
     resolved, network = resolve(values)
     values = {**_NODE_DEFAULTS, **values}
-    return _as_node_builds_it(build_identifier(resolved, network), values, f"params file {path}"), values
+    # the fields say how many channels (MIMO): node-level values, which resolve() leaves out
+    identifier = build_identifier({**values, **resolved}, network)
+    return _as_node_builds_it(identifier, values, f"params file {path}"), values
 
 
 def weights_path(value: str) -> Path:
@@ -134,7 +137,7 @@ def _as_node_builds_it(identifier: Identifier, values: dict[str, Any], source: s
                 f"directory {Path.cwd()}, as the identifier node does): run from there, give an absolute path, "
                 "or set weights_in to '' for fresh weights"
             )
-        identifier.model.load_state(path)
+        (identifier if isinstance(identifier, MimoIdentifier) else identifier.model).load_state(path)
         identifier.mark_healthy()
     return identifier
 
@@ -152,7 +155,7 @@ def _configuration(path: str, params: str | None) -> tuple[Identifier, dict[str,
     network = values.pop("network", "lenn")
     model_values, _ = resolve({**{k: v for k, v in values.items() if k not in _NODE_DEFAULTS}, "network": network})
     values = {**_NODE_DEFAULTS, **values}
-    identifier = build_identifier(model_values, network)
+    identifier = build_identifier({**values, **model_values}, network)
     return _as_node_builds_it(identifier, values, f"identifier configuration recorded in {path}"), values
 
 
@@ -193,7 +196,7 @@ def _pair_raw(path: str, session: Session, values: dict[str, Any]) -> tuple[np.n
         if not found:
             raise EvaluateError(f"{path}: no {name} topic in the bag (topics: {', '.join(sorted(types)) or 'none'})")
         names[found[0]] = channel
-    extract = {U: compile_path(values["u_field"]), Y: compile_path(values["y_field"])}
+    extract = {U: _extractor(values, "u"), Y: _extractor(values, "y")}
     messages = list(bags.iter_messages(path, list(names)))
     by_order = values["pairing"] == "sequence" and not any(message.sequence for message in messages)
     if by_order:
@@ -226,6 +229,14 @@ def _pair_raw(path: str, session: Session, values: dict[str, Any]) -> tuple[np.n
     return index, np.array([p.u for p in pairs]), np.array([p.y for p in pairs]), by_order
 
 
+def _extractor(values: dict[str, Any], side: str) -> Any:
+    """message -> the value the node takes from it: one number, or the vector of channels (MIMO)."""
+    field = str(values[f"{side}_field"])
+    if not is_mimo(values):
+        return compile_path(field)
+    return compile_vector(field, [str(name) for name in values.get(f"{side}_names", [""])])
+
+
 def _in_index_order(messages: list, names: dict[str, str]) -> list:
     """Undo reordering in the recording: by publisher run (a restart begins at 1), then index.
 
@@ -249,6 +260,10 @@ def evaluate_bag(path: str, params: str | None = None, test_from: int | None = N
     """Train on the bag's training phase, score the frozen model on its test phase."""
     identifier, values = _configuration(path, params)
     session = _session(identifier, values)
+    if isinstance(identifier, MimoIdentifier):
+        from lenn_ros.evaluate_mimo import evaluate_mimo_bag
+
+        return evaluate_mimo_bag(path, session, values, test_from)
     recorded = _recorded_samples(path)
     if recorded is not None:
         index, u, y, learn = recorded
@@ -363,6 +378,10 @@ def _score(identifier: Identifier, index: np.ndarray, u: np.ndarray, y: np.ndarr
 
 def main(args) -> int:
     result = evaluate_bag(args.bag, args.params, args.test_from)
+    if not isinstance(result, BagEvaluation):
+        from lenn_ros.evaluate_mimo import report
+
+        return report(args, result)
     if args.plot:
         from lenn_ros.plotting import plot_identification
 

@@ -86,6 +86,14 @@ RUN_TOPICS: tuple[TopicSpec, ...] = (
 )
 
 
+def run_topics(mimo: bool = False) -> tuple[TopicSpec, ...]:
+    """:data:`RUN_TOPICS` of a run with one channel, or with several: then y_hat and error are vectors."""
+    if not mimo:
+        return RUN_TOPICS
+    vectors = (Y_HAT, ERROR)
+    return tuple(TopicSpec(spec.name, FLOAT64_ARRAY) if spec.name in vectors else spec for spec in RUN_TOPICS)
+
+
 def message_class(type_name: str):
     """The rclpy message class for a ROS type string such as ``sensor_msgs/msg/JointState``.
 

@@ -94,3 +94,55 @@ def test_robot_vector_topics_from_two_nodes_are_learnt_per_named_joint(domain: i
     assert set(status["channels"]) == {"shoulder", "elbow"} and status["u_channels"] == ["cmd_shoulder", "cmd_elbow"]
     assert graph.stamped and graph.stamped[-1].name == ["shoulder", "elbow"]
     assert "has 3 elements, the model has 2 channels" in err and err.count("has 3 elements") == 1  # said once
+
+
+def test_a_recorded_mimo_run_evaluates_offline_to_the_live_figures(tmp_path: Path, domain: int) -> None:
+    """simulator + MIMO identifier + recorder; ``evaluate`` of the bag gives the live per-channel NMSE."""
+    import json as json_module
+
+    from mimo_live import MIMO_VALUES
+    from rosutil import final_status, start_node, stop
+    from test_bag import independent_read
+
+    from lenn_ros.evaluate import evaluate_bag
+
+    values = {**MIMO_VALUES, "seed": 5, "wait_for_y_hat_subscribers": 2, "wait_for_error_subscribers": 1}
+    params = tmp_path / "mimo.json"
+    params.write_text(json_module.dumps({"/**": {"ros__parameters": values}}))
+    bag = tmp_path / "bag"
+    recorder = start_node(
+        "recorder",
+        f"output:={bag}",
+        "mimo:=true",
+        "u_type:=std_msgs/msg/Float64MultiArray",
+        "y_type:=std_msgs/msg/Float64MultiArray",
+    )
+    identifier = start_node("identifier", params_file=params)
+    simulator = start_node(
+        "plant_simulator",
+        "mimo_plant:=narendra2x2",
+        "seed:=5",
+        f"train_samples:={TRAIN}",
+        f"test_samples:={TEST}",
+        f"noise_db:={NOISE_DB}",
+        "rate_hz:=0.0",
+        "wait_for_subscribers:=2",
+        "exit_when_done:=true",
+    )
+    try:
+        _, sim_err = simulator.communicate(timeout=180)
+        assert simulator.returncode == 0, sim_err
+    finally:
+        _, id_err = stop(identifier)
+        _, rec_err = stop(recorder)
+    live = final_status(id_err)
+    assert "[ERROR]" not in rec_err, rec_err
+    theirs = independent_read(bag / "bag.mcap")
+    assert {t: len(v) for t, v in theirs.items() if t in ("/u", "/y_p", "/y_hat", "/error")} == {
+        "/u": TRAIN + TEST, "/y_p": TRAIN + TEST, "/y_hat": TRAIN + TEST, "/error": TRAIN + TEST - 1
+    }  # fmt: skip
+    offline = evaluate_bag(str(bag))  # the configuration the identifier recorded
+    assert offline.pairs == TRAIN + TEST and offline.samples == TEST
+    for name in NAMES:
+        assert offline.channels[name]["nmse_db"] == pytest.approx(live["channels"][name]["phase_nmse_db"], abs=1e-9)
+        assert offline.channels[name]["nmse_free_run_db"] < -15.0  # the joint model runs stably on its own

@@ -91,7 +91,7 @@ class Recorder(Node):
         flush_period = float(self.get_parameter("flush_period").value)
         names = list(self.get_parameter("topics").value)
         self.reliability = str(self.get_parameter("reliability").value).lower()
-        specs = {spec.name: spec for spec in topics.RUN_TOPICS}
+        specs = {spec.name: spec for spec in topics.run_topics(bool(self.get_parameter("mimo").value))}
         unknown = [name for name in names if name not in specs]
         if unknown:
             raise SystemExit(f"recorder: topics {unknown} are not lenn_ros topics; choose from {sorted(specs)}")
@@ -133,6 +133,7 @@ class Recorder(Node):
         declare("topics", [spec.name for spec in topics.RUN_TOPICS], "lenn_ros topics to record (remappable).")
         declare("u_type", topics.FLOAT64, "Message type of u; empty or 'auto': from the graph once published.")
         declare("y_type", topics.FLOAT64, "Message type of y_p; empty or 'auto': from the graph.")
+        declare("mimo", False, "A run with several channels: y_hat and error are Float64MultiArray (README: MIMO).")
         declare("reliability", "auto", "u/y_p subscriptions: auto (follow the publishers), reliable or best_effort.")
         declare(
             "flush_period",

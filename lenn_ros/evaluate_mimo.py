@@ -1,0 +1,154 @@
+"""``lenn-ros evaluate BAG`` for a model with several channels: the same session, scored per output.
+
+:func:`lenn_ros.evaluate.evaluate_bag` hands over here when the configuration names
+several u or y_p channels. The recorded u and y_p messages (vector messages, or an
+``import-csv`` with several columns) are paired by the session exactly as the node
+pairs them (``evaluate._pair_raw``), learnt in one batched pass
+(:meth:`~lenn_ros.core.session.Session.run_samples`) and scored per output channel:
+one-step, and the free run of the joint model (every output fed the model's own
+outputs) over the test part up to its first break.
+
+Not (yet) read back: the identifier's own ``samples`` topic of a MIMO run; the raw
+u / y_p messages carry the same samples when the recorder lost none (the report says
+how many indices are missing).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from lenn_ros import bag as bags
+from lenn_ros import topics
+from lenn_ros.core.metrics import nmse_db, rmse
+from lenn_ros.core.mimo import MimoIdentifier
+from lenn_ros.core.session import Session, json_safe
+
+
+@dataclass
+class MimoBagEvaluation:
+    """Per output channel: NMSE (dB) and RMSE one-step and in free run on the test part."""
+
+    channels: dict[str, dict[str, float]]
+    pairs: int
+    test_start: int
+    source: str
+    samples: int  # test samples scored one-step
+    missing: int = 0
+    free_run: dict[str, Any] = field(default_factory=dict)
+    counters: dict[str, int] = field(default_factory=dict)
+    notices: list[str] = field(default_factory=list)
+
+    def as_dict(self) -> dict[str, Any]:
+        return json_safe(
+            {
+                "channels": self.channels,
+                "pairs": self.pairs,
+                "test_start": self.test_start,
+                "source": self.source,
+                "samples": self.samples,
+                "missing": self.missing,
+                "free_run": self.free_run,
+                "counters": self.counters,
+                "notices": self.notices,
+            }
+        )
+
+
+def evaluate_mimo_bag(path: str, session: Session, values: dict[str, Any], test_from: int | None) -> MimoBagEvaluation:
+    from lenn_ros.evaluate import EvaluateError, _pair_raw
+
+    identifier = session.identifier
+    assert isinstance(identifier, MimoIdentifier)
+    index, u, y, by_order = _pair_raw(path, session, values)
+    source = f"u/y_p by {'order (no sequence numbers recorded)' if by_order else values['pairing']}"
+    start = test_from if test_from is not None else _recorded_test_start(path)
+    if len(index) == 0:
+        raise EvaluateError(f"{path}: no samples could be paired ({source}); see the notices above")
+    if start is None:
+        raise EvaluateError(f"{path}: no test_start topic in the bag; pass --test-from K (1-based sample index)")
+    if start < index[0] + 1 or start > index[-1]:
+        raise EvaluateError(f"test start {start} outside the bag's samples {index[0] + 1}..{index[-1]}")
+    u = u.reshape(len(index), -1)
+    y = y.reshape(len(index), -1)
+    y_hat = session.run_samples(index, u, y, index < start)
+    test = index >= start
+    y_free, free_run = _free_run(identifier, index, u, y, int(np.argmax(test)))
+    scored = test & np.isfinite(y_hat).all(axis=1)
+    channels = {
+        name: _channel_scores(y[:, j], y_hat[:, j], y_free[:, j], scored, test)
+        for j, name in enumerate(identifier.names)
+    }
+    notices = sorted({f"{n.kind}: {n.text}" for n in session.take_notices() if n.kind != "phase"})
+    missing = int(np.sum(np.clip(np.diff(index) - 1, 0, None))) + int(index[0] - 1)
+    return MimoBagEvaluation(
+        channels, len(index), int(start), source, int(scored.sum()), missing, free_run, session.all_counters(), notices
+    )
+
+
+def _recorded_test_start(path: str) -> int | None:
+    """The last ``test_start`` in the bag (``read_run`` reads u / y_p as scalars, so not that)."""
+    starts = [int(message.message.data) for message in bags.iter_messages(path, [topics.TEST_START])]
+    return starts[-1] if starts else None
+
+
+def _free_run(
+    identifier: MimoIdentifier, index: np.ndarray, u: np.ndarray, y: np.ndarray, first: int
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """The joint free run from the first test sample to the first break (lost or invalid sample) after it."""
+    y_free = np.full((len(y), y.shape[1]), np.nan)
+    valid = np.isfinite(u).all(axis=1) & np.isfinite(y).all(axis=1)
+    continues = np.r_[False, (np.diff(index) == 1) & valid[1:] & valid[:-1]]
+    breaks = np.flatnonzero(~continues[first + 1 :])
+    end = first + 1 + int(breaks[0]) if breaks.size else len(y)
+    begin = first
+    while begin > 0 and continues[begin]:
+        begin -= 1  # the measured history the run starts from
+    if first - begin < identifier.outputs[0].structure.warm_up:
+        return y_free, {"samples": 0, "diverged": False, "not_simulated": int(len(y) - first)}
+    y_free[first:end] = identifier.free_run(u[begin:end], y[begin:end], first - begin)
+    info = dict(identifier.last_free_run)
+    info["not_simulated"] = int(len(y) - end)
+    return y_free, info
+
+
+def _channel_scores(
+    y: np.ndarray, y_hat: np.ndarray, y_free: np.ndarray, scored: np.ndarray, test: np.ndarray
+) -> dict[str, float]:
+    simulated = test & np.isfinite(y_free)
+    return {
+        "nmse_db": nmse_db(y[scored], y_hat[scored]) if scored.any() else math.nan,
+        "rmse": rmse(y[scored], y_hat[scored]) if scored.any() else math.nan,
+        "nmse_free_run_db": nmse_db(y[simulated], y_free[simulated]) if simulated.any() else math.nan,
+        "rmse_free_run": rmse(y[simulated], y_free[simulated]) if simulated.any() else math.nan,
+    }
+
+
+def report(args: Any, result: MimoBagEvaluation) -> int:
+    """Print the per-channel table (or JSON); ``--plot`` is said not to apply rather than ignored."""
+    d = result.as_dict()
+    if args.json:
+        print(json.dumps(d, indent=1))
+        return 0
+    print(f"bag {args.bag}: {d['pairs']} samples from {d['source']}, test from sample {d['test_start']}")
+    if d["missing"]:
+        print(f"  {d['missing']} sample indices are missing from the recording (lost before recording or dropped)")
+    print(f"  scored {d['samples']} test samples per output channel")
+    print("  channel        NMSE one-step   NMSE free run   RMSE one-step   RMSE free run")
+    for name, scores in result.channels.items():
+        cells = [scores[key] for key in ("nmse_db", "nmse_free_run_db", "rmse", "rmse_free_run")]
+        shown = [f"{value:13.3f}" if math.isfinite(value) else f"{'nan':>13s}" for value in cells]
+        print(f"  {name:12s} " + "   ".join(shown))
+    if result.free_run.get("diverged"):
+        print(f"  WARNING: the free run diverged at sample {result.free_run.get('diverged_at')}")
+    if result.free_run.get("not_simulated"):
+        print(f"  note: {result.free_run['not_simulated']} test samples after a break not simulated, not scored")
+    if args.plot:
+        print(f"  note: --plot {args.plot}: not written, plots of several channels are not implemented yet")
+    for notice in d["notices"]:
+        print(f"  note: {notice}")
+    return 0

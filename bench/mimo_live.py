@@ -22,6 +22,7 @@ import signal
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -140,13 +141,51 @@ def run_offline(seed: int, train: int, test: int, noise_db: float, couplings: st
     return {name: nmse_db(series.y[part, j], y_hat[part, j]) for j, name in enumerate(NAMES)}
 
 
+def step_costs(samples: int = 20_000) -> dict[str, float]:
+    """Microseconds per sample of ``step`` (one process, one run): the MIMO model against one SISO output's.
+
+    The MIMO path steps one Python :class:`Identifier` per output (no compiled per-sample
+    step for a MIMO channel's regressor yet); the SISO row is the compiled step of the
+    same network on one output, for the ratio.
+    """
+    from lenn_ros.core.mimo import MimoStructure, build_mimo_identifier, parse_couplings
+    from lenn_ros.core.networks import FunctionalLinkNetwork
+    from lenn_ros.core.structure import Identifier, ModelStructure
+
+    series = simulate_mimo(narendra_mimo_plant(), -20.0, 0, samples, 0)
+
+    def network(n_inputs: int, _output: int = 0) -> FunctionalLinkNetwork:
+        return FunctionalLinkNetwork(n_inputs=n_inputs, order=4, cross_degree=3, solver="rls", output="linear")
+
+    costs = {}
+    for couplings in ("full", "diagonal"):
+        structure = MimoStructure(2, 2, y_scale=(2.0, 1.6), couplings=parse_couplings(couplings, 2, 2))
+        identifier = build_mimo_identifier(structure, network)
+        start = time.perf_counter()
+        for k in range(samples):
+            identifier.step(k + 1, series.u[k], series.y[k])
+        costs[f"MIMO step, couplings {couplings} (2 outputs)"] = (time.perf_counter() - start) / samples * 1e6
+    siso = Identifier(ModelStructure(y_lags=1, u_lags=1, y_scale=2.0), network(2))
+    start = time.perf_counter()
+    for k in range(samples):
+        siso.step(k + 1, float(series.u[k, 0]), float(series.y[k, 0]))
+    costs["SISO step, one output (compiled)"] = (time.perf_counter() - start) / samples * 1e6
+    return costs
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--train-samples", type=int, default=5000)
     parser.add_argument("--test-samples", type=int, default=600)
     parser.add_argument("--noise-db", type=float, default=-20.0)
+    parser.add_argument("--step-cost", action="store_true", help="only the per-sample cost of step, in process")
     args = parser.parse_args(argv)
+    if args.step_cost:
+        print("| path | µs per sample |\n|---|---|")
+        for name, cost in step_costs().items():
+            print(f"| {name} | {cost:.1f} |")
+        return 0
     rows: dict[tuple[str, str], list[float]] = {}
     worst = 0.0
     with tempfile.TemporaryDirectory() as workdir:

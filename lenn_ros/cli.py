@@ -37,6 +37,11 @@ def _evaluate(args: argparse.Namespace) -> int:
 def _fit(args: argparse.Namespace) -> int:
     from lenn_ros import fit
 
+    u_columns, y_columns = fit.columns(args.u), fit.columns(args.y)
+    if len(u_columns) > 1 or len(y_columns) > 1 or fit.is_vector_bag(args.data):
+        from lenn_ros import fit_mimo  # several channels: one MISO model per output
+
+        return fit_mimo.main(args, u_columns, y_columns)
     return fit.main(args)
 
 

@@ -73,6 +73,13 @@ NODE_PARAMETERS = [
     # -- where u and y_p come from (issue 9: a real robot's topics) --
     Parameter("u_type", "std_msgs/msg/Float64", "message type on u (e.g. std_msgs/msg/Float64MultiArray)"),
     Parameter("y_type", "std_msgs/msg/Float64", "message type on y_p (e.g. sensor_msgs/msg/JointState)"),
+    Parameter(
+        "u_topics",
+        [""],
+        "MIMO: several topics carrying u's channels (each with u_type, u_field), merged per sample as pairing "
+        "says ([''] = the one topic u)",
+    ),
+    Parameter("y_topics", [""], "MIMO: several topics carrying y_p's channels ([''] = the one topic y_p)"),
     Parameter("u_field", "data", "path to the scalar in a u message, as ros2 topic echo --field writes it: data[0]"),
     Parameter("y_field", "data", "path to the scalar in a y_p message: position[2], position[elbow], twist.linear.x"),
     Parameter(
@@ -209,7 +216,42 @@ def build_identifier(values: dict[str, Any], network: str) -> Identifier | MimoI
 
 def is_mimo(values: dict[str, Any]) -> bool:
     """Whether the values name several u or y_p channels (then the model is a MimoIdentifier)."""
-    return is_vector(str(values.get("u_field", "data"))) or is_vector(str(values.get("y_field", "data")))
+    several = any(len(_side_topics(values, side)) > 1 for side in ("u", "y"))
+    return several or is_vector(str(values.get("u_field", "data"))) or is_vector(str(values.get("y_field", "data")))
+
+
+def _side_topics(values: dict[str, Any], side: str) -> list[str]:
+    return [str(topic).strip() for topic in values.get(f"{side}_topics", [""]) if str(topic).strip()]
+
+
+def input_topics(values: dict[str, Any]) -> list[tuple[str, int, str]]:
+    """(side ``u``/``y``, part, topic) of every input the node subscribes: ``u`` and ``y_p``, or a side's topics."""
+    inputs = []
+    for side, default in (("u", "u"), ("y", "y_p")):
+        listed = _side_topics(values, side)
+        inputs += [(side, part, name) for part, name in enumerate(listed if len(listed) > 1 else [default])]
+    return inputs
+
+
+def side_channels(values: dict[str, Any], side: str) -> tuple[list[str], tuple[int, ...], tuple[str, ...]]:
+    """A side's (``u`` or ``y``) channel names, channels per topic and topic names (both empty: one topic).
+
+    Several topics share the side's type and field; each contributes the channels its
+    field names, named by the topic (one channel each) or ``topic.channel``, unless
+    ``u_names`` / ``y_names`` name them all. Raises FieldError with the reason.
+    """
+    field = str(values[f"{side}_field"])
+    names = [str(name) for name in values.get(f"{side}_names", [""]) if str(name)]
+    listed = _side_topics(values, side)
+    if len(listed) <= 1:
+        return channel_names(field, names), (), ()
+    if "[*]" in field:
+        raise FieldError(f"{side}_field {field!r} with several {side}_topics: list the fields instead of [*]")
+    per_topic = channel_names(field)
+    default = [topic if len(per_topic) == 1 else f"{topic}.{name}" for topic in listed for name in per_topic]
+    if names and len(names) != len(default):
+        raise FieldError(f"{side}_names has {len(names)} names for {len(default)} channels of {', '.join(listed)}")
+    return names or default, (len(per_topic),) * len(listed), tuple(listed)
 
 
 def _build_identifier(values: dict[str, Any], network: str) -> Identifier | MimoIdentifier:
@@ -283,8 +325,8 @@ def _per_channel(values: dict[str, Any], name: str, count: int) -> tuple[float, 
 def _build_mimo(values: dict[str, Any], network: str) -> MimoIdentifier:
     """One network per output over the coupled channels; SISO-only structure options are refused."""
     try:
-        u_names = channel_names(str(values["u_field"]), [str(n) for n in values.get("u_names", [""])])
-        y_names = channel_names(str(values["y_field"]), [str(n) for n in values.get("y_names", [""])])
+        u_names = side_channels(values, "u")[0]
+        y_names = side_channels(values, "y")[0]
     except FieldError as error:
         raise ConfigError(str(error)) from None
     unsupported = [

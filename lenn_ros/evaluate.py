@@ -36,7 +36,15 @@ import numpy as np
 
 from lenn_ros import bag as bags
 from lenn_ros import topics
-from lenn_ros.config import NODE_PARAMETERS, build_identifier, is_mimo, read_params_file, resolve
+from lenn_ros.config import (
+    NODE_PARAMETERS,
+    build_identifier,
+    input_topics,
+    is_mimo,
+    read_params_file,
+    resolve,
+    side_channels,
+)
 from lenn_ros.core.evaluation import Evaluation, free_run_problems
 from lenn_ros.core.fields import compile_path, compile_vector, stamp_seconds
 from lenn_ros.core.metrics import nmse_db, rmse
@@ -44,6 +52,8 @@ from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.session import Session, SessionConfig
 from lenn_ros.core.structure import Identifier
+from lenn_ros.evaluate_mimo import MimoBagEvaluation, recorded_test_start, score_mimo
+from lenn_ros.evaluate_mimo import report as report_mimo
 
 _NODE_DEFAULTS = {parameter.name: parameter.default for parameter in NODE_PARAMETERS}
 
@@ -190,12 +200,13 @@ def _raw_losses(path: str) -> dict[str, int]:
 def _pair_raw(path: str, session: Session, values: dict[str, Any]) -> tuple[np.ndarray, ...]:
     """Pair the recorded u / y_p messages the way the node would have."""
     types = bags.topic_types(path)
-    names = {}
-    for channel, name in ((U, topics.U), (Y, topics.Y_P)):
-        found = [topic for topic in types if topic.rstrip("/").rsplit("/", 1)[-1] == name]
+    names, parts = {}, {}
+    for channel, part, name in input_topics(values):
+        short = name.rstrip("/").rsplit("/", 1)[-1]
+        found = [topic for topic in types if topic == name or topic.rstrip("/").rsplit("/", 1)[-1] == short]
         if not found:
             raise EvaluateError(f"{path}: no {name} topic in the bag (topics: {', '.join(sorted(types)) or 'none'})")
-        names[found[0]] = channel
+        names[found[0]], parts[found[0]] = channel, part
     extract = {U: _extractor(values, "u"), Y: _extractor(values, "y")}
     messages = list(bags.iter_messages(path, list(names)))
     by_order = values["pairing"] == "sequence" and not any(message.sequence for message in messages)
@@ -222,6 +233,7 @@ def _pair_raw(path: str, session: Session, values: dict[str, Any]) -> tuple[np.n
             received=received,
             sequence=seen[channel] if by_order else message.sequence,
             source_time=None if by_order else (message.publish_time_ns * 1e-9 or None),
+            part=parts[message.topic],
         )
     session.flush()
     pairs = session.release_pairs()
@@ -234,7 +246,8 @@ def _extractor(values: dict[str, Any], side: str) -> Any:
     field = str(values[f"{side}_field"])
     if not is_mimo(values):
         return compile_path(field)
-    return compile_vector(field, [str(name) for name in values.get(f"{side}_names", [""])])
+    names, sizes, _ = side_channels(values, side)
+    return compile_vector(field) if sizes else compile_vector(field, names)
 
 
 def _in_index_order(messages: list, names: dict[str, str]) -> list:
@@ -256,14 +269,14 @@ def _in_index_order(messages: list, names: dict[str, str]) -> list:
     return [item[-1] for item in sorted(keyed, key=lambda item: item[:3])]
 
 
-def evaluate_bag(path: str, params: str | None = None, test_from: int | None = None) -> BagEvaluation:
+def evaluate_bag(
+    path: str, params: str | None = None, test_from: int | None = None
+) -> BagEvaluation | MimoBagEvaluation:
     """Train on the bag's training phase, score the frozen model on its test phase."""
     identifier, values = _configuration(path, params)
     session = _session(identifier, values)
     if isinstance(identifier, MimoIdentifier):
-        from lenn_ros.evaluate_mimo import evaluate_mimo_bag
-
-        return evaluate_mimo_bag(path, session, values, test_from)
+        return _evaluate_mimo(path, session, values, test_from)
     recorded = _recorded_samples(path)
     if recorded is not None:
         index, u, y, learn = recorded
@@ -303,6 +316,20 @@ def evaluate_bag(path: str, params: str | None = None, test_from: int | None = N
     return BagEvaluation(
         evaluation, len(index), unpaired, rejected, int(start), source, missing, counters, notices, weights_in
     )
+
+
+def _evaluate_mimo(path: str, session: Session, values: dict[str, Any], test_from: int | None) -> MimoBagEvaluation:
+    """Several channels: the raw u / y_p paired as the node pairs them, then scored per output channel."""
+    index, u, y, by_order = _pair_raw(path, session, values)
+    source = f"u/y_p by {'order (no sequence numbers recorded)' if by_order else values['pairing']}"
+    start = test_from if test_from is not None else recorded_test_start(path)
+    if len(index) == 0:
+        raise EvaluateError(f"{path}: no samples could be paired ({source}); see the notices above")
+    if start is None:
+        raise EvaluateError(f"{path}: no test_start topic in the bag; pass --test-from K (1-based sample index)")
+    if start < index[0] + 1 or start > index[-1]:
+        raise EvaluateError(f"test start {start} outside the bag's samples {index[0] + 1}..{index[-1]}")
+    return score_mimo(session, index, u, y, int(start), source)
 
 
 def _last_phase_start(index: np.ndarray, learn: np.ndarray) -> int | None:
@@ -378,10 +405,8 @@ def _score(identifier: Identifier, index: np.ndarray, u: np.ndarray, y: np.ndarr
 
 def main(args) -> int:
     result = evaluate_bag(args.bag, args.params, args.test_from)
-    if not isinstance(result, BagEvaluation):
-        from lenn_ros.evaluate_mimo import report
-
-        return report(args, result)
+    if isinstance(result, MimoBagEvaluation):
+        return report_mimo(args, result)
     if args.plot:
         from lenn_ros.plotting import plot_identification
 

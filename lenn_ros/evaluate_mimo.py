@@ -1,9 +1,9 @@
 """``lenn-ros evaluate BAG`` for a model with several channels: the same session, scored per output.
 
 :func:`lenn_ros.evaluate.evaluate_bag` hands over here when the configuration names
-several u or y_p channels. The recorded u and y_p messages (vector messages, or an
-``import-csv`` with several columns) are paired by the session exactly as the node
-pairs them (``evaluate._pair_raw``), learnt in one batched pass
+several u or y_p channels, once the recorded u and y_p messages (vector messages, a
+side's several topics, or an ``import-csv`` with several columns) are paired by the
+session exactly as the node pairs them. The samples are learnt in one batched pass
 (:meth:`~lenn_ros.core.session.Session.run_samples`) and scored per output channel:
 one-step, and the free run of the joint model (every output fed the model's own
 outputs) over the test part up to its first break.
@@ -59,20 +59,12 @@ class MimoBagEvaluation:
         )
 
 
-def evaluate_mimo_bag(path: str, session: Session, values: dict[str, Any], test_from: int | None) -> MimoBagEvaluation:
-    from lenn_ros.evaluate import EvaluateError, _pair_raw
-
+def score_mimo(
+    session: Session, index: np.ndarray, u: np.ndarray, y: np.ndarray, start: int, source: str
+) -> MimoBagEvaluation:
+    """Learn the paired samples before ``start`` in one pass, then score every output on the rest."""
     identifier = session.identifier
     assert isinstance(identifier, MimoIdentifier)
-    index, u, y, by_order = _pair_raw(path, session, values)
-    source = f"u/y_p by {'order (no sequence numbers recorded)' if by_order else values['pairing']}"
-    start = test_from if test_from is not None else _recorded_test_start(path)
-    if len(index) == 0:
-        raise EvaluateError(f"{path}: no samples could be paired ({source}); see the notices above")
-    if start is None:
-        raise EvaluateError(f"{path}: no test_start topic in the bag; pass --test-from K (1-based sample index)")
-    if start < index[0] + 1 or start > index[-1]:
-        raise EvaluateError(f"test start {start} outside the bag's samples {index[0] + 1}..{index[-1]}")
     u = u.reshape(len(index), -1)
     y = y.reshape(len(index), -1)
     y_hat = session.run_samples(index, u, y, index < start)
@@ -90,7 +82,7 @@ def evaluate_mimo_bag(path: str, session: Session, values: dict[str, Any], test_
     )
 
 
-def _recorded_test_start(path: str) -> int | None:
+def recorded_test_start(path: str) -> int | None:
     """The last ``test_start`` in the bag (``read_run`` reads u / y_p as scalars, so not that)."""
     starts = [int(message.message.data) for message in bags.iter_messages(path, [topics.TEST_START])]
     return starts[-1] if starts else None

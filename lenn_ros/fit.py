@@ -20,7 +20,7 @@ What it does, each step reported:
 6. with ``-o DIR`` writes ``params.yaml`` and ``weights.npz`` from which the
    identifier node starts and keeps adapting live (RLS with forgetting).
 
-Several ``--u`` / ``--y`` columns, or a vector bag, go to :mod:`lenn_ros.fit_mimo`.
+Several ``--u`` / ``--y`` columns, or a vector bag, go to :mod:`lenn_ros.fit_mimo` (the command line decides).
 """
 
 from __future__ import annotations
@@ -536,11 +536,7 @@ def _jsonable(report: dict[str, Any]) -> dict[str, Any]:
 def main(args: Any) -> int:
     import sys
 
-    u_columns, y_columns = _columns(args.u), _columns(args.y)
-    if len(u_columns) > 1 or len(y_columns) > 1 or _is_vector_bag(args.data):
-        from lenn_ros import fit_mimo
-
-        return fit_mimo.main(args, u_columns, y_columns)
+    u_columns, y_columns = columns(args.u), columns(args.y)
     data = load_data(args.data, u_columns[0] if u_columns else None, y_columns[0] if y_columns else None)
     progress = None if args.json else (lambda text: print(text, file=sys.stderr, flush=True))
     network = getattr(args, "network", "lenn") or "lenn"
@@ -562,14 +558,14 @@ def main(args: Any) -> int:
     return 0
 
 
-def _columns(given: str | list[str] | None) -> list[str]:
+def columns(given: str | list[str] | None) -> list[str]:
     """``--u`` / ``--y`` as a list: the command line repeats them (MIMO), a caller may pass one name."""
     if given is None:
         return []
     return [given] if isinstance(given, str) else list(given)
 
 
-def _is_vector_bag(path: str | Path) -> bool:
+def is_vector_bag(path: str | Path) -> bool:
     """A bag whose u holds Float64MultiArray samples is a MIMO run (``import-csv`` with several columns)."""
     path = Path(path)
     if not (path.is_dir() or path.suffix == ".mcap") or not path.exists():

@@ -159,3 +159,66 @@ def test_save_state_and_load_state_round_trip_every_output_in_one_file(tmp_path)
         fresh.load_state(tmp_path / "one.npz")
     with pytest.raises(ModelFileError, match=r"with 2 outputs \(MIMO\)"):
         learnt.models[0].load_state(tmp_path / "weights.npz")
+
+
+def test_a_side_on_several_topics_merges_by_sequence_stamp_or_hold() -> None:
+    from lenn_ros.core.merging import TopicMerger
+
+    by_sequence = TopicMerger((1, 2), "sequence", window=5)
+    assert by_sequence.add(1, [2.0, 3.0], 0.1, 0.1, sequence=7) == []
+    half = by_sequence.add(0, [1.0], 0.1, 0.1, sequence=7)[0]
+    assert half.value.tolist() == [1.0, 2.0, 3.0] and half.sequence == 7
+    by_sequence.add(0, [1.0], 0.2, 0.2, sequence=8)  # its partner never comes
+    by_sequence.add(0, [1.0], 0.3, 0.3, sequence=20)
+    assert by_sequence.counters["merge_dropped"] == 1  # 8 fell out of the window at 20
+
+    by_stamp = TopicMerger((1, 1), "stamp", slop=0.001)
+    assert by_stamp.add(0, [1.0], 5.0, 5.01) == []
+    assert by_stamp.add(1, [2.0], 5.2, 5.21) == []  # another reading
+    assert by_stamp.add(1, [3.0], 5.0004, 5.22)[0].value.tolist() == [1.0, 3.0]
+
+    held = TopicMerger((1, 1), "sample", max_age=0.05)
+    assert held.add(0, [1.0], 0.00, 0.00) == []  # part 1 never seen yet
+    assert held.add(1, [2.0], 0.01, 0.01)[0].value.tolist() == [1.0, 2.0]
+    assert held.add(0, [4.0], 0.02, 0.02)[0].value.tolist() == [4.0, 2.0]  # part 1 held
+    assert held.add(0, [5.0], 0.20, 0.20) == [] and held.stale_part == 1  # part 1 silent: no half
+    assert held.counters["merge_stale"] == 1
+
+
+def test_a_session_learns_from_a_side_split_over_topics_and_says_a_silent_one() -> None:
+    from lenn_ros.core.pairing import U, Y
+    from lenn_ros.core.session import Session, SessionConfig
+
+    series = simulate_mimo(narendra_mimo_plant(), -30.0, seed=2, train_samples=400, test_samples=0)
+    config = SessionConfig(pairing="sequence", u_parts=(1, 1), u_parts_names=("/cmd0", "/cmd1"))
+    session, reference = Session(_identifier(), config), _identifier()
+    for k in range(len(series.y)):
+        session.offer(U, [series.u[k, 1]], k * 0.01, sequence=k + 1, part=1)
+        session.offer(U, [series.u[k, 0]], k * 0.01, sequence=k + 1, part=0)
+        session.offer(Y, series.y[k], k * 0.01, sequence=k + 1)
+    reference.run(series.u, series.y)
+    assert session.all_counters()["u_merged"] == len(series.y)
+    for merged, whole in zip(session.identifier.models, reference.models, strict=True):
+        np.testing.assert_array_equal(merged.weights_, whole.weights_)  # as if u had come on one topic
+
+    held = Session(_identifier(), SessionConfig(pairing="sample", sample_period=0.01, y_parts=(1, 1),
+                                                y_parts_names=("/left", "/right")))  # fmt: skip
+    for k in range(50):
+        held.offer(U, [0.1, 0.2], k * 0.01)
+        held.offer(Y, [0.3], k * 0.01, part=0)
+        if k < 10:
+            held.offer(Y, [0.4], k * 0.01, part=1)
+    notices = [notice.text for notice in held.take_notices() if notice.kind == "merge_stale"]
+    assert notices and notices[0].startswith("/right is older than 0.050 s")
+
+
+@pytest.mark.parametrize("basis", ["legendre", "chebyshev"])
+def test_the_one_sample_expansion_with_cross_terms_equals_the_batch_bit_for_bit(basis: str) -> None:
+    """The live path (plain floats per sample) must give the offline path's bits, or live != offline."""
+    from lenn_ros.core.expansions import expand
+
+    x = np.random.default_rng(0).uniform(-1, 1, (200, 4))
+    batch = expand(x, 4, basis, 3)
+    one_by_one = np.vstack([expand(x[i : i + 1], 4, basis, 3) for i in range(len(x))])
+    assert one_by_one.shape == batch.shape == (200, 39)  # bias, 4 x 4 univariate, 22 cross terms
+    np.testing.assert_array_equal(one_by_one, batch)

@@ -146,3 +146,56 @@ def test_a_recorded_mimo_run_evaluates_offline_to_the_live_figures(tmp_path: Pat
     for name in NAMES:
         assert offline.channels[name]["nmse_db"] == pytest.approx(live["channels"][name]["phase_nmse_db"], abs=1e-9)
         assert offline.channels[name]["nmse_free_run_db"] < -15.0  # the joint model runs stably on its own
+
+
+def test_each_channel_on_its_own_topic_from_its_own_node_is_merged_and_a_silent_one_said(domain: int) -> None:
+    """Two command topics from two controllers, two measurement topics from two drivers (BEST_EFFORT)."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from rosutil import final_status, start_node, stop
+    from std_msgs.msg import Float64
+    from test_robot_topics import Graph, publish_for
+
+    identifier = start_node(
+        "identifier",
+        "example:=0",
+        "status_period:=0.2",
+        "pairing:=sample",
+        "sample_period:=0.01",
+        "u_topics:=[/robot/cmd0, /robot/cmd1]",
+        "y_topics:=[/robot/left, /robot/right]",
+    )
+    graph = Graph(domain)
+    best_effort = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)
+    publishers = {
+        topic: graph.node(node).create_publisher(Float64, topic, best_effort)
+        for node, topic in (("controller0", "/robot/cmd0"), ("controller1", "/robot/cmd1"),
+                            ("driver_left", "/robot/left"), ("driver_right", "/robot/right"))
+    }  # fmt: skip
+    graph.listen()
+    graph.spin()
+
+    def send(k: int, right: bool = True) -> None:
+        a, b = 0.5 * ((k * 7919) % 13 / 13.0 - 0.5), 0.5 * ((k * 104729) % 17 / 17.0 - 0.5)
+        publishers["/robot/cmd0"].publish(Float64(data=a))
+        publishers["/robot/cmd1"].publish(Float64(data=b))
+        publishers["/robot/left"].publish(Float64(data=0.5 * a + 0.2 * b))
+        if right:
+            publishers["/robot/right"].publish(Float64(data=0.3 * b))
+
+    try:
+        graph.wait(lambda s: True)  # the identifier is up
+        publish_for(3.0, 100, send)
+        learned = graph.wait(lambda s: s["counters"]["learned"] > 300)["counters"]["learned"]
+        publish_for(1.0, 100, lambda k: send(k, right=False))  # the right driver has stopped
+        status = graph.wait(lambda s: s["counters"]["y_merge_stale"] > 20)
+    finally:
+        _, err = stop(identifier)
+        graph.close()
+    final = final_status(err)
+    assert final["u_channels"] == ["/robot/cmd0", "/robot/cmd1"] and set(status["channels"]) == {
+        "/robot/left",
+        "/robot/right",
+    }
+    assert final["counters"]["u_merged"] > 300 and final["counters"]["y_merged"] > 300
+    assert final["counters"]["learned"] < learned + 2 * 60  # the silent topic stops learning (2 outputs)
+    assert "/robot/right is older than" in err and "no sample formed" in err

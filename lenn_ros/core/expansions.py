@@ -146,11 +146,10 @@ def expand(
     x = np.atleast_2d(np.asarray(x, dtype=np.float64))
     n_samples, n_inputs = x.shape
     needed = max(order, cross_degree - 1 if cross_degree else 0)
-    if n_samples == 1 and basis in _SCALAR_RECURSIONS and needed:
-        univariate = np.array([_one_sample_univariate(x[0].tolist(), needed, _SCALAR_RECURSIONS[basis])])
-    else:
-        univariate = _UNIVARIATE[basis](x, needed)  # (n_samples, n_inputs, needed)
     crosses = cross_term_exponents(n_inputs, cross_degree)
+    if n_samples == 1 and basis in _SCALAR_RECURSIONS and needed:
+        return _one_sample_expansion(x[0].tolist(), order, needed, crosses, _SCALAR_RECURSIONS[basis])
+    univariate = _UNIVARIATE[basis](x, needed)  # (n_samples, n_inputs, needed)
     features = np.empty((n_samples, 1 + n_inputs * order + len(crosses)))
     features[:, 0] = 1.0
     features[:, 1 : 1 + n_inputs * order] = univariate[:, :, :order].reshape(n_samples, -1)
@@ -163,6 +162,25 @@ def expand(
         features[:, column] = product
         column += 1
     return features
+
+
+def _one_sample_expansion(
+    row: list[float], order: int, needed: int, crosses: tuple[tuple[int, ...], ...], next_term
+) -> np.ndarray:
+    """:func:`expand` of one sample in plain floats: the live identifier's path (a MIMO output's
+    model has tens of cross terms, and a numpy call per term cost more than the learning).
+    The products are taken in the array path's order, so the bits are the same."""
+    univariate = _one_sample_univariate(row, needed, next_term)
+    values = [1.0]
+    for terms in univariate:
+        values += terms[:order]
+    for exponents in crosses:
+        product = 1.0
+        for i, e in enumerate(exponents):
+            if e:
+                product = product * univariate[i][e - 1]
+        values.append(product)
+    return np.array([values])
 
 
 def legendre_features(x: np.ndarray, order: int) -> np.ndarray:

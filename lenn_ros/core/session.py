@@ -40,6 +40,7 @@ from typing import Any
 import numpy as np
 
 from lenn_ros.core.alignment import GridSampler, Pair, StampAligner
+from lenn_ros.core.merging import TopicMerger, default_max_age
 from lenn_ros.core.metrics import ChannelsNMSE, RunningNMSE
 from lenn_ros.core.mimo import MimoIdentifier, MimoStepResult
 from lenn_ros.core.pairing import Pairer, U, Y, screen, screen_values
@@ -76,6 +77,10 @@ class SessionConfig:
     follow_test_start: bool = True
     u_name: str = "u"  # topic names, for the messages a user reads
     y_name: str = "y_p"
+    u_parts: tuple[int, ...] = ()  # several u topics: channels per topic (merged into one half)
+    y_parts: tuple[int, ...] = ()
+    u_parts_names: tuple[str, ...] = ()  # their names, for the messages
+    y_parts_names: tuple[str, ...] = ()
 
     @classmethod
     def from_values(cls, values: dict[str, Any], **overrides: Any) -> SessionConfig:
@@ -129,6 +134,18 @@ class Session:
         self.test_start: int | None = None
         self.phase_learning: bool | None = None
         self.mimo = isinstance(self.identifier, MimoIdentifier)
+        self.mergers = {
+            channel: TopicMerger(
+                tuple(parts),
+                config.pairing,
+                slop=config.slop,
+                max_delay=delay,
+                max_age=default_max_age(config.sample_period),
+            )
+            for channel, parts in ((U, config.u_parts), (Y, config.y_parts))
+            if len(parts) > 1
+        }
+        self._seen_merge: dict[str, dict[str, int]] = {}
         self.phase_nmse = ChannelsNMSE(self.identifier.names) if self.mimo else RunningNMSE()
         self.refusal: str | None = None  # set by the caller when it knows pairing cannot work
         self.holding = False  # hold formed samples (unprocessed) until release()
@@ -154,13 +171,15 @@ class Session:
         received: float | None = None,
         sequence: int | None = None,
         source_time: float | None = None,
+        part: int = 0,
     ) -> list[Sample]:
         """One half: ``channel`` U or Y, its value and time (stamp or receive time, s).
 
         ``received`` is the receive time (defaults to ``time``), ``sequence`` the DDS
-        publication sequence number, ``source_time`` the publisher's timestamp (s).
+        publication sequence number, ``source_time`` the publisher's timestamp (s);
+        ``part``: which of the side's topics it came on, where it has several
+        (``u_parts`` / ``y_parts``: merged into one half first, see :mod:`~lenn_ros.core.merging`).
         """
-        config = self.config
         received = time if received is None else received
         self.counters["u_messages" if channel == U else "y_messages"] += 1
         self._first_seen.setdefault(channel, received)
@@ -169,6 +188,20 @@ class Session:
             self._watch_clocks(channel, time, received)
         if self._alone_for(channel, received) > 0.0:
             self.counters[f"lone_{channel}"] += 1
+        merger = self.mergers.get(channel)
+        if merger is None:
+            return self._offer_half(channel, value, time, received, sequence, source_time)
+        samples = []
+        for half in merger.add(part, value, time, received, sequence, source_time):
+            samples += self._offer_half(channel, half.value, half.time, half.received, half.sequence, half.source_time)
+        self._after_merge(channel, merger)
+        return samples
+
+    def _offer_half(
+        self, channel: str, value: Any, time: float, received: float, sequence: int | None, source_time: float | None
+    ) -> list[Sample]:
+        """A whole half (one topic's message, or the side's topics merged): screened, then paired."""
+        config = self.config
         name = config.u_name if channel == U else config.y_name
         limit = config.u_limit if channel == U else config.y_limit
         raw = value
@@ -203,7 +236,10 @@ class Session:
         return self._process(pairs)
 
     def flush(self) -> list[Sample]:
-        """End of a recording: settle what can still be settled."""
+        """End of a recording: settle what can still be settled (a side's incomplete parts are dropped)."""
+        for channel, merger in self.mergers.items():
+            merger.flush()
+            self._after_merge(channel, merger)
         if isinstance(self.aligner, GridSampler):
             return self._process(self.aligner.flush())
         if isinstance(self.aligner, StampAligner):
@@ -279,6 +315,24 @@ class Session:
                 continue
             pairs.append(Pair(index, y_time, u, y))
         return pairs
+
+    def _after_merge(self, channel: str, merger: TopicMerger) -> None:
+        """A side's topics that do not come together: say which, and what became of the parts."""
+        names = self.config.u_parts_names if channel == U else self.config.y_parts_names
+        seen = self._seen_merge.setdefault(channel, {"merge_dropped": 0, "merge_stale": 0})
+        for kind in ("merge_dropped", "merge_stale"):
+            count = merger.counters[kind]
+            if count <= seen[kind]:
+                continue
+            if kind == "merge_stale" and merger.stale_part is not None:
+                topic = names[merger.stale_part] if merger.stale_part < len(names) else f"part {merger.stale_part}"
+                text = (f"{topic} is older than {merger.max_age:.3f} s when the other topics of its side arrive: "
+                        f"no sample formed ({count} so far); is it still published?")  # fmt: skip
+            else:
+                text = (f"{count - seen[kind]} {'u' if channel == U else 'y_p'} message(s) found no partner on the "
+                        f"side's other topics ({', '.join(names)}) and were dropped ({count} so far)")  # fmt: skip
+            self._say(kind, text)
+            seen[kind] = count
 
     def _say_stale(self, faults: int) -> None:
         """Repeated or outdated halves, said when a pair is released.
@@ -490,6 +544,9 @@ class Session:
         source = self.pairer.counters if self.pairer is not None else self.aligner.counters  # type: ignore[union-attr]
         for name, value in source.items():
             counters[f"pairing_{name}" if name in counters else name] = value
+        for channel, merger in self.mergers.items():
+            for name, value in merger.counters.items():
+                counters[f"{channel}_{name}"] = value
         renamed = {"clipped": "clipped_inputs", "duplicates": "model_duplicates"}  # vs the session's own
         for name, value in self.identifier.counters.items():
             counters[renamed.get(name, name)] = value

@@ -47,12 +47,13 @@ from lenn_ros.config import (
     build_identifier,
     check_value,
     identifier_parameters,
+    input_topics,
     is_mimo,
+    side_channels,
     unmatched_params_files,
 )
 from lenn_ros.core.fields import (
     FieldError,
-    channel_names,
     check_path,
     check_vector,
     compile_path,
@@ -129,8 +130,9 @@ class IdentifierNode(Node):
         super().__init__(node_name, automatically_declare_parameters_from_overrides=False, **node_options)
         self._started = time.monotonic()
         self.values = self._declare_all()
-        self.u_name = self.resolve_topic_name(topics.U)
-        self.y_name = self.resolve_topic_name(topics.Y_P)
+        self.inputs = input_topics(self.values)  # (channel, part, topic): the pairing module's U / Y are 'u' / 'y'
+        self.u_name = "+".join(self.resolve_topic_name(name) for channel, _, name in self.inputs if channel == U)
+        self.y_name = "+".join(self.resolve_topic_name(name) for channel, _, name in self.inputs if channel == Y)
         self._loggers: dict[str, Any] = {}
         self.node_counters = {"type_mismatch": 0, "qos_incompatible": 0, "field_errors": 0, "unknown_parameters": 0}
         self._warn_unknown_parameters()
@@ -279,19 +281,19 @@ class IdentifierNode(Node):
         return cls
 
     def _extractor(self, channel: str) -> Any:
-        """message -> the number (SISO) or the vector of channels (MIMO) the field setting names."""
+        """message -> the number (SISO) or the vector of channels (MIMO) the field setting names.
+
+        With several topics on the side, each message holds that topic's channels only.
+        """
         field = self.values["u_field" if channel == U else "y_field"]
         if not self.mimo:
             return compile_path(field)
-        return compile_vector(field, self._channel_names()[0 if channel == U else 1])
+        names, parts, _ = side_channels(self.values, "u" if channel == U else "y")
+        return compile_vector(field) if parts else compile_vector(field, names)
 
     def _channel_names(self) -> tuple[list[str], list[str]]:
         """Input and output channel names of a MIMO model (checked when the model was built)."""
-        names = [
-            channel_names(self.values[field], [str(n) for n in self.values[key]])
-            for field, key in (("u_field", "u_names"), ("y_field", "y_names"))
-        ]
-        return names[0], names[1]
+        return side_channels(self.values, "u")[0], side_channels(self.values, "y")[0]
 
     def _models(self) -> list[Any]:
         """Every network the node learns: one, or one per output channel."""
@@ -315,7 +317,13 @@ class IdentifierNode(Node):
 
     def _session_config(self) -> SessionConfig:
         try:
-            return SessionConfig.from_values(self.values, u_name=self.u_name, y_name=self.y_name)
+            parts = {}
+            if self.mimo:
+                for side in ("u", "y"):
+                    _, sizes, names = side_channels(self.values, side)
+                    parts[f"{side}_parts"] = sizes
+                    parts[f"{side}_parts_names"] = tuple(self.resolve_topic_name(name) for name in names)
+            return SessionConfig.from_values(self.values, u_name=self.u_name, y_name=self.y_name, **parts)
         except ValueError as error:
             raise SystemExit(f"identifier: {error}") from None
 
@@ -330,12 +338,12 @@ class IdentifierNode(Node):
         )
         profile = QoSProfile(depth=topics.DATA_DEPTH, reliability=reliability)
         self._data_subscriptions = {}
-        for channel, name in ((U, topics.U), (Y, topics.Y_P)):
+        for channel, part, name in self.inputs:
             events = SubscriptionEventCallbacks(incompatible_qos=lambda event, c=channel: self._on_incompatible_qos(c))
-            self._data_subscriptions[channel] = self.create_subscription(
+            self._data_subscriptions[channel, part] = self.create_subscription(
                 message_types[channel],
                 name,
-                lambda message, info, c=channel: self._on_message(c, message, info),
+                lambda message, info, c=channel, p=part: self._on_message(c, message, info, p),
                 profile,
                 event_callbacks=events,
                 qos_overriding_options=_QOS_OVERRIDES,
@@ -382,7 +390,7 @@ class IdentifierNode(Node):
     def _now(self) -> float:
         return self.get_clock().now().nanoseconds * 1e-9
 
-    def _on_message(self, channel: str, message: Any, info: dict) -> None:
+    def _on_message(self, channel: str, message: Any, info: dict, part: int = 0) -> None:
         """One message from the executor, then every message already waiting on u and y_p.
 
         The executor rebuilds its wait set in Python for each message it hands over
@@ -390,7 +398,7 @@ class IdentifierNode(Node):
         subscriptions handles a burst in one wake-up. Pairing does not depend on the
         order in which u and y_p are taken (index, stamp or time decide).
         """
-        self._offer(channel, message, info)
+        self._offer(channel, message, info, part)
         self._drain()
         self._emit_notices()
 
@@ -403,14 +411,14 @@ class IdentifierNode(Node):
                 latched = self._test_start_subscription.handle.take_message(Int64, False)
             if latched is not None:
                 self._on_test_start(latched[0])
-            for other, subscription in self._data_subscriptions.items():
+            for (other, part), subscription in self._data_subscriptions.items():
                 with subscription.handle:
                     waiting = subscription.handle.take_message(subscription.msg_type, False)
                 if waiting is not None:
-                    self._offer(other, waiting[0], waiting[1])
+                    self._offer(other, waiting[0], waiting[1], part)
                     taken = True
 
-    def _offer(self, channel: str, message: Any, info: dict) -> None:
+    def _offer(self, channel: str, message: Any, info: dict, part: int = 0) -> None:
         try:
             value = self._extract[channel](message)
         except FieldError as error:
@@ -430,6 +438,7 @@ class IdentifierNode(Node):
             received=received,
             sequence=info.get("publication_sequence_number"),
             source_time=source * 1e-9 if source else None,
+            part=part,
         )
         self._publish(samples)
 
@@ -592,10 +601,12 @@ class IdentifierNode(Node):
 
     def _check_graph(self, at_start: bool = False) -> None:
         """Compare what the graph offers on u / y_p with what we were told to expect."""
-        publishers = {}
-        for channel, name, key in ((U, self.u_name, "u_type"), (Y, self.y_name, "y_type")):
+        publishers: dict[str, set] = {U: set(), Y: set()}
+        for channel, _, topic in self.inputs:
+            key = "u_type" if channel == U else "y_type"
+            name = self.resolve_topic_name(topic)
             infos = self.get_publishers_info_by_topic(name)
-            publishers[channel] = {(info.node_namespace, info.node_name) for info in infos}
+            publishers[channel] |= {(info.node_namespace, info.node_name) for info in infos}
             wrong = sorted({info.topic_type for info in infos if info.topic_type != self.values[key]})
             if wrong:
                 text = (

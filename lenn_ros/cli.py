@@ -266,6 +266,7 @@ BENCHMARKS = {
     "soak": ("soak.py", "a long live run (10^6 samples) through simulator, identifier and recorder"),
     "bag-read": ("bag_read.py", "bag reading speed against rosbags' AnyReader"),
     "peers": ("peer_narx.py", "against SysIdentPy's FROLS polynomial NARX on real data"),
+    "mimo-live": ("mimo_live.py", "the 2x2 plant identified live over seeds: MIMO against one SISO model per output"),
 }
 
 

@@ -506,14 +506,20 @@ def write_outputs(directory: str | Path, result: dict[str, Any], u: np.ndarray, 
     weights = directory / "weights.npz"
     identifier.model.save(weights)
     values = {**params_values(identifier, model, forgetting, u, y), "weights_in": str(weights.resolve())}
+    note = "starts from weights_in below;\n# move the directory and weights_in must follow: it is absolute"
+    params = write_params(directory, result["report"], values, note)
+    return {"params": str(params), "weights": str(weights)}
+
+
+def write_params(directory: Path, report: dict[str, Any], values: dict[str, Any], note: str) -> Path:
+    """DIR/params.yaml for every node (``/**``), headed by where it came from and how to start from it."""
     params = directory / "params.yaml"
     header = (
-        f"# written by lenn-ros fit ({result['report']['data']}, test from sample {result['report']['test_from']})\n"
-        f"# ros2 run lenn_ros identifier --ros-args --params-file {params}   (starts from weights_in below;\n"
-        "# move the directory and weights_in must follow: it is absolute)\n"
+        f"# written by lenn-ros fit ({report['data']}, test from sample {report['test_from']})\n"
+        f"# ros2 run lenn_ros identifier --ros-args --params-file {params}   ({note})\n"
     )
     params.write_text(header + yaml.safe_dump({"/**": {"ros__parameters": values}}, sort_keys=False))
-    return {"params": str(params), "weights": str(weights)}
+    return params
 
 
 def _jsonable(report: dict[str, Any]) -> dict[str, Any]:

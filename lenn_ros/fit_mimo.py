@@ -53,7 +53,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import yaml
 
 from lenn_ros import topics
 from lenn_ros.bag.csv_import import is_number
@@ -73,6 +72,7 @@ from lenn_ros.fit import (
     check_split,
     live_forgetting,
     rls_covariance,
+    write_params,
 )
 
 #: (order, cross_degree) tried, linear ARX first: a nonlinear expansion must beat it in simulation
@@ -507,13 +507,11 @@ def write_outputs(directory: str | Path, result: dict[str, Any], u: np.ndarray, 
     weights = directory / "weights.npz"
     result["identifier"].save_state(weights)
     values = {**params_values(report, u, y), "weights_in": str(weights.resolve())}
-    params = directory / "params.yaml"
-    header = (
-        f"# written by lenn-ros fit ({report['data']}, test from sample {report['test_from']})\n"
-        f"# ros2 run lenn_ros identifier --ros-args --params-file {params}   (MIMO: u and y_p carry\n"
-        "# Float64MultiArray samples, channels in the order of u_names / y_names; weights_in is absolute)\n"
+    note = (
+        "MIMO: u and y_p carry\n# Float64MultiArray samples, channels in the order of u_names / y_names; "
+        "weights_in is absolute"
     )
-    params.write_text(header + yaml.safe_dump({"/**": {"ros__parameters": values}}, sort_keys=False))
+    params = write_params(directory, report, values, note)
     return {"params": str(params), "weights": str(weights)}
 
 

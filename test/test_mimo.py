@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 
@@ -222,3 +224,24 @@ def test_the_one_sample_expansion_with_cross_terms_equals_the_batch_bit_for_bit(
     one_by_one = np.vstack([expand(x[i : i + 1], 4, basis, 3) for i in range(len(x))])
     assert one_by_one.shape == batch.shape == (200, 39)  # bias, 4 x 4 univariate, 22 cross terms
     np.testing.assert_array_equal(one_by_one, batch)
+
+
+@pytest.mark.parametrize(
+    ("change", "said"),
+    [
+        ({"couplings": "y0 u7; y1"}, "no channel 'u7'"),
+        ({"y_scales": [1.0, 2.0, 3.0]}, "y_scales has 3 values for 2 channels"),
+        ({"y_names": ["only"]}, "1 names for 2 fields"),
+        ({"u_field": "data[*]", "u_names": [""]}, "give the channels' names"),
+        ({"terms": ["y1"]}, "terms: SISO structure options"),
+        ({"u_topics": ["/a", "/b"], "u_field": "data[*]"}, "list the fields instead of [*]"),
+    ],
+)
+def test_a_mimo_configuration_that_cannot_work_is_one_clear_error(change: dict, said: str) -> None:
+    from lenn_ros.config import ConfigError, build_identifier, identifier_parameters
+
+    values = {p.name: p.default for p in identifier_parameters(0, "lenn")}
+    values.update({"u_field": "data[0], data[1]", "y_field": "position[a], position[b]", "u_topics": [""]})
+    values.update(change)
+    with pytest.raises(ConfigError, match=re.escape(said)):
+        build_identifier(values, "lenn")

@@ -199,3 +199,14 @@ def test_each_channel_on_its_own_topic_from_its_own_node_is_merged_and_a_silent_
     assert final["counters"]["u_merged"] > 300 and final["counters"]["y_merged"] > 300
     assert final["counters"]["learned"] < learned + 2 * 60  # the silent topic stops learning (2 outputs)
     assert "/robot/right is older than" in err and "no sample formed" in err
+
+
+def test_the_node_refuses_a_mimo_setting_that_cannot_work_in_one_line(domain: int) -> None:
+    from rosutil import start_node
+
+    array = "std_msgs/msg/Float64MultiArray"
+    fields = ("u_field:=data[0], data[1]", "y_field:=data[0], data[1]", f"u_type:={array}", f"y_type:={array}")
+    node = start_node("identifier", "example:=0", *fields, "couplings:=y0 u9; y1")
+    _, err = node.communicate(timeout=60)
+    lines = [line for line in err.splitlines() if line.strip()]
+    assert node.returncode == 2 and lines[-1].startswith("identifier: couplings of y0: no channel 'u9'"), err

@@ -242,6 +242,7 @@ class MimoIdentifier:
             raise ValueError(f"{len(self.outputs)} models for {self.structure.n_y} outputs")
         if not self.names:
             self.names = tuple(f"y{j}" for j in range(self.structure.n_y))
+        self.last_free_run: dict = {}  # what the last free_run did (samples, clipped inputs, divergence)
 
     @property
     def model(self):
@@ -350,13 +351,13 @@ class MimoIdentifier:
         if start < window:
             raise ValueError(f"free run needs {window} samples of history before it starts")
         channels = [identifier.structure for identifier in self.outputs]
-        clipped, diverged_at = 0, None
+        clipped, diverged_at = [0] * structure.n_y, None
         for k in range(start - 1, len(u) - 1):
             rows = slice(k - window + 1, k + 1)
             values = np.empty(structure.n_y)
             for j, identifier in enumerate(self.outputs):
                 x, linear = channels[j].regressors(structure.other_values(j, u[rows], y_model[rows]), y_model[rows, j])
-                clipped += int(np.count_nonzero(np.abs(x[-1]) > 1.0))
+                clipped[j] += int(np.count_nonzero(np.abs(x[-1]) > 1.0))
                 values[j] = float(linear[-1] + identifier.model.predict(np.clip(x[-1:], -1.0, 1.0))[0])
             bounds = [FREE_RUN_DIVERGENCE_BOUND * channel.y_scale for channel in channels]
             offsets = [channel.y_offset for channel in channels]
@@ -365,10 +366,11 @@ class MimoIdentifier:
                 diverged_at = k + 1
                 break
             y_model[k + 1] = values
-        self.outputs[0].counters["clipped_free_run"] += clipped
+        for identifier, count in zip(self.outputs, clipped, strict=True):
+            identifier.counters["clipped_free_run"] += count
         self.last_free_run = {
             "samples": len(u) - start,
-            "clipped_inputs": clipped,
+            "clipped_inputs": sum(clipped),
             "diverged": diverged_at is not None,
             "diverged_at": diverged_at,
         }

@@ -54,3 +54,33 @@ def plot_identification(
     axis.grid(alpha=0.3)
     axis.legend(loc="upper right", fontsize=8, ncol=2)
     return save(figure, path)
+
+
+def plot_channels(
+    path: str | Path,
+    names: list[str] | tuple[str, ...],
+    y_plant: np.ndarray,
+    y_model: np.ndarray,
+    title: str,
+    y_free_run: np.ndarray | None = None,
+) -> Path:
+    """:func:`plot_identification` for several output channels: one panel each, columns of the arrays."""
+    y_plant = np.asarray(y_plant).reshape(len(y_plant), -1)
+    y_model = np.asarray(y_model).reshape(y_plant.shape)
+    k = np.arange(len(y_plant))
+    figure = Figure(figsize=(8.0, 2.6 * len(names) + 0.6), dpi=110)
+    FigureCanvasAgg(figure)
+    axes = figure.subplots(len(names), 1, sharex=True, squeeze=False)[:, 0]
+    for j, (axis, name) in enumerate(zip(axes, names, strict=True)):
+        axis.plot(k, y_plant[:, j], color="black", linewidth=1.4, label="plant")
+        axis.plot(k, y_model[:, j], color="tab:red", linestyle="--", linewidth=1.2, label="model (one step)")
+        if y_free_run is not None:
+            axis.plot(k, np.asarray(y_free_run)[:, j], color="tab:green", linestyle=":", linewidth=1.2,
+                      label="model (free run)")  # fmt: skip
+        axis.plot(k, y_plant[:, j] - y_model[:, j], color="tab:blue", linewidth=0.9, label="error")
+        axis.set_ylabel(name)
+        axis.grid(alpha=0.3)
+    axes[0].set_title(title, fontsize=10)
+    axes[0].legend(loc="upper right", fontsize=8, ncol=4)
+    axes[-1].set_xlabel("discrete time k (test phase)")
+    return save(figure, path)

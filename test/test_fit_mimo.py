@@ -156,6 +156,14 @@ def test_cli_import_csv_then_fit_the_vector_bag(tmp_path: Path) -> None:
     for full, diagonal in zip(report["per_output"], report["comparison"]["per_output"], strict=True):
         assert full["nmse_free_run_db"] < diagonal["nmse_free_run_db"] - 5.0
     assert (model / "weights.npz").exists() and (tmp_path / "fit.png").stat().st_size > 0
+    # evaluate the same bag from the written params (which start from the fitted weights): per channel
+    done = lenn_ros("evaluate", str(bag), "--params", str(model / "params.yaml"), "--json")
+    assert done.returncode == 0, done.stderr
+    scores = json.loads(done.stdout)["channels"]
+    assert set(scores) == {"y1", "y2"} and all(channel["nmse_free_run_db"] < -15 for channel in scores.values())
+    plot = tmp_path / "evaluate.png"
+    done = lenn_ros("evaluate", str(bag), "--params", str(model / "params.yaml"), "--plot", str(plot))
+    assert done.returncode == 0 and "NMSE one-step" in done.stdout and plot.stat().st_size > 10_000, done.stderr
     text = lenn_ros("fit", str(csv), "--u", "u1", "--u", "u2", "--y", "y1", "--y", "speed", "--test-from", "2001")
     assert text.returncode == 2 and text.stderr.count("\n") == 1
     assert "no column 'speed'; columns are t, u1, u2, y1, y2" in text.stderr

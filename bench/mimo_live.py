@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
@@ -36,41 +37,16 @@ from lenn_ros.core.metrics import nmse_db  # noqa: E402
 from lenn_ros.core.plants import narendra_mimo_plant  # noqa: E402
 
 NAMES = ("y1", "y2")
-#: The identifier's configuration: per-channel scales cover the outputs' training range (about +-1.8, +-1.5)
 #: The SISO-per-output identifier listens to the same topics from namespace /siso, and its
 #: y_hat goes to the simulator's too: the simulator exits once both have gone quiet (it counts
 #: both, so it runs ahead of the slower one by up to twice its window: fine below the queue depth)
 SISO_REMAPS = (
-    "-r",
-    "__ns:=/siso",
-    "-r",
-    "u:=/u",
-    "-r",
-    "y_p:=/y_p",
-    "-r",
-    "test_start:=/test_start",
-    "-r",
-    "y_hat:=/y_hat",
+    *("-r", "__ns:=/siso", "-r", "u:=/u", "-r", "y_p:=/y_p"),
+    *("-r", "test_start:=/test_start", "-r", "y_hat:=/y_hat"),
 )
-
-MIMO_VALUES = {
-    "example": 0,
-    "network": "lenn",
-    "u_type": "std_msgs/msg/Float64MultiArray",
-    "y_type": "std_msgs/msg/Float64MultiArray",
-    "u_field": "data[*]",
-    "y_field": "data[*]",
-    "u_names": ["u1", "u2"],
-    "y_names": list(NAMES),
-    "y_scales": [2.0, 1.6],
-    "u_scale": 1.0,
-    "y_lags": 1,
-    "u_lags": 1,
-    "order": 4,
-    "cross_degree": 3,
-    "solver": "rls",
-    "output": "linear",
-}
+#: The identifier's configuration: the shipped params file (bench/make_configs.py writes it)
+CONFIG = REPO / "config" / "narendra2x2_lenn.yaml"
+MIMO_VALUES = yaml.safe_load(CONFIG.read_text())["/**/identifier"]["ros__parameters"]
 
 
 def _node(module: str, *params: str, params_file: Path | None = None, ros_args: tuple[str, ...] = ()):

@@ -210,3 +210,16 @@ def test_the_node_refuses_a_mimo_setting_that_cannot_work_in_one_line(domain: in
     _, err = node.communicate(timeout=60)
     lines = [line for line in err.splitlines() if line.strip()]
     assert node.returncode == 2 and lines[-1].startswith("identifier: couplings of y0: no channel 'u9'"), err
+
+
+def test_replay_says_a_mimo_bag_is_not_replayed_yet_in_one_line(tmp_path: Path, domain: int) -> None:
+    from rosutil import start_node
+
+    from lenn_ros.bag.csv_import import import_csv
+
+    csv = tmp_path / "log.csv"
+    csv.write_text("u1,u2,y1,y2\n" + "".join(f"{k},{-k},{2 * k},{3 * k}\n" for k in range(20)))
+    import_csv(csv, ["u1", "u2"], ["y1", "y2"], 0.01, tmp_path / "bag")
+    replay = start_node("replay", f"bag:={tmp_path / 'bag'}")
+    _, err = replay.communicate(timeout=60)
+    assert replay.returncode == 1 and "carry several channels per sample (MIMO)" in err.strip().splitlines()[-1], err

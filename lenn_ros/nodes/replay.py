@@ -121,6 +121,7 @@ class Replay(Node):
         bag = self.get_parameter("bag").value
         if not bag:
             raise BagError("parameter 'bag' is empty; run with --ros-args -p bag:=PATH")
+        self._refuse_vectors(bag)
         run = read_run(bag)
         self.bag = bag
         self.pairs = self._pairs(run, str(self._param("source")))
@@ -257,6 +258,19 @@ class Replay(Node):
         """
         if not self.wait_acked(timeout=self._settle_timeout()):
             self.get_logger().warning("sample 1 of the new pass not acknowledged by every subscriber")
+
+    @staticmethod
+    def _refuse_vectors(bag: str) -> None:
+        """A bag of several channels per sample (MIMO) is said for what it is, not as a type error."""
+        from lenn_ros.bag import topic_types
+
+        vectors = [name for name, kind in topic_types(bag).items() if kind == topics.FLOAT64_ARRAY
+                   and name.rstrip("/").rsplit("/", 1)[-1] in (topics.U, topics.Y_P)]  # fmt: skip
+        if vectors:
+            raise BagError(
+                f"{bag}: {', '.join(sorted(vectors))} carry several channels per sample (MIMO): replaying those is "
+                "not implemented yet; lenn-ros evaluate BAG scores them offline with the identifier's own session"
+            )
 
     def _declare(self, name: str, default: Any, description: str, **ranges: Any) -> None:
         self.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=True, **ranges))

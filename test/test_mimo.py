@@ -245,3 +245,44 @@ def test_a_mimo_configuration_that_cannot_work_is_one_clear_error(change: dict, 
     values.update(change)
     with pytest.raises(ConfigError, match=re.escape(said)):
         build_identifier(values, "lenn")
+
+
+@pytest.mark.parametrize(
+    "settings",
+    [
+        {"solver": "rls", "output": "linear"},
+        {"solver": "nlms", "output": "linear"},
+        {"solver": "sgd", "output": "tanh", "alpha": 0.05},
+    ],
+)
+def test_the_compiled_mimo_step_equals_the_python_step(monkeypatch, settings: dict) -> None:
+    """channel_step: each output's compiled step gives the Python step's numbers bit for bit."""
+    from lenn_ros.core import kernels, structure
+
+    if not kernels.JIT:
+        pytest.skip("numba is not installed: there is no compiled step")
+    series = simulate_mimo(narendra_mimo_plant(), -20.0, seed=4, train_samples=1200, test_samples=200)
+    u = 1.5 * series.u  # beyond u_scale 1: inputs get clipped
+    learn = np.arange(len(u)) < 1200
+    runs = []
+    for compiled in (True, False):
+        if not compiled:
+            monkeypatch.setattr(structure.StepPlan, "for_model", classmethod(lambda cls, model, shape: None))
+        mimo = MimoStructure(2, 2, y_lags=2, u_lags=1, y_scale=(2.0, 1.6), couplings=parse_couplings("full", 2, 2))
+        identifier = build_mimo_identifier(
+            mimo, lambda n, _j: FunctionalLinkNetwork(n_inputs=n, order=3, cross_degree=2, **settings)
+        )
+        results = [identifier.step(k + 1 + (k >= 700), u[k], series.y[k], bool(learn[k])) for k in range(len(u))]
+        assert all((output._plan is not None) == compiled for output in identifier.outputs)
+        runs.append((results, identifier))
+    (fast, fast_id), (slow, slow_id) = runs
+    for a, b in zip(fast, slow, strict=True):
+        for name in ("y_hat", "y_hat_next", "error"):
+            first, second = getattr(a, name), getattr(b, name)
+            assert (first is None and second is None) or np.array_equal(first, second)
+        assert (a.learned, a.event) == (b.learned, b.event)
+    assert fast_id.counters == slow_id.counters and fast_id.counters["clipped"] > 0
+    for quick, reference in zip(fast_id.models, slow_id.models, strict=True):
+        np.testing.assert_array_equal(quick.weights_, reference.weights_)
+        assert quick.n_samples_seen_ == reference.n_samples_seen_
+        assert getattr(quick, "n_clipped_", 0) == getattr(reference, "n_clipped_", 0)

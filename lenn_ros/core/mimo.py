@@ -200,8 +200,16 @@ class MimoStructure:
 
     def other_values(self, output: int, u: np.ndarray, y: np.ndarray) -> np.ndarray:
         """The columns (or, for one sample, the vector) of the other channels output ``output`` sees."""
-        picked = [(y if kind == "y" else u)[..., index] for kind, index in self.others(output)]
-        return np.stack(picked, axis=-1) if picked else np.empty((*np.shape(u)[:-1], 0))
+        return np.concatenate((y, u), axis=-1)[..., self.picks(output)]
+
+    def picks(self, output: int) -> np.ndarray:
+        """Where output ``output``'s other channels sit in the vector [y_0.., u_0..] (cached: once per sample)."""
+        cache = self.__dict__.setdefault("_picks", {})
+        if output not in cache:
+            cache[output] = np.array(
+                [index if kind == "y" else self.n_y + index for kind, index in self.others(output)], dtype=np.intp
+            )
+        return cache[output]
 
 
 @dataclass
@@ -301,10 +309,10 @@ class MimoIdentifier:
 
     def step(self, index: int, u: np.ndarray, y: np.ndarray, learn: bool | None = None) -> MimoStepResult:
         """Process the vector pair (u(k), y_p(k)) with sample index k: every output's model steps."""
-        u = np.asarray(u, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
+        channels = np.concatenate((y, np.asarray(u, dtype=np.float64)))
         results: list[StepResult] = [
-            identifier.step(index, self.structure.other_values(j, u, y), float(y[j]), learn)
+            identifier.step(index, channels[self.structure.picks(j)], float(y[j]), learn)
             for j, identifier in enumerate(self.outputs)
         ]
         events = tuple(result.event for result in results)

@@ -57,9 +57,10 @@ class StepState:
     out: np.ndarray
 
     @classmethod
-    def empty(cls, window: int, n_inputs: int, n_features: int) -> StepState:
+    def empty(cls, window: int, n_inputs: int, n_features: int, channels: int = 0) -> StepState:
+        """``channels`` > 0: a MIMO output's step, whose "u" history holds the other channels, one column each."""
         return cls(
-            u_history=np.zeros(window),
+            u_history=np.zeros((window, channels)) if channels else np.zeros(window),
             y_history=np.zeros(window),
             counts=np.zeros(2, dtype=np.int64),
             linear=np.zeros(1),
@@ -185,6 +186,36 @@ def functional_link_step(
     part of y^(k), nan if none), Y_HAT_NEXT (nan until the history is full),
     CLIPPED (network inputs outside [-1, 1]), STATUS and LINEAR_PREVIOUS.
     """
+    if not _score(y, learn, score, counts, linear_pending, phi, scratch, solver, weights, momentum, covariance,
+                  feature_branch, n_branches, rule, tanh_output, out):  # fmt: skip
+        return
+    if not _push(u_history, y_history, counts, u, y):
+        return
+    linear, clipped = _regressor(x, u_history, y_history, geometry, lags, known_a, known_b)
+    _predict(linear, clipped, x, exponents, basis, counts, linear_pending, phi, scratch, solver, weights, momentum,
+             covariance, feature_branch, n_branches, rule, tanh_output, out)  # fmt: skip
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _score(
+    y: float,
+    learn: bool,
+    score: bool,
+    counts: np.ndarray,
+    linear_pending: np.ndarray,
+    phi: np.ndarray,
+    scratch: np.ndarray,
+    solver: int,
+    weights: np.ndarray,
+    momentum: np.ndarray,
+    covariance: np.ndarray,
+    feature_branch: np.ndarray,
+    n_branches: int,
+    rule: np.ndarray,
+    tanh_output: bool,
+    out: np.ndarray,
+) -> bool:
+    """y_p(k) scores (and, if ``learn``, teaches) the pending y^(k); False: the step diverged, stop there."""
     out[PRIOR] = math.nan
     out[Y_HAT_NEXT] = math.nan
     out[CLIPPED] = 0.0
@@ -210,15 +241,38 @@ def functional_link_step(
         out[PRIOR] = y_out[0]
         if done < 1:
             out[STATUS] = DIVERGED
-            return
+            return False
     counts[1] = 0
-    if not _push(u_history, y_history, counts, u, y):
-        return
-    linear, clipped = _regressor(x, u_history, y_history, geometry, lags, known_a, known_b)
+    return True
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _predict(
+    linear: float,
+    clipped: int,
+    x: np.ndarray,
+    exponents: np.ndarray,
+    basis: int,
+    counts: np.ndarray,
+    linear_pending: np.ndarray,
+    phi: np.ndarray,
+    scratch: np.ndarray,
+    solver: int,
+    weights: np.ndarray,
+    momentum: np.ndarray,
+    covariance: np.ndarray,
+    feature_branch: np.ndarray,
+    n_branches: int,
+    rule: np.ndarray,
+    tanh_output: bool,
+    out: np.ndarray,
+) -> None:
+    """y^(k+1) from the regressor x(k) (expanded into ``phi``, kept pending for y_p(k+1) to teach)."""
     if clipped < 0:
         out[STATUS] = NON_FINITE
         return
     out[CLIPPED] = clipped
+    target, y_out = scratch[0:1], scratch[1:2]
     term_expansion(x, exponents, basis, phi)
     _rule(
         solver, weights, momentum, covariance, phi, target, feature_branch, n_branches, rule, tanh_output, False, y_out
@@ -226,6 +280,87 @@ def functional_link_step(
     out[Y_HAT_NEXT] = linear + y_out[0]
     linear_pending[0] = linear
     counts[1] = 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _push_channels(others: np.ndarray, y_history: np.ndarray, counts: np.ndarray, u: np.ndarray, y: float) -> bool:
+    """:func:`_push` for a MIMO output: the other channels' history is a matrix, one column each."""
+    window = len(y_history)
+    for i in range(window - 1, 0, -1):
+        y_history[i] = y_history[i - 1]
+        others[i, :] = others[i - 1, :]
+    y_history[0] = y
+    others[0, :] = u
+    if counts[0] < window:
+        counts[0] += 1
+    return counts[0] >= window
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _channel_regressor(
+    x: np.ndarray, others: np.ndarray, y_history: np.ndarray, geometry: np.ndarray, lags: np.ndarray
+) -> tuple[float, int]:
+    """x(k) of a MIMO output, as ``ChannelStructure.regressor_row``, clipped; (lin, clipped or -1).
+
+    ``geometry`` = y_offset, y_scale, output_offset, then offset and scale of each other
+    channel; ``lags`` = own lags, then each other channel's.
+    """
+    column = 0
+    for i in range(lags[0]):
+        x[0, column] = (y_history[i] - geometry[0]) / geometry[1]
+        column += 1
+    for c in range(len(lags) - 1):
+        offset, scale = geometry[3 + 2 * c], geometry[4 + 2 * c]
+        for i in range(lags[c + 1]):
+            x[0, column] = (others[i, c] - offset) / scale
+            column += 1
+    clipped = 0
+    for i in range(column):
+        value = x[0, i]
+        if not math.isfinite(value):
+            return geometry[2], -1
+        if value > 1.0 or value < -1.0:
+            x[0, i] = min(1.0, max(-1.0, value))
+            clipped += 1
+    return geometry[2], clipped
+
+
+@njit(cache=True, nogil=True)
+def channel_step(
+    u: np.ndarray,
+    y: float,
+    learn: bool,
+    score: bool,
+    u_history: np.ndarray,
+    y_history: np.ndarray,
+    counts: np.ndarray,
+    linear_pending: np.ndarray,
+    x: np.ndarray,
+    phi: np.ndarray,
+    scratch: np.ndarray,
+    geometry: np.ndarray,
+    lags: np.ndarray,
+    exponents: np.ndarray,
+    basis: int,
+    solver: int,
+    weights: np.ndarray,
+    momentum: np.ndarray,
+    covariance: np.ndarray,
+    feature_branch: np.ndarray,
+    n_branches: int,
+    rule: np.ndarray,
+    tanh_output: bool,
+    out: np.ndarray,
+) -> None:
+    """:func:`functional_link_step` for one output of a MIMO model: ``u`` holds the other channels it sees."""
+    if not _score(y, learn, score, counts, linear_pending, phi, scratch, solver, weights, momentum, covariance,
+                  feature_branch, n_branches, rule, tanh_output, out):  # fmt: skip
+        return
+    if not _push_channels(u_history, y_history, counts, u, y):
+        return
+    linear, clipped = _channel_regressor(x, u_history, y_history, geometry, lags)
+    _predict(linear, clipped, x, exponents, basis, counts, linear_pending, phi, scratch, solver, weights, momentum,
+             covariance, feature_branch, n_branches, rule, tanh_output, out)  # fmt: skip
 
 
 @dataclass
@@ -247,6 +382,7 @@ class StepPlan:
     solver: int
     tanh_output: bool
     n_branches: int
+    channels: int = 0  # > 0: one output of a MIMO model, seeing this many other channels (channel_step)
 
     @classmethod
     def for_model(cls, model: object, structure: object) -> StepPlan | None:
@@ -266,6 +402,8 @@ class StepPlan:
         if not model.is_initialised:
             model._initialise()
         exponents, _branch_of = term_exponents()
+        if hasattr(structure, "other_lags"):
+            return cls._for_channel(model, structure, exponents)
         return cls(
             state=StepState.empty(structure.warm_up, structure.n_inputs, exponents.shape[0]),
             geometry=np.array(
@@ -282,13 +420,73 @@ class StepPlan:
             n_branches=int(model.feature_branch_.max(initial=0)) + 1,
         )
 
-    def run(self, model: object, u: float, y: float, learn: bool, score: bool) -> np.ndarray:
-        """One :func:`functional_link_step`; returns its ``out`` (read it before the next call)."""
+    @classmethod
+    def _for_channel(cls, model: object, structure: object, exponents: np.ndarray) -> StepPlan:
+        """The plan of one output of a MIMO model (a ``ChannelStructure``: own lags, then the other channels)."""
+        geometry = [structure.y_offset, structure.y_scale, structure.output_offset]
+        for offset, scale in zip(structure.other_offsets, structure.other_scales, strict=True):
+            geometry += [offset, scale]
+        channels = len(structure.other_lags)
+        return cls(
+            state=StepState.empty(structure.warm_up, structure.n_inputs, exponents.shape[0], channels=channels),
+            geometry=np.array(geometry, dtype=np.float64),
+            lags=np.array([structure.y_lags, *structure.other_lags], dtype=np.int64),
+            known_a=np.zeros(0),
+            known_b=np.zeros(0),
+            exponents=np.ascontiguousarray(exponents, dtype=np.int64),
+            basis=_basis_code(model.basis),
+            solver=SOLVER_CODES[model.solver],
+            tanh_output=model.output == "tanh",
+            n_branches=int(model.feature_branch_.max(initial=0)) + 1,
+            channels=channels,
+        )
+
+    def run(self, model: object, u: float | np.ndarray, y: float, learn: bool, score: bool) -> np.ndarray:
+        """One :func:`functional_link_step` (:func:`channel_step`: MIMO); returns its ``out`` (read it at once)."""
         state = self.state
         rule = np.array(
             [model.alpha, model.beta, model.output_scale, model.nlms_step, model.forgetting, model.max_trace],
             dtype=np.float64,
         )
+        if self.channels:
+            self._run_channel(model, u, y, learn, score, rule)
+        else:
+            self._run_single(model, float(u), y, learn, score, rule)
+        if learn and score and state.out[STATUS] != DIVERGED and not math.isnan(state.out[PRIOR]):
+            model.n_samples_seen_ += 1
+        return state.out
+
+    def _run_channel(self, model: object, u: np.ndarray, y: float, learn: bool, score: bool, rule: np.ndarray) -> None:
+        state = self.state
+        channel_step(
+            np.asarray(u, dtype=np.float64),
+            float(y),
+            bool(learn),
+            bool(score),
+            state.u_history,
+            state.y_history,
+            state.counts,
+            state.linear,
+            state.x,
+            state.phi,
+            state.scratch,
+            self.geometry,
+            self.lags,
+            self.exponents,
+            self.basis,
+            self.solver,
+            model.weights_,
+            model.momentum_,
+            model.covariance_,
+            model.feature_branch_,
+            self.n_branches,
+            rule,
+            self.tanh_output,
+            state.out,
+        )
+
+    def _run_single(self, model: object, u: float, y: float, learn: bool, score: bool, rule: np.ndarray) -> None:
+        state = self.state
         functional_link_step(
             float(u),
             float(y),
@@ -317,6 +515,9 @@ class StepPlan:
             self.tanh_output,
             state.out,
         )
-        if learn and score and state.out[STATUS] != DIVERGED and not math.isnan(state.out[PRIOR]):
-            model.n_samples_seen_ += 1
-        return state.out
+
+
+def _basis_code(basis: str) -> int:
+    from lenn_ros.core import kernels
+
+    return kernels.BASIS_CODES[basis]

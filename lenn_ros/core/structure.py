@@ -232,9 +232,7 @@ class Identifier:
         self._last_index = index
         self.counters["samples"] += 1
         if self._plan_model is not self.model:
-            compiled = isinstance(self.structure, ModelStructure)  # a MIMO channel's regressor is not the kernel's
-            self._plan = StepPlan.for_model(self.model, self.structure) if compiled else None
-            self._plan_model = self.model
+            self._plan_model, self._plan = self.model, StepPlan.for_model(self.model, self.structure)
             self._restart_history()
         if self._plan is not None:
             self._step_compiled(self._plan, u, y, learn, result)

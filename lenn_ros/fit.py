@@ -82,14 +82,18 @@ def load_data(path: str | Path, u_column: str | None = None, y_column: str | Non
     return _load_csv(path, u_column, y_column)
 
 
-def _load_csv(path: Path, u_column: str | None, y_column: str | None) -> Data:
+def read_csv_rows(path: Path) -> tuple[list[str] | None, list[list[str]], int]:
+    """(header or None, the data rows, the width): blank lines dropped; a first row of numbers is data."""
     with path.open(newline="") as stream:
         rows = [row for row in csv.reader(stream) if row and any(cell.strip() for cell in row)]
     if not rows:
         raise FitError(f"{path} is empty")
     header = None if all(is_number(cell) for cell in rows[0]) else [cell.strip() for cell in rows[0]]
-    body = rows[1:] if header else rows
-    width = len(rows[0])
+    return header, rows[1:] if header else rows, len(rows[0])
+
+
+def _load_csv(path: Path, u_column: str | None, y_column: str | None) -> Data:
+    header, body, width = read_csv_rows(path)
     if u_column is None or y_column is None:
         if header and "u" in header and "y" in header:
             u_column, y_column = u_column or "u", y_column or "y"

@@ -43,7 +43,6 @@ one sample at a time, 5-8x faster that way. The delivered model is the
 
 from __future__ import annotations
 
-import csv
 import json
 import math
 import sys
@@ -55,7 +54,6 @@ from typing import Any
 import numpy as np
 
 from lenn_ros import topics
-from lenn_ros.bag.csv_import import is_number
 from lenn_ros.core.evaluation import free_run_problems
 from lenn_ros.core.expansions import full_exponents, term_features
 from lenn_ros.core.metrics import nmse_db, rmse
@@ -71,6 +69,7 @@ from lenn_ros.fit import (
     _jsonable,
     check_split,
     live_forgetting,
+    read_csv_rows,
     rls_covariance,
     write_params,
 )
@@ -133,14 +132,9 @@ def _channel(names: tuple[str, ...], column: str, path: Path, topic: str) -> int
 
 
 def _load_csv(path: Path, u_columns: list[str], y_columns: list[str]) -> MimoData:
-    with path.open(newline="") as stream:
-        rows = [row for row in csv.reader(stream) if row and any(cell.strip() for cell in row)]
-    if not rows:
-        raise FitError(f"{path} is empty")
-    header = None if all(is_number(cell) for cell in rows[0]) else [cell.strip() for cell in rows[0]]
-    body = rows[1:] if header else rows
+    header, body, width = read_csv_rows(path)
     columns = [*u_columns, *y_columns]
-    indices = [_column(header, column, len(rows[0]), path) for column in columns]
+    indices = [_column(header, column, width, path) for column in columns]
     values = np.empty((len(body), len(indices)))
     for n, row in enumerate(body):
         try:

@@ -36,6 +36,7 @@ import numpy as np
 
 from lenn_ros import bag as bags
 from lenn_ros import topics
+from lenn_ros.bag.vectors import read_vector_samples
 from lenn_ros.config import (
     NODE_PARAMETERS,
     build_identifier,
@@ -319,17 +320,30 @@ def evaluate_bag(
 
 
 def _evaluate_mimo(path: str, session: Session, values: dict[str, Any], test_from: int | None) -> MimoBagEvaluation:
-    """Several channels: the raw u / y_p paired as the node pairs them, then scored per output channel."""
-    index, u, y, by_order = _pair_raw(path, session, values)
-    source = f"u/y_p by {'order (no sequence numbers recorded)' if by_order else values['pairing']}"
-    start = test_from if test_from is not None else recorded_test_start(path)
+    """Several channels: the identifier's recorded samples, else the raw u / y_p paired as the node pairs them.
+
+    Then scored per output channel, as :func:`evaluate_bag` does for one.
+    """
+    structure = session.identifier.structure
+    recorded = read_vector_samples(path, structure.n_u, structure.n_y)
+    if recorded is not None:
+        index, u, y, learn = recorded
+        start = test_from if test_from is not None else _last_phase_start(index, learn)
+        start = recorded_test_start(path) if start is None else start
+        learn = learn & (index < test_from) if test_from is not None else learn
+        source = "samples"
+    else:
+        index, u, y, by_order = _pair_raw(path, session, values)
+        source = f"u/y_p by {'order (no sequence numbers recorded)' if by_order else values['pairing']}"
+        start = test_from if test_from is not None else recorded_test_start(path)
+        learn = index < start if start is not None else None
     if len(index) == 0:
         raise EvaluateError(f"{path}: no samples could be paired ({source}); see the notices above")
     if start is None:
         raise EvaluateError(f"{path}: no test_start topic in the bag; pass --test-from K (1-based sample index)")
     if start < index[0] + 1 or start > index[-1]:
         raise EvaluateError(f"test start {start} outside the bag's samples {index[0] + 1}..{index[-1]}")
-    return score_mimo(session, index, u, y, int(start), source)
+    return score_mimo(session, index, u, y, learn, int(start), source)
 
 
 def _last_phase_start(index: np.ndarray, learn: np.ndarray) -> int | None:

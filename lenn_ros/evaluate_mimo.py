@@ -8,9 +8,10 @@ session exactly as the node pairs them. The samples are learnt in one batched pa
 one-step, and the free run of the joint model (every output fed the model's own
 outputs) over the test part up to its first break.
 
-Not (yet) read back: the identifier's own ``samples`` topic of a MIMO run; the raw
-u / y_p messages carry the same samples when the recorder lost none (the report says
-how many indices are missing).
+A bag recorded with the identifier running holds its ``samples`` (each sample's index,
+time, channels and learn flag, as the node formed them): those are learnt again, so
+the figures equal the live ones by construction, whatever the recorder lost of the raw
+u / y_p; other bags are paired from their raw u / y_p.
 """
 
 from __future__ import annotations
@@ -63,14 +64,14 @@ class MimoBagEvaluation:
 
 
 def score_mimo(
-    session: Session, index: np.ndarray, u: np.ndarray, y: np.ndarray, start: int, source: str
+    session: Session, index: np.ndarray, u: np.ndarray, y: np.ndarray, learn: np.ndarray, start: int, source: str
 ) -> MimoBagEvaluation:
-    """Learn the paired samples before ``start`` in one pass, then score every output on the rest."""
+    """Learn the samples flagged ``learn`` in one pass (as live), then score every output from ``start`` on."""
     identifier = session.identifier
     assert isinstance(identifier, MimoIdentifier)
     u = u.reshape(len(index), -1)
     y = y.reshape(len(index), -1)
-    y_hat = session.run_samples(index, u, y, index < start)
+    y_hat = session.run_samples(index, u, y, learn)
     test = index >= start
     y_free, free_run = _free_run(identifier, index, u, y, int(np.argmax(test)))
     scored = test & np.isfinite(y_hat).all(axis=1)

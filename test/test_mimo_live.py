@@ -141,11 +141,24 @@ def test_a_recorded_mimo_run_evaluates_offline_to_the_live_figures(tmp_path: Pat
     assert {t: len(v) for t, v in theirs.items() if t in ("/u", "/y_p", "/y_hat", "/error")} == {
         "/u": TRAIN + TEST, "/y_p": TRAIN + TEST, "/y_hat": TRAIN + TEST, "/error": TRAIN + TEST - 1
     }  # fmt: skip
-    offline = evaluate_bag(str(bag))  # the configuration the identifier recorded
-    assert offline.pairs == TRAIN + TEST and offline.samples == TEST
+    offline = evaluate_bag(str(bag))  # the configuration the identifier recorded; its own samples
+    assert offline.source == "samples" and offline.pairs == TRAIN + TEST and offline.samples == TEST
     for name in NAMES:
         assert offline.channels[name]["nmse_db"] == pytest.approx(live["channels"][name]["phase_nmse_db"], abs=1e-9)
         assert offline.channels[name]["nmse_free_run_db"] < -15.0  # the joint model runs stably on its own
+    # raw messages lost by the recorder change nothing: the samples are what the identifier learnt from
+    from test_nodes import copy_bag
+
+    damaged = tmp_path / "damaged"
+    copy_bag(bag, damaged, lambda m: not (m.topic == "/u" and m.sequence in (500, 3300)))
+    again = evaluate_bag(str(damaged))
+    assert again.source == "samples" and again.channels == offline.channels
+    # without the samples topic the raw u / y_p are paired by sequence number, as live: the two lost u
+    # messages are two lost samples, each restarting the history
+    raw = tmp_path / "raw"
+    copy_bag(damaged, raw, lambda m: m.topic != "/samples")
+    paired = evaluate_bag(str(raw))
+    assert paired.source == "u/y_p by sequence" and paired.pairs == TRAIN + TEST - 2 and paired.missing == 2
 
 
 def test_each_channel_on_its_own_topic_from_its_own_node_is_merged_and_a_silent_one_said(domain: int) -> None:

@@ -22,7 +22,14 @@ from lenn_ros.bag.reader import _types, find_topic, iter_messages, read_summary
 from lenn_ros.bag.scalars import read_series
 from lenn_ros.bag.writer import BagWriter
 
-__all__ = ["VectorRun", "is_vector_run", "read_vector_run", "vector_message", "write_vector_run"]
+__all__ = [
+    "VectorRun",
+    "is_vector_run",
+    "read_vector_run",
+    "read_vector_samples",
+    "vector_message",
+    "write_vector_run",
+]
 
 
 @dataclass(frozen=True)
@@ -112,3 +119,31 @@ def _labels(path: Path, topic: str, width: int, kind: str) -> tuple[str, ...]:
     if len(names) != width or not all(names):
         return tuple(f"{kind}{i}" for i in range(width))
     return names
+
+
+def read_vector_samples(path: str | Path, n_u: int, n_y: int) -> tuple[np.ndarray, ...] | None:
+    """A MIMO identifier's own ``samples`` (index, u (N, n_u), y (N, n_y), learn), sorted by index; None if absent.
+
+    Rows are ``[index, time, u.<name>.., y_p.<name>.., learn]`` (``topics.sample_labels``);
+    a repeated index keeps its first row, as live. A width that does not fit the model's
+    channel counts is a BagError (another configuration recorded it).
+    """
+    path = Path(path)
+    file, summary = read_summary(path)
+    topic = find_topic(_types(summary), topics.SAMPLES)
+    if topic is None:
+        return None
+    values = read_series(path, file, summary, topic).values
+    if values is None or not len(values):
+        return None
+    values = np.asarray(values, dtype=np.float64).reshape(len(values), -1)
+    if values.shape[1] != 3 + n_u + n_y:
+        raise BagError(
+            f"{path}: {topic!r} rows have {values.shape[1]} values; a model of {n_u} inputs and {n_y} outputs "
+            f"records {3 + n_u + n_y} (index, time, u.., y_p.., learn): pass the --params it ran with"
+        )
+    order = np.argsort(values[:, 0], kind="stable")
+    index = values[order, 0].astype(np.int64)
+    keep = order[np.r_[True, np.diff(index) > 0]]
+    rows = values[keep]
+    return rows[:, 0].astype(np.int64), rows[:, 2 : 2 + n_u], rows[:, 2 + n_u : 2 + n_u + n_y], rows[:, -1] != 0

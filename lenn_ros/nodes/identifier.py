@@ -27,7 +27,6 @@ import json
 import os
 import sys
 import time
-from array import array
 from typing import Any
 
 import numpy as np
@@ -38,8 +37,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter as RosParameter
 from rclpy.qos import QoSPolicyKind, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
-from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64, Float64MultiArray, Int64, MultiArrayDimension, String
+from std_msgs.msg import Int64, String
 
 from lenn_ros import topics
 from lenn_ros.config import (
@@ -67,6 +65,7 @@ from lenn_ros.core.networks import ModelFileError
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.session import Notice, Sample, Session, SessionConfig, json_safe
 from lenn_ros.nodes import executor_choice, run_node
+from lenn_ros.nodes.identifier_outputs import IdentifierOutputs
 
 #: Parameters set by rclpy itself or by the QoS override mechanism: not unknown.
 _FOREIGN_PARAMETERS = ("use_sim_time", "start_type_description_service", "qos_overrides.")
@@ -104,18 +103,6 @@ def _normalise(parameter: Parameter, value: Any) -> Any:
     if isinstance(parameter.default, float) and isinstance(value, int) and not isinstance(value, bool):
         return float(value)
     return value
-
-
-def _set_stamp(stamp: Any, seconds: float) -> None:
-    """``stamp`` (builtin_interfaces/Time) := ``seconds``, as ``Time(nanoseconds=...).to_msg()`` gives it.
-
-    Set in place on a reused message: building an rclpy Time and a Time message for
-    every sample costs more than the arithmetic.
-    """
-    nanoseconds = round(seconds * 1e9)
-    if nanoseconds < 0:
-        raise ValueError("Nanoseconds value must not be negative")  # as rclpy's Time says it
-    stamp.sec, stamp.nanosec = divmod(nanoseconds, 1_000_000_000)
 
 
 class IdentifierNode(Node):
@@ -170,7 +157,6 @@ class IdentifierNode(Node):
         self.add_post_set_parameters_callback(self._apply_parameters)
 
         self._create_outputs()
-        self.nmse_publisher = self.create_publisher(Float64, topics.NMSE, topics.data_qos())
         self.status_publisher = self.create_publisher(String, topics.STATUS, topics.data_qos())
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
         config_publisher = self.create_publisher(String, topics.IDENTIFIER_CONFIG, topics.latched_qos())
@@ -186,7 +172,6 @@ class IdentifierNode(Node):
             self.create_timer(min(0.05, self.values["sample_period"] or 0.05), self._on_poll_timer)
         self._autosave_timer = None
         self._schedule_autosave()
-        self.errors_since_report = 0
         self._warned_kinds: set[str] = set()
         weights = sum(model.n_weights for model in self._models())
         shape = f"{len(self.identifier.names)} outputs ({self.values['couplings']} couplings), " if self.mimo else ""
@@ -199,18 +184,14 @@ class IdentifierNode(Node):
 
     # -- set-up ----------------------------------------------------------------------------
     def _create_outputs(self) -> None:
-        """y_hat, error (plain and stamped) and samples: scalars, or one element per output channel."""
-        qos = topics.data_qos()
-        value_type = Float64MultiArray if self.mimo else Float64  # one element per output channel
-        self.y_hat_publisher = self.create_publisher(value_type, topics.Y_HAT, qos)
-        self.error_publisher = self.create_publisher(value_type, topics.ERROR, qos)
-        self.y_hat_stamped_publisher = self.create_publisher(JointState, topics.Y_HAT_STAMPED, qos)
-        self.error_stamped_publisher = self.create_publisher(JointState, topics.ERROR_STAMPED, qos)
-        self.samples_publisher = self.create_publisher(Float64MultiArray, topics.SAMPLES, qos)
-        self._sample_layout = Float64MultiArray().layout
-        labels = topics.sample_labels(*self._channel_names()) if self.mimo else topics.SAMPLE_LABELS
-        self._sample_layout.dim = [MultiArrayDimension(label=",".join(labels), size=len(labels), stride=len(labels))]
-        self._reuse_messages()
+        """y_hat, error (plain and stamped), samples and nmse: scalars, or one element per output channel."""
+        if self.mimo:
+            outputs, labels = list(self.identifier.names), topics.sample_labels(*self._channel_names())
+        else:
+            outputs, labels = [self.y_name], topics.SAMPLE_LABELS
+        self.outputs = IdentifierOutputs(
+            self, outputs, labels, self.mimo, self.values, lambda: self.session.phase_nmse.nmse_db
+        )
 
     def _declare_all(self) -> dict[str, Any]:
         presets = (
@@ -465,98 +446,18 @@ class IdentifierNode(Node):
         self._publish(self.session.poll(self._now()))
         self._emit_notices()
 
-    def _reuse_messages(self) -> None:
-        """One message object per output, refilled for every sample.
-
-        Building messages was a good part of the per-sample cost (a JointState
-        constructs its Header and Time, the generated ``__init__`` re-imports their
-        modules each time); ``publish`` serialises at once, so refilling is safe.
-        """
-        self._y_hat_message = Float64()
-        self._error_message = Float64()
-        self._sample_message = Float64MultiArray(layout=self._sample_layout)
-        outputs = list(self.identifier.names) if self.mimo else [self.y_name]
-        self._joint_messages = {
-            publisher: JointState(name=outputs, position=[0.0] * len(outputs))
-            for publisher in (self.y_hat_stamped_publisher, self.error_stamped_publisher)
-        }
-        if self.mimo:
-            layout = Float64MultiArray().layout
-            layout.dim = [
-                MultiArrayDimension(label=topics.channel_layout_label(outputs), size=len(outputs), stride=len(outputs))
-            ]
-            self._y_hat_message = Float64MultiArray(layout=layout)
-            self._error_message = Float64MultiArray(layout=layout)
-
     def _publish(self, samples: list[Sample]) -> None:
-        """Every output of each sample; y_hat first, since a lockstep plant is waiting for it.
-
-        ``samples``, ``error`` and the stamped outputs are VOLATILE: a publisher with no
-        matched reader delivers them to nobody, so their messages are not built then
-        (``get_subscription_count`` is a cheap call; a recorder or a plot is a reader).
-        ``y_hat`` is always published: its publication sequence number counts samples.
-        """
+        """Every output of each sample (:mod:`~lenn_ros.nodes.identifier_outputs`), once held pairs may go."""
         if self.session.holding and self.session.held:  # (vouching starts with the first pair, not before)
             if self._outputs_matched() and self._publishers_vouched():
                 samples = self.session.release() + samples
             else:
                 self._say_holding()
-        if self.mimo:
-            self._publish_vectors(samples)
-            return
-        for sample in samples:
-            result = sample.result
-            if result is not None and result.y_hat_next is not None:
-                self._y_hat_message.data = result.y_hat_next
-                self.y_hat_publisher.publish(self._y_hat_message)
-            if self.samples_publisher.get_subscription_count():
-                learn = float(result.learned) if result is not None else 0.0
-                self._sample_message.data = array("d", (float(sample.index), sample.time, sample.u, sample.y, learn))
-                self.samples_publisher.publish(self._sample_message)
-            if result is not None and result.error is not None and result.y_hat is not None:
-                self._publish_error(sample.time, result.y_hat, result.error)
-
-    def _publish_vectors(self, samples: list[Sample]) -> None:
-        """:meth:`_publish` for a MIMO model: every output is one vector message, in the same order."""
-        for sample in samples:
-            result = sample.result
-            if result is not None and result.y_hat_next is not None:
-                self._y_hat_message.data = array("d", result.y_hat_next.tolist())
-                self.y_hat_publisher.publish(self._y_hat_message)
-            if self.samples_publisher.get_subscription_count():
-                learn = float(result.learned) if result is not None else 0.0
-                values = [float(sample.index), sample.time, *np.ravel(sample.u), *np.ravel(sample.y), learn]
-                self._sample_message.data = array("d", values)
-                self.samples_publisher.publish(self._sample_message)
-            if result is not None and result.error is not None and result.y_hat is not None:
-                self._publish_error(sample.time, result.y_hat, result.error)
-
-    def _publish_error(self, seconds: float, y_hat: Any, error: Any) -> None:
-        """e(k) and y^(k) of a learnt sample (plain and stamped), and the NMSE every ``report_every`` errors."""
-        if self.error_publisher.get_subscription_count():
-            self._error_message.data = array("d", error.tolist()) if self.mimo else error
-            self.error_publisher.publish(self._error_message)
-        for publisher, value in ((self.y_hat_stamped_publisher, y_hat), (self.error_stamped_publisher, error)):
-            if publisher.get_subscription_count():
-                message = self._joint_messages[publisher]
-                _set_stamp(message.header.stamp, seconds)
-                if self.mimo:
-                    message.position = array("d", value.tolist())
-                else:
-                    message.position[0] = value  # in place: the array the message serialises
-                publisher.publish(message)
-        self.errors_since_report += 1
-        if self.errors_since_report >= self.values["report_every"]:
-            self.errors_since_report = 0
-            self.nmse_publisher.publish(Float64(data=self.session.phase_nmse.nmse_db))
+        self.outputs.publish(samples)
 
     def _readers(self) -> dict[str, int]:
         """Matched readers of each output that can hold the first pairs back."""
-        return {
-            "y_hat": self.y_hat_publisher.get_subscription_count(),
-            "error": self.error_publisher.get_subscription_count(),
-            "samples": self.samples_publisher.get_subscription_count(),
-        }
+        return self.outputs.readers()
 
     _holding_since: float | None = None
 

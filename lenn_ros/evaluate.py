@@ -327,7 +327,7 @@ def _evaluate_mimo(path: str, session: Session, values: dict[str, Any], test_fro
     structure = session.identifier.structure
     recorded = read_vector_samples(path, structure.n_u, structure.n_y)
     if recorded is not None:
-        index, u, y, learn = recorded
+        index, u, y, learn = recorded.index, recorded.u, recorded.y, recorded.learn
         start = test_from if test_from is not None else _last_phase_start(index, learn)
         start = recorded_test_start(path) if start is None else start
         learn = learn & (index < test_from) if test_from is not None else learn

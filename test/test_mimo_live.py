@@ -159,6 +159,19 @@ def test_a_recorded_mimo_run_evaluates_offline_to_the_live_figures(tmp_path: Pat
     copy_bag(damaged, raw, lambda m: m.topic != "/samples")
     paired = evaluate_bag(str(raw))
     assert paired.source == "u/y_p by sequence" and paired.pairs == TRAIN + TEST - 2 and paired.missing == 2
+    # replayed from its samples into a fresh identifier: the live run again, whatever the recorder lost
+    from test_replay_pairs import run_replay
+
+    params.write_text(json_module.dumps({"/**": {"ros__parameters": {**values, "wait_for_error_subscribers": 0}}}))
+    again_live = start_node("identifier", params_file=params, ros_args=("-p", "wait_for_y_hat_subscribers:=1"))
+    try:
+        code, _, err = run_replay(damaged)
+        assert code == 0 and "replaying the identifier's samples: 3600 samples" in err, err
+    finally:
+        _, again_err = stop(again_live)
+    replayed = final_status(again_err)
+    for name in NAMES:
+        assert replayed["channels"][name]["phase_nmse_db"] == live["channels"][name]["phase_nmse_db"]
 
 
 def test_each_channel_on_its_own_topic_from_its_own_node_is_merged_and_a_silent_one_said(domain: int) -> None:
@@ -225,14 +238,35 @@ def test_the_node_refuses_a_mimo_setting_that_cannot_work_in_one_line(domain: in
     assert node.returncode == 2 and lines[-1].startswith("identifier: couplings of y0: no channel 'u9'"), err
 
 
-def test_replay_says_a_mimo_bag_is_not_replayed_yet_in_one_line(tmp_path: Path, domain: int) -> None:
-    from rosutil import start_node
+def test_replay_of_a_vector_bag_feeds_a_mimo_identifier_the_recorded_samples(tmp_path: Path, domain: int) -> None:
+    """import-csv of several columns, replayed into the MIMO identifier: it learns what evaluate learns."""
+    import json as json_module
+
+    from mimo_live import MIMO_VALUES
+    from rosutil import final_status, start_node, stop
+    from test_replay_pairs import run_replay
 
     from lenn_ros.bag.csv_import import import_csv
+    from lenn_ros.core.evaluation import simulate_mimo
+    from lenn_ros.core.plants import narendra_mimo_plant
+    from lenn_ros.evaluate import evaluate_bag
 
+    series = simulate_mimo(narendra_mimo_plant(), -20.0, 6, 1500, 300)
     csv = tmp_path / "log.csv"
-    csv.write_text("u1,u2,y1,y2\n" + "".join(f"{k},{-k},{2 * k},{3 * k}\n" for k in range(20)))
-    import_csv(csv, ["u1", "u2"], ["y1", "y2"], 0.01, tmp_path / "bag")
-    replay = start_node("replay", f"bag:={tmp_path / 'bag'}")
-    _, err = replay.communicate(timeout=60)
-    assert replay.returncode == 1 and "carry several channels per sample (MIMO)" in err.strip().splitlines()[-1], err
+    rows = "".join(",".join(repr(float(v)) for v in (*u, *y)) + "\n" for u, y in zip(series.u, series.y, strict=True))
+    csv.write_text("u1,u2,y1,y2\n" + rows)
+    bag = import_csv(csv, ["u1", "u2"], ["y1", "y2"], 0.01, tmp_path / "bag", test_from=1501)
+    params = tmp_path / "mimo.json"
+    params.write_text(json_module.dumps({"/**": {"ros__parameters": {**MIMO_VALUES, "wait_for_y_hat_subscribers": 1}}}))
+    identifier = start_node("identifier", params_file=params)
+    try:
+        code, _, err = run_replay(bag)
+        assert code == 0, err
+        assert "replaying u and y_p paired by order (no sequence numbers recorded): 1800 samples of 2 inputs" in err
+    finally:
+        _, id_err = stop(identifier)
+    live = final_status(id_err)
+    assert live["counters"]["paired"] == 1800 and live["phase_samples"] == 300
+    offline = evaluate_bag(str(bag), str(params))
+    for name in NAMES:
+        assert live["channels"][name]["phase_nmse_db"] == pytest.approx(offline.channels[name]["nmse_db"], abs=1e-9)

@@ -19,12 +19,16 @@ from lenn_ros import topics
 from lenn_ros.bag.errors import BagError
 from lenn_ros.bag.msgtypes import TYPESTORE
 from lenn_ros.bag.reader import _types, find_topic, iter_messages, read_summary
+from lenn_ros.bag.run import RawPairs, pair_raw
 from lenn_ros.bag.scalars import read_series
 from lenn_ros.bag.writer import BagWriter
 
 __all__ = [
+    "VectorPairs",
     "VectorRun",
+    "VectorSamples",
     "is_vector_run",
+    "pair_vector_run",
     "read_vector_run",
     "read_vector_samples",
     "vector_message",
@@ -121,12 +125,22 @@ def _labels(path: Path, topic: str, width: int, kind: str) -> tuple[str, ...]:
     return names
 
 
-def read_vector_samples(path: str | Path, n_u: int, n_y: int) -> tuple[np.ndarray, ...] | None:
-    """A MIMO identifier's own ``samples`` (index, u (N, n_u), y (N, n_y), learn), sorted by index; None if absent.
+@dataclass(frozen=True)
+class VectorSamples:
+    """A MIMO identifier's own ``samples``: index, time (s), u (N, n_u), y (N, n_y), learn; sorted by index."""
 
-    Rows are ``[index, time, u.<name>.., y_p.<name>.., learn]`` (``topics.sample_labels``);
-    a repeated index keeps its first row, as live. A width that does not fit the model's
-    channel counts is a BagError (another configuration recorded it).
+    index: np.ndarray
+    time: np.ndarray
+    u: np.ndarray
+    y: np.ndarray
+    learn: np.ndarray
+
+
+def read_vector_samples(path: str | Path, n_u: int, n_y: int) -> VectorSamples | None:
+    """The ``samples`` rows ``[index, time, u.<name>.., y_p.<name>.., learn]`` of a MIMO run; None if absent.
+
+    A repeated index keeps its first row, as live. A width that does not fit the channel
+    counts is a BagError (another configuration recorded it).
     """
     path = Path(path)
     file, summary = read_summary(path)
@@ -144,6 +158,73 @@ def read_vector_samples(path: str | Path, n_u: int, n_y: int) -> tuple[np.ndarra
         )
     order = np.argsort(values[:, 0], kind="stable")
     index = values[order, 0].astype(np.int64)
-    keep = order[np.r_[True, np.diff(index) > 0]]
-    rows = values[keep]
-    return rows[:, 0].astype(np.int64), rows[:, 2 : 2 + n_u], rows[:, 2 + n_u : 2 + n_u + n_y], rows[:, -1] != 0
+    rows = values[order[np.r_[True, np.diff(index) > 0]]]
+    u, y = rows[:, 2 : 2 + n_u], rows[:, 2 + n_u : 2 + n_u + n_y]
+    return VectorSamples(rows[:, 0].astype(np.int64), rows[:, 1], u, y, rows[:, -1] != 0)
+
+
+@dataclass(frozen=True)
+class VectorPairs:
+    """Sample k of a vector recording at row k, for replay: ``pairs`` (indices, streams, which halves the
+    recording holds, times, as :func:`~lenn_ros.bag.run.pair_raw` gives them) and the vectors, NaN rows
+    for a missing half."""
+
+    pairs: RawPairs
+    u: np.ndarray
+    y_p: np.ndarray
+    u_names: tuple[str, ...]
+    y_names: tuple[str, ...]
+    test_start: int | None
+    source: str
+
+
+def pair_vector_run(path: str | Path, use_samples: bool = True) -> VectorPairs:
+    """The identifier's recorded samples (``use_samples`` and present), else u / y_p paired by sequence number.
+
+    Pairing is :func:`~lenn_ros.bag.run.pair_raw`'s, done on row numbers and then
+    gathered, so vectors are paired exactly as scalars are.
+    """
+    path = Path(path)
+    file, summary = read_summary(path)
+    available = _types(summary)
+    series, names = [], []
+    for name, kind in ((topics.U, "u"), (topics.Y_P, "y")):
+        topic = find_topic(available, name)
+        if topic is None:
+            raise BagError(f"{path}: no {name} topic in the bag")
+        read = read_series(path, file, summary, topic)
+        values = np.asarray(read.values, dtype=np.float64).reshape(len(read.sequence), -1)
+        series.append((read, values))
+        names.append(_labels(path, topic, values.shape[1], kind) if len(values) else ())
+    start = find_topic(available, topics.TEST_START)
+    starts = read_series(path, file, summary, start).values if start else None
+    test_start = int(starts[-1]) if starts is not None and len(starts) else None
+    (u_read, u_rows), (y_read, y_rows) = series
+    recorded = read_vector_samples(path, u_rows.shape[1], y_rows.shape[1]) if use_samples else None
+    if recorded is not None:
+        times = np.round(recorded.time * 1e9).astype(np.int64)
+        rows = np.arange(len(recorded.index), dtype=np.float64)
+        pairs = pair_raw(rows, rows, recorded.index, recorded.index, u_t=times, y_p_t=times, fill=True)
+        u_rows, y_rows, source = recorded.u, recorded.y, "the identifier's samples"
+    else:
+        pairs = pair_raw(
+            np.arange(len(u_rows), dtype=np.float64),
+            np.arange(len(y_rows), dtype=np.float64),
+            u_read.sequence,
+            y_read.sequence,
+            u_t=u_read.log_time_ns,
+            y_p_t=y_read.log_time_ns,
+            fill=True,
+        )
+        source = "u and y_p paired by " + ("order (no sequence numbers recorded)" if pairs.by_order else "sequence")
+    return VectorPairs(
+        pairs, _gather(u_rows, pairs.u), _gather(y_rows, pairs.y_p), names[0], names[1], test_start, source
+    )
+
+
+def _gather(rows: np.ndarray, picks: np.ndarray) -> np.ndarray:
+    """Row ``picks[k]`` of ``rows`` for each k; a NaN pick (a half the recording lacks) is a NaN row."""
+    out = np.full((len(picks), rows.shape[1]), np.nan)
+    present = np.isfinite(picks)
+    out[present] = rows[picks[present].astype(np.int64)]
+    return out

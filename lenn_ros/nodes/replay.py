@@ -41,6 +41,10 @@ Pacing (``rate``):
 
 Before exiting, replay waits until every subscriber has acknowledged every sample.
 
+Several channels (MIMO): a bag whose u / y_p are Float64MultiArray (a recorded MIMO run,
+an ``import-csv`` with several columns) is replayed the same way, as vector messages
+whose layout label names the channels (:func:`lenn_ros.bag.vectors.pair_vector_run`).
+
 Looping (``loop``): each pass is a new stream, as if the run were recorded again. Replay
 waits until the last pass is acknowledged, then publishes through *new* publishers, so
 the DDS publication sequence numbers (the sample index the identifier pairs by) start
@@ -70,6 +74,7 @@ from rclpy.signals import SignalHandlerOptions
 from lenn_ros import topics
 from lenn_ros.bag import BagError, read_run
 from lenn_ros.bag.run import RawPairs, pair_raw, read_samples
+from lenn_ros.bag.vectors import is_vector_run, pair_vector_run
 
 SOURCES = ("auto", "samples", "raw")
 
@@ -121,22 +126,27 @@ class Replay(Node):
         bag = self.get_parameter("bag").value
         if not bag:
             raise BagError("parameter 'bag' is empty; run with --ros-args -p bag:=PATH")
-        self._refuse_vectors(bag)
-        run = read_run(bag)
         self.bag = bag
-        self.pairs = self._pairs(run, str(self._param("source")))
-        self.u, self.y_p = self.pairs.u, self.pairs.y_p
+        self.mimo = _is_vector_bag(bag)
+        self._u_dims: list[Any] = []  # MIMO: the vector messages' layouts, naming the channels
+        self._y_dims: list[Any] = []
+        if self.mimo:
+            self._load_vectors(str(self._param("source")))
+        else:
+            run = read_run(bag)
+            self.pairs = self._pairs(run, str(self._param("source")))
+            self.u, self.y_p = self.pairs.u, self.pairs.y_p
+            self.test_start = run.test_start
         times = self.pairs.time_ns
         self.offsets = (times - times[0]) / 1e9 if times.size else np.empty(0)
         self.stream_starts = {int(k) for k in np.flatnonzero(np.diff(self.pairs.stream)) + 1}
-        self.test_start = run.test_start
         self.published = 0
         self.y_hat_count = 0
         self.samples_count = 0
         self._feedback_allowed = False
         self._identifier_seen = False
         self._next_slot = 0.0
-        self._msg = topics.message_class(topics.FLOAT64)
+        self._msg = topics.message_class(topics.FLOAT64_ARRAY if self.mimo else topics.FLOAT64)
         self.passes = 0
         self._open_stream()
         self.pub_start = None
@@ -259,18 +269,33 @@ class Replay(Node):
         if not self.wait_acked(timeout=self._settle_timeout()):
             self.get_logger().warning("sample 1 of the new pass not acknowledged by every subscriber")
 
-    @staticmethod
-    def _refuse_vectors(bag: str) -> None:
-        """A bag of several channels per sample (MIMO) is said for what it is, not as a type error."""
-        from lenn_ros.bag import topic_types
+    def _load_vectors(self, source: str) -> None:
+        """A bag of several channels per sample (MIMO): the same pairing and pacing, vector messages."""
+        from std_msgs.msg import MultiArrayDimension
 
-        vectors = [name for name, kind in topic_types(bag).items() if kind == topics.FLOAT64_ARRAY
-                   and name.rstrip("/").rsplit("/", 1)[-1] in (topics.U, topics.Y_P)]  # fmt: skip
-        if vectors:
-            raise BagError(
-                f"{bag}: {', '.join(sorted(vectors))} carry several channels per sample (MIMO): replaying those is "
-                "not implemented yet; lenn-ros evaluate BAG scores them offline with the identifier's own session"
-            )
+        if source not in SOURCES:
+            raise ValueError(f"source {source!r} is not one of {', '.join(SOURCES)}")
+        vectors = pair_vector_run(self.bag, use_samples=source != "raw")
+        if source == "samples" and vectors.source != "the identifier's samples":
+            raise BagError(f"{self.bag}: no identifier samples topic in the bag; use source:=raw")
+        self.pairs, self.u, self.y_p, self.test_start = vectors.pairs, vectors.u, vectors.y_p, vectors.test_start
+        self._u_dims, self._y_dims = (
+            [MultiArrayDimension(label=topics.channel_layout_label(names), size=len(names), stride=len(names))]
+            for names in (vectors.u_names, vectors.y_names)
+        )
+        self.get_logger().info(
+            f"replaying {vectors.source}: {self.pairs.index.size} samples of {len(vectors.u_names)} inputs "
+            f"({', '.join(vectors.u_names)}) and {len(vectors.y_names)} outputs ({', '.join(vectors.y_names)}), "
+            f"{self.pairs.incomplete} incomplete (published with NaN, skipped by the identifier)"
+        )
+
+    def _message(self, value: Any, dims: list[Any]) -> Any:
+        """One u or y_p message: a Float64, or (MIMO) a Float64MultiArray naming its channels."""
+        if not self.mimo:
+            return self._msg(data=float(value))
+        message = self._msg(data=np.asarray(value, dtype=np.float64).tolist())
+        message.layout.dim = dims
+        return message
 
     def _declare(self, name: str, default: Any, description: str, **ranges: Any) -> None:
         self.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=True, **ranges))
@@ -347,8 +372,8 @@ class Replay(Node):
             elif max_rate > 0:
                 self._next_slot = max(self._next_slot + 1.0 / max_rate, time.monotonic() - 0.01)
                 self._spin_until(executor, self._next_slot)
-            self.pub_u.publish(self._msg(data=float(self.u[k])))
-            self.pub_y.publish(self._msg(data=float(self.y_p[k])))
+            self.pub_u.publish(self._message(self.u[k], self._u_dims))
+            self.pub_y.publish(self._message(self.y_p[k], self._y_dims))
             self.published += 1
             if (k == 0 and self.passes) or k in self.stream_starts:
                 self._settle_new_stream()
@@ -369,6 +394,13 @@ class Replay(Node):
         """True when every subscriber has every sample, so exiting now loses nothing."""
         limit = Duration(seconds=timeout)
         return all(pub.wait_for_all_acked(limit) for pub in (self.pub_u, self.pub_y))
+
+
+def _is_vector_bag(bag: str) -> bool:
+    try:
+        return is_vector_run(bag)
+    except BagError:
+        return False  # (read_run says what is wrong with the bag, in its words)
 
 
 def main(args: list[str] | None = None) -> int:

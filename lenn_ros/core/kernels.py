@@ -428,6 +428,74 @@ def free_run_functional_link(
     return clipped, -1
 
 
+@njit(cache=True, nogil=True)
+def free_run_functional_link_mimo(
+    values: np.ndarray,
+    start: int,
+    n_y: int,
+    input_start: np.ndarray,
+    input_source: np.ndarray,
+    input_lag: np.ndarray,
+    input_offset: np.ndarray,
+    input_scale: np.ndarray,
+    term_start: np.ndarray,
+    exponents: np.ndarray,
+    weights: np.ndarray,
+    feature_branch: np.ndarray,
+    tanh_output: np.ndarray,
+    output_scale: np.ndarray,
+    constant: np.ndarray,
+    y_offset: np.ndarray,
+    y_scale: np.ndarray,
+    basis: int,
+    divergence_bound: float,
+    clipped: np.ndarray,
+) -> int:
+    """The joint free run of a MIMO model: :func:`free_run_functional_link` for every output at once.
+
+    ``values`` (N, n_y + n_u) holds [y, u] per sample; outputs from ``start`` on are
+    overwritten with the model's, each fed back to every output that sees it. Output
+    j's network inputs are entries ``input_start[j]..input_start[j+1]`` (a column of
+    ``values``, a lag, an offset and a scale each), its terms rows
+    ``term_start[j]..term_start[j+1]`` of ``exponents`` / ``weights``. Clipped inputs
+    are counted per output in ``clipped``; returns the first diverged sample, or -1.
+    """
+    n = values.shape[0]
+    top = _top_degree(exponents)
+    table = np.empty((exponents.shape[1], top + 1))
+    sums = np.zeros(int(feature_branch.max()) + 1 if feature_branch.size else 1)
+    for k in range(start - 1, n - 1):
+        for j in range(n_y):
+            first, last = input_start[j], input_start[j + 1]
+            for i in range(last - first):
+                entry = first + i
+                x = (values[k - input_lag[entry], input_source[entry]] - input_offset[entry]) / input_scale[entry]
+                if x > 1.0:
+                    x = 1.0
+                    clipped[j] += 1
+                elif x < -1.0:
+                    x = -1.0
+                    clipped[j] += 1
+                _univariate_row(x, top, basis, table[i])
+            t0, t1 = term_start[j], term_start[j + 1]
+            out = constant[j] + _term_network_output(
+                table[: last - first],
+                exponents[t0:t1, : last - first],
+                weights[t0:t1],
+                feature_branch[t0:t1],
+                tanh_output[j],
+                output_scale[j],
+                sums,
+            )
+            if not math.isfinite(out) or abs(out - y_offset[j]) > divergence_bound * y_scale[j]:
+                for later in range(k + 1, n):
+                    for c in range(n_y):
+                        values[later, c] = np.nan
+                return k + 1
+            values[k + 1, j] = out
+    return -1
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _polynomial_table(
     u: np.ndarray,

@@ -36,7 +36,7 @@ import numpy as np
 
 from lenn_ros import bag as bags
 from lenn_ros import topics
-from lenn_ros.bag.vectors import read_vector_samples
+from lenn_ros.bag.vectors import read_test_start, read_vector_samples
 from lenn_ros.config import (
     NODE_PARAMETERS,
     build_identifier,
@@ -53,7 +53,7 @@ from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.session import Session, SessionConfig
 from lenn_ros.core.structure import Identifier
-from lenn_ros.evaluate_mimo import MimoBagEvaluation, recorded_test_start, score_mimo
+from lenn_ros.evaluate_mimo import MimoBagEvaluation, score_mimo
 from lenn_ros.evaluate_mimo import report as report_mimo
 
 _NODE_DEFAULTS = {parameter.name: parameter.default for parameter in NODE_PARAMETERS}
@@ -174,8 +174,11 @@ def _session(identifier: Identifier, values: dict[str, Any]) -> Session:
     return Session(identifier, SessionConfig.from_values(values, follow_test_start=False, learning=True))
 
 
-def _recorded_samples(path: str) -> tuple[np.ndarray, ...] | None:
+def _recorded_samples(path: str, identifier: Identifier | MimoIdentifier) -> tuple[np.ndarray, ...] | None:
     """The identifier's own samples, sorted by index (a repeated index: the first, as live)."""
+    if isinstance(identifier, MimoIdentifier):
+        vectors = read_vector_samples(path, identifier.structure.n_u, identifier.structure.n_y)
+        return None if vectors is None else (vectors.index, vectors.u, vectors.y, vectors.learn)
     samples = bags.read_samples(path)
     if samples is None or samples.index.size == 0:
         return None
@@ -276,28 +279,9 @@ def evaluate_bag(
     """Train on the bag's training phase, score the frozen model on its test phase."""
     identifier, values = _configuration(path, params)
     session = _session(identifier, values)
+    index, u, y, learn, start, source = _samples(path, session, values, test_from)
     if isinstance(identifier, MimoIdentifier):
-        return _evaluate_mimo(path, session, values, test_from)
-    recorded = _recorded_samples(path)
-    if recorded is not None:
-        index, u, y, learn = recorded
-        source = "samples"
-        start = test_from if test_from is not None else _last_phase_start(index, learn)
-        if start is None:  # the identifier learnt throughout: score from the recorded test_start
-            start = bags.read_run(path).test_start
-        if test_from is not None:
-            learn = learn & (index < test_from)
-    else:
-        index, u, y, by_order = _pair_raw(path, session, values)
-        source = f"u/y_p by {'order (no sequence numbers recorded)' if by_order else values['pairing']}"
-        start = test_from if test_from is not None else bags.read_run(path).test_start
-        if start is None:
-            raise EvaluateError(f"{path}: no test_start topic in the bag; pass --test-from K (1-based sample index)")
-        learn = index < start
-    if len(index) == 0:
-        raise EvaluateError(f"{path}: no samples could be paired ({source}); see the notices above")
-    if start is None or start < index[0] + 1 or start > index[-1]:
-        raise EvaluateError(f"test start {start} outside the bag's samples {index[0] + 1}..{index[-1]}")
+        return score_mimo(session, index, u, y, learn, start, source)
     y_hat = session.run_samples(index, u, y, learn)
     evaluation = _score(identifier, index, u, y, y_hat, start)
     counters = session.all_counters()
@@ -319,31 +303,38 @@ def evaluate_bag(
     )
 
 
-def _evaluate_mimo(path: str, session: Session, values: dict[str, Any], test_from: int | None) -> MimoBagEvaluation:
-    """Several channels: the identifier's recorded samples, else the raw u / y_p paired as the node pairs them.
-
-    Then scored per output channel, as :func:`evaluate_bag` does for one.
-    """
-    structure = session.identifier.structure
-    recorded = read_vector_samples(path, structure.n_u, structure.n_y)
+def _samples(
+    path: str, session: Session, values: dict[str, Any], test_from: int | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, str]:
+    """(index, u, y, learn, test start, source): the identifier's recorded samples, else the raw u / y_p paired
+    as the node pairs them; u and y have a column per channel for a MIMO model."""
+    # (read_run checks a SISO run's u / y_p as it reads; a MIMO run's are vectors it does not read)
+    recorded_start = read_test_start if isinstance(session.identifier, MimoIdentifier) else _run_test_start
+    recorded = _recorded_samples(path, session.identifier)
     if recorded is not None:
-        index, u, y, learn = recorded.index, recorded.u, recorded.y, recorded.learn
-        start = test_from if test_from is not None else _last_phase_start(index, learn)
-        start = recorded_test_start(path) if start is None else start
-        learn = learn & (index < test_from) if test_from is not None else learn
+        index, u, y, learn = recorded
         source = "samples"
+        start = test_from if test_from is not None else _last_phase_start(index, learn)
+        if start is None:  # the identifier learnt throughout: score from the recorded test_start
+            start = recorded_start(path)
+        if test_from is not None:
+            learn = learn & (index < test_from)
     else:
         index, u, y, by_order = _pair_raw(path, session, values)
         source = f"u/y_p by {'order (no sequence numbers recorded)' if by_order else values['pairing']}"
-        start = test_from if test_from is not None else recorded_test_start(path)
-        learn = index < start if start is not None else None
+        start = test_from if test_from is not None else recorded_start(path)
+        if start is None:
+            raise EvaluateError(f"{path}: no test_start topic in the bag; pass --test-from K (1-based sample index)")
+        learn = index < start
     if len(index) == 0:
         raise EvaluateError(f"{path}: no samples could be paired ({source}); see the notices above")
-    if start is None:
-        raise EvaluateError(f"{path}: no test_start topic in the bag; pass --test-from K (1-based sample index)")
-    if start < index[0] + 1 or start > index[-1]:
+    if start is None or start < index[0] + 1 or start > index[-1]:
         raise EvaluateError(f"test start {start} outside the bag's samples {index[0] + 1}..{index[-1]}")
-    return score_mimo(session, index, u, y, learn, int(start), source)
+    return index, u, y, learn, int(start), source
+
+
+def _run_test_start(path: str) -> int | None:
+    return bags.read_run(path).test_start
 
 
 def _last_phase_start(index: np.ndarray, learn: np.ndarray) -> int | None:

@@ -23,8 +23,6 @@ from typing import Any
 
 import numpy as np
 
-from lenn_ros import bag as bags
-from lenn_ros import topics
 from lenn_ros.core.metrics import nmse_db, rmse
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.session import Session, json_safe
@@ -95,12 +93,6 @@ def score_mimo(
         y_hat[test],
         y_free[test],
     )
-
-
-def recorded_test_start(path: str) -> int | None:
-    """The last ``test_start`` in the bag (``read_run`` reads u / y_p as scalars, so not that)."""
-    starts = [int(message.message.data) for message in bags.iter_messages(path, [topics.TEST_START])]
-    return starts[-1] if starts else None
 
 
 def _free_run(

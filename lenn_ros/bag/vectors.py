@@ -12,6 +12,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -20,7 +21,7 @@ from lenn_ros.bag.errors import BagError
 from lenn_ros.bag.msgtypes import TYPESTORE
 from lenn_ros.bag.reader import _types, find_topic, iter_messages, read_summary
 from lenn_ros.bag.run import RawPairs, pair_raw
-from lenn_ros.bag.scalars import read_series
+from lenn_ros.bag.scalars import Series, read_series
 from lenn_ros.bag.writer import BagWriter
 
 __all__ = [
@@ -29,6 +30,7 @@ __all__ = [
     "VectorSamples",
     "is_vector_run",
     "pair_vector_run",
+    "read_test_start",
     "read_vector_run",
     "read_vector_samples",
     "vector_message",
@@ -89,30 +91,41 @@ def is_vector_run(path: str | Path) -> bool:
 def read_vector_run(path: str | Path) -> VectorRun:
     """u and y_p of a vector run, paired by message order (as import-csv writes them), with their names."""
     path = Path(path)
+    (_, u_rows), (_, y_rows), names, test_start = _read_channels(path)
+    pairs = min(len(u_rows), len(y_rows))
+    return VectorRun(u=u_rows[:pairs], y=y_rows[:pairs], u_names=names[0], y_names=names[1], test_start=test_start)
+
+
+def _read_channels(path: Path) -> tuple[tuple[Series, np.ndarray], tuple[Series, np.ndarray], list, int | None]:
+    """u and y_p as recorded ((series, rows) each), their channel names and the last test_start (None: none)."""
     file, summary = read_summary(path)
     available = _types(summary)
-    columns, names = [], []
+    series, names = [], []
     for name, kind in ((topics.U, "u"), (topics.Y_P, "y")):
         topic = find_topic(available, name)
         if topic is None or available[topic] != topics.FLOAT64_ARRAY:
             found = f"type {available[topic]}" if topic else "missing"
             raise BagError(f"{path}: topic {name!r} is {found}; a vector run needs {topics.FLOAT64_ARRAY} on u and y_p")
-        values = read_series(path, file, summary, topic).values
-        if values is None or not len(values):
+        read = read_series(path, file, summary, topic)
+        if read.values is None or not len(read.values):
             raise BagError(f"{path}: topic {topic!r} has no messages; record a run that publishes it")
-        values = np.asarray(values, dtype=np.float64).reshape(len(values), -1)
-        columns.append(values)
+        values = np.asarray(read.values, dtype=np.float64).reshape(len(read.values), -1)
+        series.append((read, values))
         names.append(_labels(path, topic, values.shape[1], kind))
-    pairs = min(len(columns[0]), len(columns[1]))
+    return series[0], series[1], names, _test_start(path, file, summary, available)
+
+
+def read_test_start(path: str | Path) -> int | None:
+    """The last ``test_start`` in a bag, whatever its u / y_p are (None: none recorded)."""
+    path = Path(path)
+    file, summary = read_summary(path)
+    return _test_start(path, file, summary, _types(summary))
+
+
+def _test_start(path: Path, file: Path, summary: Any, available: dict[str, str]) -> int | None:
     start = find_topic(available, topics.TEST_START)
     starts = read_series(path, file, summary, start).values if start else None
-    return VectorRun(
-        u=columns[0][:pairs],
-        y=columns[1][:pairs],
-        u_names=names[0],
-        y_names=names[1],
-        test_start=int(starts[-1]) if starts is not None and len(starts) else None,
-    )
+    return int(starts[-1]) if starts is not None and len(starts) else None
 
 
 def _labels(path: Path, topic: str, width: int, kind: str) -> tuple[str, ...]:
@@ -185,21 +198,7 @@ def pair_vector_run(path: str | Path, use_samples: bool = True) -> VectorPairs:
     gathered, so vectors are paired exactly as scalars are.
     """
     path = Path(path)
-    file, summary = read_summary(path)
-    available = _types(summary)
-    series, names = [], []
-    for name, kind in ((topics.U, "u"), (topics.Y_P, "y")):
-        topic = find_topic(available, name)
-        if topic is None:
-            raise BagError(f"{path}: no {name} topic in the bag")
-        read = read_series(path, file, summary, topic)
-        values = np.asarray(read.values, dtype=np.float64).reshape(len(read.sequence), -1)
-        series.append((read, values))
-        names.append(_labels(path, topic, values.shape[1], kind) if len(values) else ())
-    start = find_topic(available, topics.TEST_START)
-    starts = read_series(path, file, summary, start).values if start else None
-    test_start = int(starts[-1]) if starts is not None and len(starts) else None
-    (u_read, u_rows), (y_read, y_rows) = series
+    (u_read, u_rows), (y_read, y_rows), names, test_start = _read_channels(path)
     recorded = read_vector_samples(path, u_rows.shape[1], y_rows.shape[1]) if use_samples else None
     if recorded is not None:
         times = np.round(recorded.time * 1e9).astype(np.int64)

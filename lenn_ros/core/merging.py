@@ -127,14 +127,6 @@ class TopicMerger:
         self._groups.clear()
         self.counters["merge_dropped"] += dropped
 
-    @property
-    def waiting(self) -> list[int]:
-        """Parts never seen yet (sample mode), or missing from every open group (other modes)."""
-        if self.mode == "sample":
-            return [p for p in range(len(self.sizes)) if p not in self._latest]
-        seen = set().union(*(group.parts for group in self._groups.values())) if self._groups else set()
-        return [p for p in range(len(self.sizes)) if p not in seen] if self._groups else []
-
 
 def default_max_age(sample_period: float) -> float:
     """How old a held part may be (receive time) in sample mode: two periods, at least 50 ms."""

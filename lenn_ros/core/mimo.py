@@ -69,7 +69,8 @@ def parse_couplings(text: str, n_u: int, n_y: int) -> tuple[tuple[str, ...], ...
 class ChannelStructure:
     """Output j's regressor: its own lags, then the lags of each other channel it sees.
 
-    Duck-types :class:`~lenn_ros.core.structure.ModelStructure` for the Identifier: the
+    Stands in for :class:`~lenn_ros.core.structure.ModelStructure` where the Identifier uses
+    one (regressors, warm-up; the compiled step's plan is ``channel_step``'s): the
     network input is (value - offset) / scale per channel and lag; ``u`` handed to
     :meth:`regressors` is the matrix of the other channels (one column each), ``y``
     output j itself. ``history`` is the MIMO model's common warm-up, so every output
@@ -84,9 +85,6 @@ class ChannelStructure:
     other_offsets: tuple[float, ...] = ()
     history: int = 1
     output_offset: float = 0.0
-    known_a: tuple[float, ...] = ()
-    known_b: tuple[float, ...] = ()
-    separate: bool = False
 
     def __post_init__(self) -> None:
         if self.n_inputs == 0:
@@ -97,19 +95,12 @@ class ChannelStructure:
             raise ValueError("scale factors must be positive")
 
     @property
-    def u_lags(self) -> int:
-        return sum(self.other_lags)
-
-    @property
     def n_inputs(self) -> int:
         return self.y_lags + sum(self.other_lags)
 
     @property
     def warm_up(self) -> int:
         return max(self.history, self.y_lags, *self.other_lags, 1)
-
-    def branches(self) -> None:
-        return None
 
     def regressors(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Network inputs x(k) for k = warm_up - 1 .. N - 1; ``u``: (N, channels), ``y``: (N,)."""
@@ -173,6 +164,9 @@ class MimoStructure:
                 raise ValueError(f"{name} has {len(values)} value(s), one per channel needs {count}")
         if not self.couplings:
             object.__setattr__(self, "couplings", parse_couplings("full", self.n_u, self.n_y))
+        # where each output's other channels sit in the vector [y_0.., u_0..]: picked once per sample
+        columns = [[i if kind == "y" else self.n_y + i for kind, i in self.others(j)] for j in range(self.n_y)]
+        object.__setattr__(self, "_picks", tuple(np.array(c, dtype=np.intp) for c in columns))
 
     def _scale(self, kind: str, index: int) -> tuple[float, float]:
         scales, offsets = (self.y_scale, self.y_offset) if kind == "y" else (self.u_scale, self.u_offset)
@@ -203,13 +197,8 @@ class MimoStructure:
         return np.concatenate((y, u), axis=-1)[..., self.picks(output)]
 
     def picks(self, output: int) -> np.ndarray:
-        """Where output ``output``'s other channels sit in the vector [y_0.., u_0..] (cached: once per sample)."""
-        cache = self.__dict__.setdefault("_picks", {})
-        if output not in cache:
-            cache[output] = np.array(
-                [index if kind == "y" else self.n_y + index for kind, index in self.others(output)], dtype=np.intp
-            )
-        return cache[output]
+        """Where output ``output``'s other channels sit in the vector [y_0.., u_0..]."""
+        return self._picks[output]
 
 
 @dataclass
@@ -221,8 +210,7 @@ class MimoStepResult:
     error: np.ndarray | None = None
     y_hat: np.ndarray | None = None
     learned: bool = False
-    event: str = ""
-    events: tuple[str, ...] = ()
+    event: str = ""  # "diverged" if any output diverged, else the first non-empty one (gap, duplicate)
 
 
 def _stack(values: list[float | None]) -> np.ndarray | None:
@@ -324,7 +312,6 @@ class MimoIdentifier:
             y_hat=_stack([result.y_hat for result in results]),
             learned=any(result.learned for result in results),
             event=event,
-            events=events,
         )
 
     def _python_free_run(self, u: np.ndarray, y_model: np.ndarray, start: int, window: int) -> tuple[list, int | None]:

@@ -452,7 +452,11 @@ class Session:
         return not (following and self.test_start is not None and index >= self.test_start)
 
     def _step(self, pair: Pair) -> Sample:
-        if np.isnan(pair.u).any() or np.isnan(pair.y).any():
+        if self.mimo:
+            refused = bool(np.isnan(pair.u).any() or np.isnan(pair.y).any())
+        else:
+            refused = math.isnan(pair.u) or math.isnan(pair.y)  # (no numpy call per sample for one channel)
+        if refused:
             self.identifier.skip(pair.index)
             return Sample(pair.index, pair.time, pair.u, pair.y, None)
         learn = self._learns(pair.index)

@@ -58,6 +58,14 @@ def channel_layout_label(names: list[str] | tuple[str, ...]) -> str:
     """``layout.dim[0].label`` of a vector u, y_p, y_hat or error message: the channel names."""
     return ",".join(names)
 
+
+def vector_layout(labels: list[str] | tuple[str, ...]):
+    """The rclpy ``MultiArrayLayout`` of a vector message whose elements ``labels`` name (built once, reused)."""
+    from std_msgs.msg import MultiArrayDimension, MultiArrayLayout
+
+    size = len(labels)
+    return MultiArrayLayout(dim=[MultiArrayDimension(label=channel_layout_label(labels), size=size, stride=size)])
+
 #: Depth of the RELIABLE data queues: 10 s at 1 kHz, so a subscriber that stalls
 #: for a garbage-collection pause or a disk flush loses nothing.
 DATA_DEPTH = 10_000

@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 from rclpy.node import Node
 from sensor_msgs.msg import JointState
-from std_msgs.msg import Float64, Float64MultiArray, MultiArrayDimension
+from std_msgs.msg import Float64, Float64MultiArray
 
 from lenn_ros import topics
 from lenn_ros.core.session import Sample
@@ -39,12 +39,6 @@ def set_stamp(stamp: Any, seconds: float) -> None:
     if nanoseconds < 0:
         raise ValueError("Nanoseconds value must not be negative")  # as rclpy's Time says it
     stamp.sec, stamp.nanosec = divmod(nanoseconds, 1_000_000_000)
-
-
-def _layout(labels: list[str] | tuple[str, ...]) -> Any:
-    layout = Float64MultiArray().layout
-    layout.dim = [MultiArrayDimension(label=",".join(labels), size=len(labels), stride=len(labels))]
-    return layout
 
 
 class IdentifierOutputs:
@@ -72,10 +66,10 @@ class IdentifierOutputs:
         self.error_stamped = node.create_publisher(JointState, topics.ERROR_STAMPED, qos)
         self.samples = node.create_publisher(Float64MultiArray, topics.SAMPLES, qos)
         self.nmse = node.create_publisher(Float64, topics.NMSE, qos)
-        self._sample_message = Float64MultiArray(layout=_layout(sample_labels))
+        self._sample_message = Float64MultiArray(layout=topics.vector_layout(sample_labels))
         if mimo:
-            self._y_hat_message = Float64MultiArray(layout=_layout(outputs))
-            self._error_message = Float64MultiArray(layout=_layout(outputs))
+            self._y_hat_message = Float64MultiArray(layout=topics.vector_layout(outputs))
+            self._error_message = Float64MultiArray(layout=topics.vector_layout(outputs))
         else:
             self._y_hat_message, self._error_message = Float64(), Float64()
         self._joint_messages = {

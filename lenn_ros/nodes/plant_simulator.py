@@ -19,7 +19,7 @@ import time
 import numpy as np
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.node import Node
-from std_msgs.msg import Float64, Float64MultiArray, Int64, MultiArrayDimension
+from std_msgs.msg import Float64, Float64MultiArray, Int64
 
 from lenn_ros import topics
 from lenn_ros.core.examples import get_example
@@ -97,19 +97,7 @@ class PlantSimulator(Node):
         self.plant = self._make_plant()
         p = self.get_parameter
         self.mimo = isinstance(self.plant, MimoPlant)
-        self.excitations = [
-            Excitation(
-                p("seed").value,
-                p("signal").value,
-                p("train_samples").value,
-                p("test_samples").value,
-                p("noise_db").value,
-                p("test_noise").value,
-                channel=channel,
-            )
-            for channel in range(self.plant.n_u if self.mimo else 1)
-        ]
-        self.excitation = self.excitations[0]
+        self._make_excitations()
         self.k = 0
         self.acknowledged = 0
         self._last_acknowledged = 0
@@ -128,6 +116,26 @@ class PlantSimulator(Node):
             f"{self.plant.name}: signal {p('signal').value}, {self.excitation.length or 'endless'} samples, "
             f"noise {p('noise_db').value} dB, rate {p('rate_hz').value or 'lockstep'}"
         )
+
+    def _make_excitations(self) -> None:
+        """One input stream per plant input (a MIMO plant's own per channel), and the vector layouts."""
+        p = self.get_parameter
+        self.excitations = [
+            Excitation(
+                p("seed").value,
+                p("signal").value,
+                p("train_samples").value,
+                p("test_samples").value,
+                p("noise_db").value,
+                p("test_noise").value,
+                channel=channel,
+            )
+            for channel in range(self.plant.n_u if self.mimo else 1)
+        ]
+        self.excitation = self.excitations[0]
+        if self.mimo:  # channels labelled u1, u2.. / y1, y2.. (the plant's own names), built once
+            self._u_layout = topics.vector_layout([f"u{i + 1}" for i in range(self.plant.n_u)])
+            self._y_layout = topics.vector_layout([f"y{i + 1}" for i in range(self.plant.n_y)])
 
     def _make_plant(self) -> Plant | MimoPlant:
         p = self.get_parameter
@@ -232,19 +240,11 @@ class PlantSimulator(Node):
         drawn = [excitation.sample(self.k) for excitation in self.excitations]
         u = np.array([value for value, _ in drawn])
         noise = np.array([value for _, value in drawn])
-        self.u_publisher.publish(self._vector(u, "u"))
-        self.y_publisher.publish(self._vector(self.plant.output, "y"))
+        self.u_publisher.publish(Float64MultiArray(layout=self._u_layout, data=u.tolist()))
+        self.y_publisher.publish(Float64MultiArray(layout=self._y_layout, data=self.plant.output.tolist()))
         self.plant.step(u + noise)
         self.k += 1
         return True
-
-    @staticmethod
-    def _vector(values: np.ndarray, prefix: str) -> Float64MultiArray:
-        names = [f"{prefix}{i + 1}" for i in range(len(values))]
-        dimension = MultiArrayDimension(label=topics.channel_layout_label(names), size=len(names), stride=len(names))
-        message = Float64MultiArray(data=values.tolist())
-        message.layout.dim = [dimension]
-        return message
 
     def _change_plant(self) -> None:
         """Tracking scenario: the unknown part's gain jumps; the plant's state carries over."""

@@ -128,8 +128,8 @@ class Replay(Node):
             raise BagError("parameter 'bag' is empty; run with --ros-args -p bag:=PATH")
         self.bag = bag
         self.mimo = _is_vector_bag(bag)
-        self._u_dims: list[Any] = []  # MIMO: the vector messages' layouts, naming the channels
-        self._y_dims: list[Any] = []
+        self._u_layout: Any = None  # MIMO: the vector messages' layouts, naming the channels
+        self._y_layout: Any = None
         if self.mimo:
             self._load_vectors(str(self._param("source")))
         else:
@@ -271,31 +271,24 @@ class Replay(Node):
 
     def _load_vectors(self, source: str) -> None:
         """A bag of several channels per sample (MIMO): the same pairing and pacing, vector messages."""
-        from std_msgs.msg import MultiArrayDimension
-
         if source not in SOURCES:
             raise ValueError(f"source {source!r} is not one of {', '.join(SOURCES)}")
         vectors = pair_vector_run(self.bag, use_samples=source != "raw")
         if source == "samples" and vectors.source != "the identifier's samples":
             raise BagError(f"{self.bag}: no identifier samples topic in the bag; use source:=raw")
         self.pairs, self.u, self.y_p, self.test_start = vectors.pairs, vectors.u, vectors.y_p, vectors.test_start
-        self._u_dims, self._y_dims = (
-            [MultiArrayDimension(label=topics.channel_layout_label(names), size=len(names), stride=len(names))]
-            for names in (vectors.u_names, vectors.y_names)
-        )
+        self._u_layout, self._y_layout = (topics.vector_layout(names) for names in (vectors.u_names, vectors.y_names))
         self.get_logger().info(
             f"replaying {vectors.source}: {self.pairs.index.size} samples of {len(vectors.u_names)} inputs "
             f"({', '.join(vectors.u_names)}) and {len(vectors.y_names)} outputs ({', '.join(vectors.y_names)}), "
             f"{self.pairs.incomplete} incomplete (published with NaN, skipped by the identifier)"
         )
 
-    def _message(self, value: Any, dims: list[Any]) -> Any:
+    def _message(self, value: Any, layout: Any) -> Any:
         """One u or y_p message: a Float64, or (MIMO) a Float64MultiArray naming its channels."""
         if not self.mimo:
             return self._msg(data=float(value))
-        message = self._msg(data=np.asarray(value, dtype=np.float64).tolist())
-        message.layout.dim = dims
-        return message
+        return self._msg(layout=layout, data=np.asarray(value, dtype=np.float64).tolist())
 
     def _declare(self, name: str, default: Any, description: str, **ranges: Any) -> None:
         self.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=True, **ranges))
@@ -372,8 +365,8 @@ class Replay(Node):
             elif max_rate > 0:
                 self._next_slot = max(self._next_slot + 1.0 / max_rate, time.monotonic() - 0.01)
                 self._spin_until(executor, self._next_slot)
-            self.pub_u.publish(self._message(self.u[k], self._u_dims))
-            self.pub_y.publish(self._message(self.y_p[k], self._y_dims))
+            self.pub_u.publish(self._message(self.u[k], self._u_layout))
+            self.pub_y.publish(self._message(self.y_p[k], self._y_layout))
             self.published += 1
             if (k == 0 and self.passes) or k in self.stream_starts:
                 self._settle_new_stream()

@@ -12,6 +12,7 @@ Defaults come from the chosen paper example (``example`` 1-4); ``example: 0`` me
 from __future__ import annotations
 
 import difflib
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -20,7 +21,7 @@ import yaml
 
 from lenn_ros.core.examples import PARAMETER_SETS, get_example
 from lenn_ros.core.expansions import parse_terms
-from lenn_ros.core.fields import FieldError, channel_names, is_vector
+from lenn_ros.core.fields import FieldError, channel_names, compile_path, compile_vector, is_vector
 from lenn_ros.core.mimo import MimoIdentifier, MimoStructure, build_mimo_identifier, parse_couplings
 from lenn_ros.core.networks import OUTPUTS, SOLVERS
 from lenn_ros.core.structure import Identifier, ModelStructure
@@ -252,6 +253,16 @@ def side_channels(values: dict[str, Any], side: str) -> tuple[list[str], tuple[i
     if names and len(names) != len(default):
         raise FieldError(f"{side}_names has {len(names)} names for {len(default)} channels of {', '.join(listed)}")
     return names or default, (len(per_topic),) * len(listed), tuple(listed)
+
+
+def field_extractor(values: dict[str, Any], side: str) -> Callable[[Any], Any]:
+    """message -> what the node takes from a ``side`` (``u``/``y``) message: one number, or (MIMO) the vector
+    of channels its field names; with several topics on the side, that topic's channels only."""
+    field = str(values[f"{side}_field"])
+    if not is_mimo(values):
+        return compile_path(field)
+    names, parts, _ = side_channels(values, side)
+    return compile_vector(field) if parts else compile_vector(field, names)
 
 
 def _build_identifier(values: dict[str, Any], network: str) -> Identifier | MimoIdentifier:

@@ -40,14 +40,13 @@ from lenn_ros.bag.vectors import read_test_start, read_vector_samples
 from lenn_ros.config import (
     NODE_PARAMETERS,
     build_identifier,
+    field_extractor,
     input_topics,
-    is_mimo,
     read_params_file,
     resolve,
-    side_channels,
 )
 from lenn_ros.core.evaluation import Evaluation, free_run_problems
-from lenn_ros.core.fields import compile_path, compile_vector, stamp_seconds
+from lenn_ros.core.fields import stamp_seconds
 from lenn_ros.core.metrics import nmse_db, rmse
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.pairing import U, Y
@@ -211,7 +210,7 @@ def _pair_raw(path: str, session: Session, values: dict[str, Any]) -> tuple[np.n
         if not found:
             raise EvaluateError(f"{path}: no {name} topic in the bag (topics: {', '.join(sorted(types)) or 'none'})")
         names[found[0]], parts[found[0]] = channel, part
-    extract = {U: _extractor(values, "u"), Y: _extractor(values, "y")}
+    extract = {side: field_extractor(values, side) for side in (U, Y)}
     messages = list(bags.iter_messages(path, list(names)))
     by_order = values["pairing"] == "sequence" and not any(message.sequence for message in messages)
     if by_order:
@@ -243,15 +242,6 @@ def _pair_raw(path: str, session: Session, values: dict[str, Any]) -> tuple[np.n
     pairs = session.release_pairs()
     index = np.array([pair.index for pair in pairs], dtype=np.int64)
     return index, np.array([p.u for p in pairs]), np.array([p.y for p in pairs]), by_order
-
-
-def _extractor(values: dict[str, Any], side: str) -> Any:
-    """message -> the value the node takes from it: one number, or the vector of channels (MIMO)."""
-    field = str(values[f"{side}_field"])
-    if not is_mimo(values):
-        return compile_path(field)
-    names, sizes, _ = side_channels(values, side)
-    return compile_vector(field) if sizes else compile_vector(field, names)
 
 
 def _in_index_order(messages: list, names: dict[str, str]) -> list:

@@ -45,6 +45,7 @@ from lenn_ros.config import (
     Parameter,
     build_identifier,
     check_value,
+    field_extractor,
     identifier_parameters,
     input_topics,
     is_mimo,
@@ -55,8 +56,6 @@ from lenn_ros.core.fields import (
     FieldError,
     check_path,
     check_vector,
-    compile_path,
-    compile_vector,
     has_header,
     stamp_seconds,
 )
@@ -130,7 +129,7 @@ class IdentifierNode(Node):
         self.identifier = self._build_model()
         self._compile_ahead()
         self.session = Session(self.identifier, self._session_config())
-        self._extract = {channel: self._extractor(channel) for channel in (U, Y)}
+        self._extract = {channel: field_extractor(self.values, channel) for channel in (U, Y)}  # U, Y: 'u', 'y'
         self._stamped = {
             channel: has_header(cls) and self.values["use_header_stamp"] for channel, cls in message_types.items()
         }
@@ -262,17 +261,6 @@ class IdentifierNode(Node):
         except (ValueError, FieldError) as error:
             raise SystemExit(f"identifier: {type_key}/{field_key}: {error}") from None
         return cls
-
-    def _extractor(self, channel: str) -> Any:
-        """message -> the number (SISO) or the vector of channels (MIMO) the field setting names.
-
-        With several topics on the side, each message holds that topic's channels only.
-        """
-        field = self.values["u_field" if channel == U else "y_field"]
-        if not self.mimo:
-            return compile_path(field)
-        names, parts, _ = side_channels(self.values, "u" if channel == U else "y")
-        return compile_vector(field) if parts else compile_vector(field, names)
 
     def _channel_names(self) -> tuple[list[str], list[str]]:
         """Input and output channel names of a MIMO model (checked when the model was built)."""

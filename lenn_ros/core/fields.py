@@ -128,23 +128,7 @@ def compile_path(path: str) -> Callable[[Any], float]:
     def extract(message: Any) -> float:
         current = message
         for step in steps:
-            parent = current
-            try:
-                current = getattr(current, step.attribute)
-            except AttributeError:
-                raise FieldError(f"message has no field {step.attribute!r} ({path!r})") from None
-            if step.index is None:
-                continue
-            index = step.index
-            if isinstance(index, str):
-                names = list(getattr(parent, "name", ()))
-                if index not in names:
-                    raise FieldError(f"no joint {index!r} in name {names} ({path!r})")
-                index = names.index(index)
-            try:
-                current = current[index]
-            except IndexError:
-                raise FieldError(f"{step.attribute} has {len(current)} elements, no [{index}] ({path!r})") from None
+            current = _step_into(current, step, path)
         if isinstance(current, bool | int | float):
             return float(current)
         try:
@@ -153,6 +137,26 @@ def compile_path(path: str) -> Callable[[Any], float]:
             raise FieldError(f"{path!r} is not a number: {type(current).__name__}") from None
 
     return extract
+
+
+def _step_into(parent: Any, step: _Step, path: str) -> Any:
+    """One step of a field path: the attribute, then its element (a joint name looked up in ``parent.name``)."""
+    try:
+        current = getattr(parent, step.attribute)
+    except AttributeError:
+        raise FieldError(f"message has no field {step.attribute!r} ({path!r})") from None
+    if step.index is None:
+        return current
+    index = step.index
+    if isinstance(index, str):
+        names = list(getattr(parent, "name", ()))
+        if index not in names:
+            raise FieldError(f"no joint {index!r} in name {names} ({path!r})")
+        index = names.index(index)
+    try:
+        return current[index]
+    except IndexError:
+        raise FieldError(f"{step.attribute} has {len(current)} elements, no [{index}] ({path!r})") from None
 
 
 def stamp_seconds(message: Any) -> float | None:
@@ -239,7 +243,7 @@ def compile_vector(text: str, names: list[str] | tuple[str, ...] = ()) -> Callab
     def extract(message: Any) -> np.ndarray:
         parent = message
         for step in steps[:-1]:
-            parent = _walk(parent, step, array_path)
+            parent = _step_into(parent, step, array_path)
         values = getattr(parent, steps[-1].attribute, None)
         if values is None:
             raise FieldError(f"message has no field {steps[-1].attribute!r} ({text!r})")
@@ -251,13 +255,3 @@ def compile_vector(text: str, names: list[str] | tuple[str, ...] = ()) -> Callab
         return np.asarray(values, dtype=np.float64).copy()
 
     return extract
-
-
-def _walk(current: Any, step: _Step, path: str) -> Any:
-    try:
-        current = getattr(current, step.attribute)
-    except AttributeError:
-        raise FieldError(f"message has no field {step.attribute!r} ({path!r})") from None
-    if step.index is not None:
-        current = current[step.index]
-    return current

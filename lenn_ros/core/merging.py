@@ -58,6 +58,7 @@ class TopicMerger:
 
     def __post_init__(self) -> None:
         self._groups: dict[object, _Group] = {}
+        self._opened = 0  # stamp groups opened so far (their keys)
         self._latest: dict[int, tuple[np.ndarray, float, float]] = {}
         self.stale_part: int | None = None  # sample mode: the part that held the stream back last
 
@@ -91,7 +92,8 @@ class TopicMerger:
         for key, group in self._groups.items():
             if part not in group.parts and abs(group.time - time) <= self.slop:
                 return key
-        return ("stamp", time, part, len(self._groups))
+        self._opened += 1
+        return ("stamp", self._opened)  # a key of its own: a repeated part opens a group, never overwrites one
 
     def _whole(self, group: _Group, sequence: int | None) -> Half:
         self.counters["merged"] += 1

@@ -25,6 +25,7 @@ setup(
         "matplotlib>=3.8",
         "tqdm>=4.66",
         "pyyaml>=6",
+        "threadpoolctl>=3",  # fit: one BLAS thread for its thousands of small products
     ],
     extras_require={
         # rclpy and its middleware as pip wheels, for machines without a ROS 2 install.

@@ -124,8 +124,8 @@ def identifier_parameters(example: int, network: str, parameters: str = "calibra
         structure = ModelStructure(y_lags=1, u_lags=1)
         net = {"order": 4, "hidden": [20, 10], "output": "tanh", "alpha": 0.01, "beta": 0.5}
     return [
-        Parameter("y_lags", structure.y_lags, "past plant outputs y(k..k-n+1) fed to the network", 0, 10),
-        Parameter("u_lags", structure.u_lags, "past inputs u(k..k-m+1) fed to the network", 0, 10),
+        Parameter("y_lags", structure.y_lags, "past plant outputs y(k..k-n+1) fed to the network", 0, 200),
+        Parameter("u_lags", structure.u_lags, "past inputs u(k..k-m+1) fed to the network", 0, 200),
         Parameter("known_a", list(structure.known_a) or [0.0], "known linear part on y(k), y(k-1).. ([0.0]: none)"),
         Parameter("known_b", list(structure.known_b) or [0.0], "known linear part on u(k), u(k-1).. ([0.0]: none)"),
         Parameter(
@@ -282,14 +282,24 @@ def _build_identifier(values: dict[str, Any], network: str) -> Identifier | Mimo
     )
     terms = [str(t) for t in values.get("terms", [""]) if str(t).strip()]
     selected = terms and network == "lenn"  # the MLP takes every input (terms are the LeNN's)
-    exponents = parse_terms(terms, structure.y_lags, structure.u_lags).tolist() if selected else None
+    exponents = factors = None
+    if selected:
+        rows, factor_rows = parse_terms(terms, structure.y_lags, structure.u_lags)
+        exponents = rows.tolist()
+        factors = factor_rows.tolist() if factor_rows[:, 0].any() else None
     if exponents is not None and structure.separate:
         raise ConfigError("terms select one combiner over all inputs: set separate: false")
-    return Identifier(structure, _make_model(values, network, structure.n_inputs, structure.branches(), exponents))
+    model = _make_model(values, network, structure.n_inputs, structure.branches(), exponents, factors)
+    return Identifier(structure, model)
 
 
 def _make_model(
-    values: dict[str, Any], network: str, n_inputs: int, branches: list[list[int]] | None, exponents: list | None
+    values: dict[str, Any],
+    network: str,
+    n_inputs: int,
+    branches: list[list[int]] | None,
+    exponents: list | None,
+    factors: list | None = None,
 ) -> Any:
     """One network from the parameter values (the SISO model, or one output's of a MIMO model)."""
     common = {
@@ -310,6 +320,7 @@ def _make_model(
 
         model = FunctionalLinkNetwork(
             exponents=exponents,
+            factors=factors,
             order=int(values["order"]),
             basis=values["basis"],
             cross_degree=int(values["cross_degree"]),

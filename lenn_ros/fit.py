@@ -1,19 +1,18 @@
-"""``lenn-ros fit DATA --test-from K``: build a good LeNN model of logged data, automatically.
+"""``lenn-ros fit DATA --test-from K``: build a good model of logged data, automatically.
 
 What it does, each step reported:
 1. reads u and y from a CSV file or a bag; samples 1..K-1 (1-based) build the model,
-   samples K.. only score it;
+   samples K.. only score it; gaps in a bag's record stay gaps (nothing is fitted or
+   simulated across them);
 2. takes offsets and scale factors from the training samples (with a margin);
-3. selects the structure (lags, degree, terms) by orthogonal forward regression,
-   judging candidates by free-run error on the last 20 % of the training samples and
-   rejecting those that run away or do worse than the mean
-   (:mod:`lenn_ros.core.selection`);
-4. refines the weights of the chosen model on simulation error
-   (:mod:`lenn_ros.core.refinement`) over the samples before that tail, early-stopped
-   on the tail. The weights kept are those: the held-out tail only judges them
-   (``refit_all=True`` refits on all training samples instead, with the number of
-   refinement iterations the tail chose; off by default, so every reported held-out
-   figure is that of the model delivered);
+3. selects the family (polynomial, hinge, increment: :mod:`lenn_ros.core.families`),
+   the lags and the terms by orthogonal forward regression, judging every candidate by
+   the free runs of blocks of the training samples, each simulated by the weights of
+   the other blocks, and rejecting those that run away, leave the range or do worse than
+   the mean anywhere (:mod:`lenn_ros.core.selection`);
+4. refines the weights of the best few candidates on simulation error, as many
+   iterations as the blocks vouch for, zero included (:mod:`lenn_ros.core.refinement`),
+   and keeps the best; the weights delivered are those of all training samples;
 5. scores the frozen model on the test samples: one-step and free run (the free run
    starts from the measured outputs just before sample K, as a live switch from
    series-parallel to parallel would), counting clipped inputs and flagging divergence;
@@ -39,17 +38,27 @@ import yaml
 
 from lenn_ros.bag.csv_import import is_number
 from lenn_ros.core.evaluation import free_run_problems
+from lenn_ros.core.families import INCREMENT_LAGS, pass_through_weights
 from lenn_ros.core.metrics import nmse_db, rmse
 from lenn_ros.core.networks import FunctionalLinkNetwork
-from lenn_ros.core.refinement import refine_simulation_error
+from lenn_ros.core.refinement import cross_validated_refinement
 from lenn_ros.core.scaling import Scaling
-from lenn_ros.core.selection import PARSIMONY, TermModel, select_structure
+from lenn_ros.core.selection import (
+    NONLINEAR_GAIN,
+    PARSIMONY,
+    Candidate,
+    Record,
+    TermModel,
+    fold_blocks,
+    loosen,
+    order_candidates,
+    select_structure,
+)
 from lenn_ros.core.structure import Identifier
 
-#: share of the training samples held out to judge candidates by free-run error
+#: share of the training samples the epochs of an MLP / SGD fit are early-stopped on
 VALIDATION_FRACTION = 0.2
 MIN_VALIDATION = 50
-REFINE_ITERATIONS = 20
 #: relative ridge on the live RLS start covariance (see build_identifier): condition number <= 1e7,
 #: well inside the ~1/sqrt(machine epsilon) ~ 7e7 at which conventional RLS goes indefinite by round-off
 RLS_RIDGE = 1e-7
@@ -65,6 +74,7 @@ class Data:
     y: np.ndarray
     source: str  # what was read, for the report
     test_start: int | None = None  # 1-based, recorded in a bag (its test_start topic)
+    breaks: list[int] = dataclasses.field(default_factory=list)  # 0-based samples that start a new run (gaps)
 
 
 def load_data(path: str | Path, u_column: str | None = None, y_column: str | None = None) -> Data:
@@ -144,7 +154,7 @@ def live_forgetting(n_train: int) -> float:
     return 1.0 - 1.0 / min(max(n_train, 1000), 10_000)
 
 
-def build_identifier(model: TermModel, u: np.ndarray, y: np.ndarray, forgetting: float) -> Identifier:
+def build_identifier(model: TermModel, record: Record, forgetting: float) -> Identifier:
     """The fitted model as the package's :class:`Identifier` (what the node runs), RLS-ready.
 
     The RLS covariance is the least-squares one of the training features, scaled to the
@@ -154,9 +164,11 @@ def build_identifier(model: TermModel, u: np.ndarray, y: np.ndarray, forgetting:
     robot arm's 29 terms gave a condition number of 7e10, at which the conventional RLS
     update loses positive definiteness by round-off (it stopped learning at its 97th sample).
     """
+    factors = model.factors if len(model.factors) else None
     network = FunctionalLinkNetwork(
         n_inputs=model.y_lags + model.u_lags,
         exponents=model.exponents.tolist(),
+        factors=None if factors is None else factors.tolist(),
         order=max(1, int(model.exponents.max(initial=1))),
         basis=model.basis,
         output="linear",
@@ -166,8 +178,8 @@ def build_identifier(model: TermModel, u: np.ndarray, y: np.ndarray, forgetting:
     )
     network._initialise()
     network.weights_ = np.array(model.weights, dtype=np.float64)
-    features, _ = model.regression(u, y)
-    network.covariance_ = rls_covariance(features, forgetting)
+    features, _ = model.regression(record.u, record.y)
+    network.covariance_ = rls_covariance(features[record.valid_rows(model.warm_up)], forgetting)
     return Identifier(model.structure, network, learning=False)
 
 
@@ -184,19 +196,28 @@ def fit(
     test_from: int,
     *,
     refine: bool = True,
-    max_lag: int = 10,
-    refit_all: bool = False,
     network: str = "lenn",
     solver: str = "ls",
     progress: Any = None,
 ) -> dict[str, Any]:
     """The whole procedure; returns the report (also what ``--json`` prints) and the identifier.
 
-    The model delivered is estimated on the training samples before the held-out tail
-    (the tail judges it); ``refit_all`` re-estimates it on all training samples.
-    ``solver="sgd"`` trains the selected LeNN terms by SGD epochs instead of least
-    squares and refinement (:func:`fit_lenn_sgd`), for a node that will learn by SGD.
+    The structure is chosen on blocks of the training samples (each simulated by the
+    weights of the others), the weights delivered are those of all training samples,
+    refined on simulation error as many times as the blocks vouch for
+    (:func:`~lenn_ros.core.refinement.cross_validated_refinement`). ``solver="sgd"``
+    trains the selected terms by SGD epochs instead (:func:`fit_lenn_sgd`), for a node
+    that will learn by SGD; ``network="mlp"`` an MLP on the selected lags.
     """
+    from threadpoolctl import threadpool_limits
+
+    # the selection's linear algebra is thousands of small products: BLAS threads only
+    # contend for the cores (a 2666 x 40 Gram took 1.8 ms threaded, 0.34 ms on one thread)
+    with threadpool_limits(limits=1, user_api="blas"):
+        return _fit(data, test_from, refine, network, solver, progress)
+
+
+def _fit(data: Data, test_from: int, refine: bool, network: str, solver: str, progress: Any) -> dict[str, Any]:
     began = time.perf_counter()
     say = progress or (lambda text: None)
     u, y = data.u, data.y
@@ -205,45 +226,35 @@ def fit(
         raise FitError(f"{bad} samples hold NaN/inf: remove or interpolate them before fitting")
     start = check_split(len(y), test_from)
     u_train, y_train = u[:start], y[:start]
+    breaks = [b for b in data.breaks if 0 < b < start]
     try:
         scaling = Scaling.from_training(u_train, y_train)
     except ValueError as error:
         raise FitError(str(error)) from None
-    validation_start = start - max(MIN_VALIDATION, round(VALIDATION_FRACTION * start))
-    say(f"selecting a structure on samples 1..{validation_start}, judged by free run on the rest up to {start}")
-    candidates, selection_warnings = _select(u_train, y_train, validation_start, scaling, max_lag)
-    chosen = next(c for c in candidates if c.model is not None)
-    model = chosen.model
+    record = Record.of(u_train, y_train, breaks)
+    blocks = fold_blocks(start, 1)
+    say(
+        f"selecting a structure on samples 1..{start}: {len(blocks)} blocks, each simulated by the weights "
+        f"of the others{f', {len(breaks)} gaps in the record' if breaks else ''}"
+    )
+    candidates, selection_warnings = _select(record, scaling, say)
+    chosen = candidates[0]
     refinement: dict[str, Any] = {"done": False}
     if refine and solver == "ls" and network == "lenn":
-        say(f"refining {chosen.terms} terms on simulation error")
-        weights, held_out = refine_simulation_error(
-            model, u_train[:validation_start], y_train[:validation_start], REFINE_ITERATIONS,
-            validation=(u_train, y_train, validation_start),
-        )  # fmt: skip
-        refinement = {"done": True, "on_estimation_part": held_out.as_dict()}
-        model = TermModel(model.y_lags, model.u_lags, scaling, model.exponents, model.basis, weights)
-    final = model
-    if refit_all:  # all training samples: least squares, then the refinement's number of iterations
-        final = TermModel(model.y_lags, model.u_lags, scaling, model.exponents, model.basis)
-        features, targets = final.regression(u_train, y_train)
-        final.weights = np.linalg.lstsq(features, targets, rcond=None)[0]
-        if refine and refinement["on_estimation_part"]["best_iteration"]:
-            weights, whole = refine_simulation_error(
-                final, u_train, y_train, refinement["on_estimation_part"]["best_iteration"]
-            )
-            final.weights = weights
-            refinement["on_all_training"] = whole.as_dict()
+        chosen, refinement = _refine_best(candidates, record, say)
+    final = chosen.model
     forgetting = live_forgetting(start)
-    identifier = build_identifier(final, u_train, y_train, forgetting)
+    identifier = build_identifier(final, record, forgetting)
     described = describe_model(final, chosen, forgetting)
     if network == "mlp":
+        validation_start = start - max(MIN_VALIDATION, round(VALIDATION_FRACTION * start))
         say(f"training an MLP on lags {final.y_lags}/{final.u_lags} by epochs, early-stopped on the held-out tail")
         identifier, epochs = fit_mlp(final, u_train, y_train, validation_start)
         described = describe_mlp(identifier, epochs)
     elif solver == "sgd":
+        validation_start = start - max(MIN_VALIDATION, round(VALIDATION_FRACTION * start))
         say(f"training the {len(final.exponents)} selected terms by SGD epochs, early-stopped on the held-out tail")
-        identifier, epochs = fit_lenn_sgd(final, u_train, y_train, validation_start)
+        identifier, epochs = fit_lenn_sgd(final, u_train, y_train, validation_start, chosen.spec.increment)
         described = {**describe_model(final, chosen, forgetting), **describe_sgd(identifier, epochs)}
     report = score(identifier, u, y, start)
     report["warnings"] = selection_warnings + report["warnings"]
@@ -262,14 +273,17 @@ def fit(
                     "u_offset": scaling.u_offset,
                     "u_scale": scaling.u_scale,
                 },
-                "estimation_samples": validation_start,
-                "validation_samples": start - validation_start,
-                "judged_by": "free-run RMSE on the held-out tail of the training samples (two folds); rejected: "
-                "diverged, clipped, worse than the held-out mean, or unsound free run on its own estimation "
-                f"samples; of those within {PARSIMONY:.0%} of the lowest, the fewest terms",
+                "blocks": len(blocks),
+                "gaps": len(breaks),
+                "judged_by": f"pooled free-run RMSE over {len(blocks)} blocks of the training samples, each "
+                "simulated from its measured start by the weights fitted to the other blocks; rejected: diverged, "
+                "clipped or worse than the block mean in any block, an unsound free run over the whole training "
+                "record or on its input shuffled in blocks; a nonlinear candidate must beat the best linear one by "
+                f"{NONLINEAR_GAIN:.0%}; of those within {PARSIMONY:.0%} of the lowest, the fewest terms",
                 "candidates": [c.as_dict() for c in candidates],
                 "chosen": candidates.index(chosen),
                 "refinement": refinement,
+                "time_scale": time_scale_note(chosen),
             },
             "seconds": round(time.perf_counter() - began, 2),
         }
@@ -277,25 +291,71 @@ def fit(
     return {"report": report, "identifier": identifier, "model": final}
 
 
-def _select(u: np.ndarray, y: np.ndarray, validation_start: int, scaling: Scaling, max_lag: int):
+#: candidates (best first) whose weights are refined on simulation error; the best refined one is kept
+REFINED_CANDIDATES = 3
+
+
+def _refine_best(candidates: list[Candidate], record: Record, say: Any) -> tuple[Candidate, dict[str, Any]]:
+    """Refine the first REFINED_CANDIDATES usable candidates (iterations chosen on the blocks); keep the best.
+
+    Refinement can reorder candidates (a hinge model that least squares left behind may
+    simulate best once refined), so the choice among them is made again on the refined
+    block scores with the same rules (:func:`order_candidates`).
+    """
+    usable = [c for c in candidates if c.model is not None][:REFINED_CANDIDATES]
+    for candidate in usable:
+        say(f"refining {candidate.spec.label} ({candidate.terms} terms) on simulation error")
+        result = cross_validated_refinement(candidate, record)
+        candidate.refinement = result.as_dict()
+        candidate.rmse_validation = result.rmse_blocks_after
+    for candidate in usable:  # the report's list: the refined ones first (the chosen one leading), then the rest
+        candidates.remove(candidate)
+    candidates[:0] = order_candidates(usable)
+    chosen = candidates[0]
+    return chosen, {"done": True, **chosen.refinement}
+
+
+def time_scale_note(candidate: Candidate) -> str:
+    """What the report says about lag spans: the issue of records sampled far faster than their dynamics."""
+    spec = candidate.spec
+    if spec.increment and spec.lags > max(INCREMENT_LAGS):
+        return (
+            f"multi-scale increments over {spec.lags - 1} samples (spans 1, 2, 4, ...): the record is sampled "
+            "far faster than its dynamics; the model runs at the recorded rate"
+        )
+    if spec.increment:
+        return "increment form: y(k+1) = y(k) + f(increments, inputs), the integrator kept exactly"
+    return f"lags {spec.lags} samples at the recorded rate"
+
+
+def _select(record: Record, scaling: Scaling, say: Any) -> tuple[list[Candidate], list[str]]:
     """(candidates, warnings): the strict selection, else the loose one with a warning, else FitError."""
-    candidates = select_structure(u, y, validation_start, scaling, max_lag=max_lag)
+
+    def tell(candidate: Candidate) -> None:
+        shown = (
+            f"{candidate.terms} terms, free-run RMSE {candidate.rmse_validation:.5g}"
+            if candidate.model is not None
+            else f"rejected ({candidate.rejected})"
+        )
+        say(f"  {candidate.spec.label}: {shown}")
+
+    candidates = select_structure(record.u, record.y, scaling, record.breaks, progress=tell)
     warnings = []
     if not any(c.model is not None for c in candidates):
-        # nothing passed the strict checks: the best that merely simulates the held-out tail,
+        # nothing passed the strict checks: the best that merely simulates the blocks,
         # flagged, beats no model at all (the user still learns the lags and what failed)
         strict_reasons = sorted(
             {reason for c in candidates for reason in c.rejected.removeprefix("every prefix: ").split("; ") if reason}
         )
-        candidates = select_structure(u, y, validation_start, scaling, max_lag=max_lag, strict=False)
+        candidates = loosen(candidates, record)
         warnings.append(
-            "no candidate structure passed the strict checks (free run better than the mean on the held-out "
-            "tail, sound on its own estimation samples, inside the training range): the best held-out one is "
-            f"used, do not trust it far ({'; '.join(strict_reasons)})"
+            "no candidate structure passed the strict checks (free run better than the mean on every held-out "
+            "block, sound on the whole training record and on its input shuffled, inside the training range): "
+            f"the best held-out one is used, do not trust it far ({'; '.join(strict_reasons)})"
         )
     if not any(c.model is not None for c in candidates):
         reasons = sorted({c.rejected for c in candidates})
-        raise FitError(f"no candidate structure simulates stably on the held-out tail ({'; '.join(reasons)})")
+        raise FitError(f"no candidate structure simulates stably on the held-out blocks ({'; '.join(reasons)})")
     return candidates, warnings
 
 
@@ -329,19 +389,29 @@ def score(identifier: Identifier, u: np.ndarray, y: np.ndarray, start: int) -> d
     }
 
 
-def describe_model(model: TermModel, chosen: Any, forgetting: float) -> dict[str, Any]:
+def describe_model(model: TermModel, chosen: Candidate, forgetting: float) -> dict[str, Any]:
+    refined = (chosen.refinement or {}).get("iterations", 0)
     return {
         "network": "lenn",
-        "structure": {"y_lags": model.y_lags, "u_lags": model.u_lags, "predicts": "y(k) from y(k-1..), u(k-1..)"},
+        "family": chosen.spec.family,
+        "structure": {
+            "y_lags": model.y_lags,
+            "u_lags": model.u_lags,
+            "predicts": "y(k) from y(k-1..), u(k-1..)",
+            "form": chosen.spec.as_dict()["form"],
+        },
         "expansion": {
             "basis": model.basis,
-            "degree": chosen.degree,
+            "family": chosen.spec.family,
+            "degree": chosen.spec.degree,
             "terms": model.terms,
             "dictionary": chosen.dictionary,
         },
         "n_terms": len(model.exponents),
         "weights": [float(w) for w in model.weights],
-        "solver": "least squares, then Levenberg-Marquardt on free-run error (offline); RLS live",
+        "solver": "least squares on all training samples"
+        + (f", then {refined} Levenberg-Marquardt iterations on free-run error" if refined else "")
+        + " (offline); RLS live",
         "live": {"solver": "rls", "forgetting": forgetting},
     }
 
@@ -380,32 +450,40 @@ SGD_BETA = 0.5
 SGD_STEP = 0.5
 
 
-def fit_lenn_sgd(selected: TermModel, u: np.ndarray, y: np.ndarray, validation_start: int):
+def fit_lenn_sgd(selected: TermModel, u: np.ndarray, y: np.ndarray, validation_start: int, increment: bool):
     """The selected terms as an SGD LeNN (what the node runs with ``solver: sgd``), trained by epochs.
 
     One pass over a few hundred samples leaves SGD far from its optimum, so the estimation
     samples are passed repeatedly, early-stopped on the held-out free run
-    (:func:`~lenn_ros.core.training.train_epochs`). The step is unit-free: the features are
-    Legendre polynomials of inputs in [-1, 1] (|phi| <= 1 each), so with n terms
-    ||phi||^2 <= n and momentum beta, alpha = SGD_STEP (1 - beta) / n keeps the update
-    below its stability bound 2 (1 - beta) / ||phi||^2 for any data. The network learns
-    y - y_offset (``output_offset``), so no weight has to climb to the signal's level.
+    (:func:`~lenn_ros.core.training.train_epochs`). The step is unit-free: with momentum
+    beta, alpha = SGD_STEP (1 - beta) / max ||phi||^2 over the training features keeps the
+    update below its stability bound 2 (1 - beta) / ||phi||^2 for any data (Legendre terms
+    of inputs in [-1, 1] have |phi| <= 1, but a factor of a velocity may reach several).
+    The network learns y - y_offset (``output_offset``), so no weight has to climb to the
+    signal's level; an increment-form model starts from its pass-through y(k) (weight
+    y_scale on ``y1``), the part of the structure that is not learnt but given.
     """
     from lenn_ros.core.training import train_epochs
 
     s = selected.scaling
     structure = dataclasses.replace(selected.structure, output_offset=s.y_offset)
+    features, _ = selected.regression(u[:validation_start], y[:validation_start])
+    largest = float(np.max(np.einsum("ij,ij->i", features, features), initial=1.0))
     network = FunctionalLinkNetwork(
         n_inputs=structure.n_inputs,
         exponents=selected.exponents.tolist(),
+        factors=selected.factors.tolist() if len(selected.factors) else None,
         order=max(1, int(selected.exponents.max(initial=1))),
         basis=selected.basis,
         output="linear",
         solver="sgd",
-        alpha=SGD_STEP * (1.0 - SGD_BETA) / len(selected.exponents),
+        alpha=SGD_STEP * (1.0 - SGD_BETA) / largest,
         beta=SGD_BETA,
         init_scale=0.0,
     )
+    network._initialise()
+    if increment:
+        network.weights_ = pass_through_weights(selected.exponents, selected.factors, s, with_offset=False)
     identifier = Identifier(structure, network, learning=False)
     epochs = train_epochs(identifier, u, y, validation_start, max_epochs=200, patience=20)
     return identifier, epochs
@@ -593,18 +671,12 @@ def format_report(report: dict[str, Any], dt: float | None = None) -> str:
         f"  scaling from the training samples, margin {c['scaling']['margin']:.0%}: "
         f"y = {c['scaling']['y_offset']:.6g} +- {c['scaling']['y_scale']:.6g}, "
         f"u = {c['scaling']['u_offset']:.6g} +- {c['scaling']['u_scale']:.6g}",
-        f"  structure judged by free run on training samples {c['estimation_samples'] + 1}..{report['train_samples']}:",
+        f"  structure judged by the free runs of {c['blocks']} blocks of the training samples"
+        + (f" ({c['gaps']} gaps in the record, not joined)" if c.get("gaps") else "")
+        + ":",
     ]
-    for index, candidate in enumerate(c["candidates"]):
-        mark = "->" if index == c["chosen"] else "  "
-        value = candidate["rmse_free_run_validation"]
-        shown = f"free-run RMSE {value:.5g}" if value is not None else f"rejected: {candidate['rejected']}"
-        if candidate.get("note"):
-            shown += f" ({candidate['note']})"
-        lines.append(
-            f"   {mark} lags {candidate['y_lags']}/{candidate['u_lags']}, degree {candidate['degree']}, "
-            f"{candidate['basis']}: {candidate['terms']} of {candidate['dictionary']} terms, {shown}"
-        )
+    lines += _candidate_lines(c)
+    lines.append(f"  time scale: {c['time_scale']}")
     if m["network"] == "lenn" and "epochs" in m:
         e = m["epochs"]
         lines.append(f"  trained by SGD epochs: {e['epochs']} run, best {e['best_epoch']} ({e['stopped']})")
@@ -614,14 +686,13 @@ def format_report(report: dict[str, Any], dt: float | None = None) -> str:
         lines.append(f"  trained by epochs: {e['epochs']} run, best {e['best_epoch']} ({e['stopped']})")
     else:
         terms = " + ".join(m["expansion"]["terms"])
-        lines.append(f"  model: LeNN ({m['expansion']['basis']}), {m['n_terms']} terms: {terms}")
+        lines.append(f"  model: {m['family']} ({m['expansion']['basis']}), {m['n_terms']} terms: {terms}")
     refinement = c["refinement"]
     if refinement.get("done"):
-        r = refinement["on_estimation_part"]
         lines.append(
-            f"  refined on simulation error: best of {r['iterations']} iterations: {r['best_iteration']}, "
-            "held-out free-run RMSE "
-            f"{r['rmse_validation_before']:.5g} -> {r['rmse_validation_after']:.5g}"
+            f"  refined on simulation error: {refinement['iterations']} of {refinement['tried']} iterations "
+            f"(chosen on the blocks: held-out free-run RMSE {refinement['rmse_blocks_before']:.5g} -> "
+            f"{refinement['rmse_blocks_after']:.5g})"
         )
     live = m["live"]
     lines.append(
@@ -629,7 +700,38 @@ def format_report(report: dict[str, Any], dt: float | None = None) -> str:
         if live["solver"] == "rls"
         else f"  live: SGD, alpha {live['alpha']:.6g}, beta {live['beta']:.3g}"
     )
-    lines.append(f"  test part ({report['samples']} samples):")
+    lines += _test_lines(report, dt)
+    return "\n".join(lines)
+
+
+#: candidates listed in the text report (the JSON has them all)
+SHOWN_CANDIDATES = 12
+
+
+def _candidate_lines(choices: dict[str, Any]) -> list[str]:
+    lines = []
+    listed = choices["candidates"]
+    for index, candidate in enumerate(listed[:SHOWN_CANDIDATES]):
+        mark = "->" if index == choices["chosen"] else "  "
+        value = candidate["rmse_free_run_validation"]
+        shown = f"free-run RMSE {value:.5g}" if value is not None else f"rejected: {candidate['rejected']}"
+        if candidate.get("note"):
+            shown += f" ({candidate['note']})"
+        if candidate.get("refinement"):
+            shown += f", refined {candidate['refinement']['iterations']}x"
+        lines.append(
+            f"   {mark} {candidate['family']} degree {candidate['degree']}, lags {candidate['y_lags']}/"
+            f"{candidate['u_lags']}: {candidate['terms']} of {candidate['dictionary']} terms, {shown}"
+        )
+    if len(listed) > SHOWN_CANDIDATES:
+        usable = sum(1 for c in listed if c["rmse_free_run_validation"] is not None)
+        more = len(listed) - SHOWN_CANDIDATES
+        lines.append(f"      ... {more} more ({usable} of {len(listed)} usable; --json lists all)")
+    return lines
+
+
+def _test_lines(report: dict[str, Any], dt: float | None) -> list[str]:
+    lines = [f"  test part ({report['samples']} samples):"]
     lines.append(f"    one-step: RMSE {report['rmse']:.5g}, NMSE {report['nmse_db']:.2f} dB")
     free = report["free_run"]
     lines.append(
@@ -653,4 +755,4 @@ def format_report(report: dict[str, Any], dt: float | None = None) -> str:
             "(its weights_in names the weights file)"
         )
     lines.append(f"  {report['seconds']} s")
-    return "\n".join(lines)
+    return lines

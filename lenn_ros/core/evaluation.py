@@ -199,11 +199,12 @@ def least_squares_weights(model: FunctionalLinkNetwork, x: np.ndarray, targets: 
     x = np.ascontiguousarray(model._check_inputs(x))
     targets = np.ascontiguousarray(targets, dtype=np.float64)
     exponents = np.ascontiguousarray(model.term_exponents()[0])
+    factors = model.term_factors()
     basis = kernels.BASIS_CODES[model.basis]
     gram = np.zeros((len(exponents) + 1, len(exponents) + 1))  # [Phi | d]' [Phi | d]
-    kernels.normal_equations(x, targets, exponents, basis, gram)
+    kernels.normal_equations(x, targets, exponents, factors, basis, gram)
     weights = _solve_normal_equations(gram[:-1, :-1], gram[:-1, -1])
-    return _qr_least_squares(x, targets, exponents, basis) if weights is None else weights
+    return _qr_least_squares(x, targets, exponents, factors, basis) if weights is None else weights
 
 
 def least_squares_weights_reference(model: FunctionalLinkNetwork, x: np.ndarray, targets: np.ndarray) -> np.ndarray:
@@ -226,7 +227,9 @@ def _solve_normal_equations(gram: np.ndarray, moment: np.ndarray) -> np.ndarray 
     return vectors @ ((vectors.T @ (moment / scale)) / values) / scale
 
 
-def _qr_least_squares(x: np.ndarray, targets: np.ndarray, exponents: np.ndarray, basis: int) -> np.ndarray:
+def _qr_least_squares(
+    x: np.ndarray, targets: np.ndarray, exponents: np.ndarray, factors: np.ndarray, basis: int
+) -> np.ndarray:
     """Least squares from the triangular R of [Phi | d], built row by row (:func:`kernels.qr_rows`).
 
     The conditioning is that of the features, not its square, and the cut-off for
@@ -236,7 +239,7 @@ def _qr_least_squares(x: np.ndarray, targets: np.ndarray, exponents: np.ndarray,
     """
     n_terms = len(exponents)
     r = np.zeros((n_terms + 1, n_terms + 1))
-    kernels.qr_rows(x, targets, exponents, basis, r)
+    kernels.qr_rows(x, targets, exponents, factors, basis, r)
     cutoff = np.finfo(np.float64).eps * max(len(x), n_terms)
     return np.linalg.lstsq(r[:n_terms, :n_terms], r[:n_terms, n_terms], rcond=cutoff)[0]
 

@@ -14,6 +14,7 @@ bias separately as N0 = n0 + 1), and so does :func:`feature_count`.
 
 from __future__ import annotations
 
+import re
 from functools import lru_cache
 from itertools import combinations_with_replacement
 
@@ -257,8 +258,61 @@ def _checked_terms(x: np.ndarray, exponents: np.ndarray, basis: str) -> tuple[np
     return x, exponents
 
 
-def term_features(x: np.ndarray, exponents: np.ndarray, basis: str = "legendre") -> np.ndarray:
-    """Columns prod_i P_{e_i}(x_i) for each exponent row (x already in [-1, 1]).
+# -- factors: a non-polynomial function of a linear form of the inputs ----------------------
+#
+# A term may carry one factor g(b + w . x) besides its polynomials: hinges, absolute values,
+# saturations and cosines (random Fourier features) of any input or of a combination such
+# as a velocity y1 - y2. Still a functional link: fixed features, the weights linear, so
+# least squares, RLS and the compiled step and free run treat these terms like the others.
+# A factor row is [kind, b, w_1 .. w_n]; kind 0 is no factor (the term is its polynomials).
+
+#: factor name -> kind code (shared with the compiled kernels: ``kernels.factor_value``)
+FACTOR_KINDS = {"lin": 1, "abs": 2, "relu": 3, "tanh": 4, "cos": 5, "sqabs": 6}
+_FACTOR_NAMES = {code: name for name, code in FACTOR_KINDS.items()}
+
+
+def no_factors(n_terms: int, n_inputs: int) -> np.ndarray:
+    """Factor rows of terms that are all polynomials (kind 0 everywhere)."""
+    return np.zeros((n_terms, n_inputs + 2), dtype=np.float64)
+
+
+def factor_function(kind: int, z: np.ndarray) -> np.ndarray:
+    """g(z) of a factor kind, vectorised (the reference for ``kernels.factor_value``)."""
+    if kind == 1:
+        return z
+    if kind == 2:
+        return np.abs(z)
+    if kind == 3:
+        return np.maximum(z, 0.0)
+    if kind == 4:
+        return np.tanh(z)
+    if kind == 5:
+        return np.cos(z)
+    if kind == 6:
+        return z * np.abs(z)
+    raise ValueError(f"unknown factor kind {kind}")
+
+
+def checked_factors(factors: np.ndarray | None, n_terms: int, n_inputs: int) -> np.ndarray:
+    """Factor rows as the kernels take them: (n_terms, n_inputs + 2), or (0, n_inputs + 2) when none has a kind."""
+    if factors is None:
+        return np.zeros((0, n_inputs + 2))
+    factors = np.ascontiguousarray(factors, dtype=np.float64)
+    if factors.shape[0] == 0:
+        return np.zeros((0, n_inputs + 2))
+    if factors.shape != (n_terms, n_inputs + 2):
+        raise ValueError(f"factor rows must be {n_terms} rows of {n_inputs + 2} entries (kind, b, one w per input)")
+    kinds = factors[:, 0]
+    known = (kinds >= 0) & (kinds <= max(FACTOR_KINDS.values())) & (kinds == np.floor(kinds))
+    if not (known.all() and np.isfinite(factors).all()):
+        raise ValueError("factor rows need a known kind code and finite b, w")
+    return factors if kinds.any() else np.zeros((0, n_inputs + 2))
+
+
+def term_features(
+    x: np.ndarray, exponents: np.ndarray, basis: str = "legendre", factors: np.ndarray | None = None
+) -> np.ndarray:
+    """Columns prod_i P_{e_ti}(x_i) [* g_t(b_t + w_t . x)] for each exponent row (x already in [-1, 1]).
 
     Compiled (:func:`kernels.term_expansion`) for the polynomial bases when numba
     compiles, bit for bit :func:`term_features_reference` (test_offline_speed checks it): numpy
@@ -266,17 +320,21 @@ def term_features(x: np.ndarray, exponents: np.ndarray, basis: str = "legendre")
     the arithmetic, and this expansion is most of an offline run's time.
     """
     x, exponents = _checked_terms(x, exponents, basis)
+    factors = checked_factors(factors, exponents.shape[0], x.shape[1])
     if not (kernels.JIT and basis in COMPILED_BASES):
-        return term_features_reference(x, exponents, basis)
+        return term_features_reference(x, exponents, basis, factors)
     features = np.empty((x.shape[0], exponents.shape[0]))
     code = kernels.BASIS_CODES[basis]
-    kernels.term_expansion(np.ascontiguousarray(x), np.ascontiguousarray(exponents), code, features)
+    kernels.term_expansion(np.ascontiguousarray(x), np.ascontiguousarray(exponents), code, factors, features)
     return features
 
 
-def term_features_reference(x: np.ndarray, exponents: np.ndarray, basis: str = "legendre") -> np.ndarray:
+def term_features_reference(
+    x: np.ndarray, exponents: np.ndarray, basis: str = "legendre", factors: np.ndarray | None = None
+) -> np.ndarray:
     """:func:`term_features` in numpy, one vectorised pass per degree and term (the reference)."""
     x, exponents = _checked_terms(x, exponents, basis)
+    factors = checked_factors(factors, exponents.shape[0], x.shape[1])
     top = int(exponents.max(initial=0))
     univariate = _UNIVARIATE[basis](x, top) if top else np.empty((*x.shape, 0))
     features = np.ones((x.shape[0], exponents.shape[0]))
@@ -284,45 +342,115 @@ def term_features_reference(x: np.ndarray, exponents: np.ndarray, basis: str = "
         for i, e in enumerate(row):
             if e:
                 features[:, t] *= univariate[:, i, e - 1]
+        if len(factors) and factors[t, 0]:
+            z = factors[t, 1] + x @ factors[t, 2:]
+            features[:, t] *= factor_function(int(factors[t, 0]), z)
     return features
 
 
-def format_terms(exponents: np.ndarray, y_lags: int) -> list[str]:
+def _input_name(i: int, y_lags: int) -> str:
+    return f"y{i + 1}" if i < y_lags else f"u{i - y_lags + 1}"
+
+
+def _format_linear(factor: np.ndarray, y_lags: int) -> str:
+    """b + w . x as ``2.5*y1-2.5*y2+0.1`` (coefficients to 6 significant digits, which fit rounds them to)."""
+    parts = [
+        ("+" if w > 0 else "-") + ("" if abs(w) == 1.0 else f"{abs(w):.6g}*") + _input_name(i, y_lags)
+        for i, w in enumerate(factor[2:])
+        if w
+    ]
+    if factor[1] or not parts:
+        parts.append(f"{factor[1]:+.6g}")
+    return "".join(parts).lstrip("+")
+
+
+def format_terms(exponents: np.ndarray, y_lags: int, factors: np.ndarray | None = None) -> list[str]:
     """Readable names: ``y1^3*u2`` is P3(y(k-1)) P1(u(k-2)) for a model of y(k), ``1`` the bias.
 
     Inputs 0..y_lags-1 are y(k-1..k-y_lags), then u(k-1)...: the usual NARX lags of
-    the predicted sample (the structure's y(k), u(k) when it predicts y(k+1)).
+    the predicted sample (the structure's y(k), u(k) when it predicts y(k+1)). A factor
+    is written ``kind(linear form)``: ``u1*tanh(40*y1-40*y2)`` is P1(u(k-1)) tanh(40 (x_y1 - x_y2)),
+    on the scaled inputs x the network sees.
     """
+    exponents = np.asarray(exponents, dtype=np.int64)
+    factors = checked_factors(factors, len(exponents), exponents.shape[1] if exponents.ndim == 2 else 0)
     names = []
-    for row in np.asarray(exponents, dtype=np.int64):
-        factors = []
+    for t, row in enumerate(exponents):
+        parts = []
         for i, e in enumerate(row):
             if e:
-                name = f"y{i + 1}" if i < y_lags else f"u{i - y_lags + 1}"
-                factors.append(name if e == 1 else f"{name}^{e}")
-        names.append("*".join(factors) or "1")
+                name = _input_name(i, y_lags)
+                parts.append(name if e == 1 else f"{name}^{e}")
+        if len(factors) and factors[t, 0]:
+            parts.append(f"{_FACTOR_NAMES[int(factors[t, 0])]}({_format_linear(factors[t], y_lags)})")
+        names.append("*".join(parts) or "1")
     return names
 
 
-def parse_terms(terms: list[str], y_lags: int, u_lags: int) -> np.ndarray:
-    """Exponent rows from names written by :func:`format_terms`; a bad name is an error naming it."""
-    rows = []
+_FACTOR = re.compile(r"([a-z]+)\(([^()]*)\)")
+_LINEAR_PART = re.compile(r"\s*([+-]?)\s*(\d+\.?\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?)?\s*(\*?)\s*([yu]\d+)?")
+
+
+def _lag_index(text: str, name: str, y_lags: int, u_lags: int) -> int:
+    """0-based network input of ``y3`` / ``u2``, or an error naming the term."""
+    try:
+        lag = int(name[1:])
+    except ValueError:
+        raise ValueError(f"term {text!r}: {name!r} is not like y1 or u2") from None
+    limit = y_lags if name[:1] == "y" else u_lags if name[:1] == "u" else 0
+    if not 1 <= lag <= limit:
+        raise ValueError(
+            f"term {text!r}: {name!r} needs {name[:1] or '?'} lag 1..{limit} (y_lags={y_lags}, u_lags={u_lags})"
+        )
+    return lag - 1 if name[0] == "y" else y_lags + lag - 1
+
+
+def _parse_linear(text: str, inner: str, y_lags: int, u_lags: int) -> tuple[float, np.ndarray]:
+    """(b, w) of ``2.5*y1-2.5*y2+0.1``."""
+    w = np.zeros(y_lags + u_lags)
+    b, position, inner = 0.0, 0, inner.replace(" ", "")
+    while position < len(inner):
+        match = _LINEAR_PART.match(inner, position)
+        sign, number, star, name = match.groups() if match else ("", None, "", None)
+        if not match or match.end() == position or (star and not (number and name)) or (not number and not name):
+            raise ValueError(f"term {text!r}: cannot read {inner[position:]!r} as a linear form like 2*y1-2*y2+0.5")
+        value = (-1.0 if sign == "-" else 1.0) * (float(number) if number else 1.0)
+        if name:
+            w[_lag_index(text, name, y_lags, u_lags)] += value
+        else:
+            b += value
+        position = match.end()
+    return b, w
+
+
+def parse_terms(terms: list[str], y_lags: int, u_lags: int) -> tuple[np.ndarray, np.ndarray]:
+    """(exponent rows, factor rows) from names written by :func:`format_terms`; a bad name is an error naming it."""
+    n = y_lags + u_lags
+    rows, factors = [], []
     for text in terms:
-        row = [0] * (y_lags + u_lags)
+        row, factor = [0] * n, np.zeros(n + 2)
         clean = str(text).replace(" ", "")
-        if clean != "1":
-            for factor in clean.split("*"):
-                name, _, power = factor.partition("^")
+        match = _FACTOR.search(clean)
+        if match:
+            kind = FACTOR_KINDS.get(match.group(1))
+            if kind is None:
+                raise ValueError(f"term {text!r}: unknown factor {match.group(1)!r}; known: {', '.join(FACTOR_KINDS)}")
+            factor[0] = kind
+            factor[1], factor[2:] = _parse_linear(text, match.group(2), y_lags, u_lags)
+            clean = (clean[: match.start()] + clean[match.end() :]).strip("*").replace("**", "*")
+        if clean not in ("1", ""):
+            for part in clean.split("*"):
+                name, _, power = part.partition("^")
                 try:
-                    lag, degree = int(name[1:]), int(power or 1)
+                    degree = int(power or 1)
                 except ValueError:
-                    raise ValueError(f"term {text!r}: factor {factor!r} is not like y1, u2^3") from None
-                limit = y_lags if name[:1] == "y" else u_lags if name[:1] == "u" else 0
-                if not 1 <= lag <= limit or degree < 1:
-                    raise ValueError(
-                        f"term {text!r}: {factor!r} needs {name[:1] or '?'} lag 1..{limit} "
-                        f"(y_lags={y_lags}, u_lags={u_lags}) and a degree >= 1"
-                    )
-                row[lag - 1 if name[0] == "y" else y_lags + lag - 1] += degree
+                    raise ValueError(f"term {text!r}: factor {part!r} is not like y1, u2^3") from None
+                if degree < 1 or not name[1:].isdigit():
+                    raise ValueError(f"term {text!r}: factor {part!r} is not like y1, u2^3 (degree >= 1)")
+                row[_lag_index(text, name, y_lags, u_lags)] += degree
+        elif clean == "" and not match:
+            raise ValueError(f"term {text!r} is empty")
         rows.append(row)
-    return np.array(rows, dtype=np.int64).reshape(len(rows), y_lags + u_lags)
+        factors.append(factor)
+    exponents = np.array(rows, dtype=np.int64).reshape(len(rows), n)
+    return exponents, np.array(factors, dtype=np.float64).reshape(len(rows), n + 2)

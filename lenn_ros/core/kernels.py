@@ -354,6 +354,38 @@ BASIS_CODES = {"legendre": 0, "chebyshev": 1, "trigonometric": 2}
 
 
 @njit(cache=True, nogil=True, inline="always")
+def factor_value(kind: int, z: float) -> float:
+    """g(z) of a term's factor (``expansions.FACTOR_KINDS``; ``expansions.factor_function`` is the reference)."""
+    if kind == 1:
+        return z
+    if kind == 2:
+        return abs(z)
+    if kind == 3:
+        return z if z > 0.0 else 0.0
+    if kind == 4:
+        return math.tanh(z)
+    if kind == 5:
+        return math.cos(z)
+    if kind == 6:
+        return z * abs(z)
+    return 1.0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _factor_of_row(factors: np.ndarray, t: int, x_row: np.ndarray) -> float:
+    """g_t(b_t + w_t . x) for one sample's network inputs ``x_row`` (1.0 for a term without a factor)."""
+    kind = int(factors[t, 0])
+    if kind == 0:
+        return 1.0
+    z = factors[t, 1]
+    for i in range(factors.shape[1] - 2):
+        w = factors[t, 2 + i]
+        if w != 0.0:
+            z += w * x_row[i]
+    return factor_value(kind, z)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _univariate_row(x: float, top: int, basis: int, out: np.ndarray) -> None:
     """out[0..top] = P_0(x)..P_top(x) in the numbered basis (same recursions as expansions)."""
     out[0] = 1.0
@@ -385,6 +417,7 @@ def free_run_functional_link(
     known_a: np.ndarray,
     known_b: np.ndarray,
     exponents: np.ndarray,
+    factors: np.ndarray,
     weights: np.ndarray,
     feature_branch: np.ndarray,
     n_branches: int,
@@ -402,20 +435,20 @@ def free_run_functional_link(
     there) and counted. Returns (clipped inputs, first diverged sample or -1): a
     sample whose output is non-finite or further than ``divergence_bound`` scale
     units from the offset ends the run (the rest is nan), so an unstable model is
-    flagged instead of printed as a number.
+    flagged instead of printed as a number. ``factors``: the terms' factor rows, or none
+    (0 rows) when every term is polynomials only.
     """
     n = len(u)
-    top = 0
-    for t in range(exponents.shape[0]):
-        for i in range(y_lags + u_lags):
-            top = max(top, exponents[t, i])
-    table = np.empty((y_lags + u_lags, top + 1))
+    plan = _sparse_terms(exponents, factors)
+    need = plan[6]
+    table = np.empty((y_lags + u_lags, max(1, _top_degree(exponents)) + 1))
     sums = np.zeros(n_branches)
     clipped = 0
     for k in range(start - 1, n - 1):
-        clipped += _polynomial_table(u, y_out, k, y_lags, u_lags, y_offset, y_scale, u_offset, u_scale, basis, table)
-        out = _term_network_output(table, exponents, weights, feature_branch, tanh_output, output_scale, sums)
-        out += constant
+        clipped += _polynomial_table(u, y_out, k, y_lags, u_lags, y_offset, y_scale, u_offset, u_scale, basis, need,
+                                     table)  # fmt: skip
+        out = constant + _term_network_output(table, plan, factors, 0, exponents.shape[0], weights, feature_branch,
+                                              tanh_output, output_scale, sums)  # fmt: skip
         for i in range(len(known_a)):
             out += known_a[i] * y_out[k - i]
         for i in range(len(known_b)):
@@ -440,6 +473,7 @@ def free_run_functional_link_mimo(
     input_scale: np.ndarray,
     term_start: np.ndarray,
     exponents: np.ndarray,
+    factors: np.ndarray,
     weights: np.ndarray,
     feature_branch: np.ndarray,
     tanh_output: np.ndarray,
@@ -461,8 +495,9 @@ def free_run_functional_link_mimo(
     are counted per output in ``clipped``; returns the first diverged sample, or -1.
     """
     n = values.shape[0]
-    top = _top_degree(exponents)
-    table = np.empty((exponents.shape[1], top + 1))
+    plan = _sparse_terms(exponents, factors)
+    need = plan[6]
+    table = np.empty((exponents.shape[1], max(1, _top_degree(exponents)) + 1))
     sums = np.zeros(int(feature_branch.max()) + 1 if feature_branch.size else 1)
     for k in range(start - 1, n - 1):
         for j in range(n_y):
@@ -476,17 +511,11 @@ def free_run_functional_link_mimo(
                 elif x < -1.0:
                     x = -1.0
                     clipped[j] += 1
-                _univariate_row(x, top, basis, table[i])
-            t0, t1 = term_start[j], term_start[j + 1]
+                _univariate_row(x, need[i], basis, table[i])
             out = constant[j] + _term_network_output(
-                table[: last - first],
-                exponents[t0:t1, : last - first],
-                weights[t0:t1],
-                feature_branch[t0:t1],
-                tanh_output[j],
-                output_scale[j],
-                sums,
-            )
+                table, plan, factors, term_start[j], term_start[j + 1], weights, feature_branch, tanh_output[j],
+                output_scale[j], sums,
+            )  # fmt: skip
             if not math.isfinite(out) or abs(out - y_offset[j]) > divergence_bound * y_scale[j]:
                 for later in range(k + 1, n):
                     for c in range(n_y):
@@ -508,15 +537,16 @@ def _polynomial_table(
     u_offset: float,
     u_scale: float,
     basis: int,
+    need: np.ndarray,
     table: np.ndarray,
 ) -> int:
-    """table[i, n] = P_n(x_i(k)) for every network input of sample k; returns how many inputs were clipped.
+    """table[i, n] = P_n(x_i(k)) for n <= need[i] of every network input of sample k; returns how many clipped.
 
     Each input's polynomials are computed once per sample and shared by all terms,
-    which is what makes a free run cost one pass over the terms per sample.
+    which is what makes a free run cost one pass over the terms per sample; an input
+    no term reads (a long lag span's middle lags) is only checked for clipping.
     """
     clipped = 0
-    top = table.shape[1] - 1
     for i in range(y_lags + u_lags):
         x = (y_out[k - i] - y_offset) / y_scale if i < y_lags else (u[k - i + y_lags] - u_offset) / u_scale
         if x > 1.0:
@@ -525,36 +555,310 @@ def _polynomial_table(
         elif x < -1.0:
             x = -1.0
             clipped += 1
-        _univariate_row(x, top, basis, table[i])
+        _univariate_row(x, need[i], basis, table[i])
     return clipped
+
+
+@njit(cache=True, nogil=True)
+def _sparse_terms(exponents: np.ndarray, factors: np.ndarray):
+    """The terms as lists of their non-zero entries, and the degree each input needs.
+
+    (e_start, e_input, e_degree, f_start, f_input, f_weight, need): term t's
+    polynomials are e_input/e_degree[e_start[t]:e_start[t+1]], its factor's weights
+    f_input/f_weight[f_start[t]:f_start[t+1]], both in increasing input order, so a
+    product or sum over them takes the same operations in the same order as one over
+    the dense rows (the same bits). A free run visits every term every sample: with
+    long lag spans most entries of a row are zero.
+    """
+    n_terms, n_inputs = exponents.shape
+    with_factors = factors.shape[0] > 0
+    e_start = np.zeros(n_terms + 1, dtype=np.int64)
+    f_start = np.zeros(n_terms + 1, dtype=np.int64)
+    for t in range(n_terms):
+        e_count = 0
+        f_count = 0
+        for i in range(n_inputs):
+            if exponents[t, i]:
+                e_count += 1
+            if with_factors and factors[t, 0] != 0.0 and factors[t, 2 + i] != 0.0:
+                f_count += 1
+        e_start[t + 1] = e_start[t] + e_count
+        f_start[t + 1] = f_start[t] + f_count
+    e_input = np.empty(e_start[n_terms], dtype=np.int64)
+    e_degree = np.empty(e_start[n_terms], dtype=np.int64)
+    f_input = np.empty(f_start[n_terms], dtype=np.int64)
+    f_weight = np.empty(f_start[n_terms])
+    need = np.zeros(n_inputs, dtype=np.int64)
+    for t in range(n_terms):
+        e, f = e_start[t], f_start[t]
+        for i in range(n_inputs):
+            if exponents[t, i]:
+                e_input[e] = i
+                e_degree[e] = exponents[t, i]
+                need[i] = max(need[i], exponents[t, i])
+                e += 1
+            if with_factors and factors[t, 0] != 0.0 and factors[t, 2 + i] != 0.0:
+                f_input[f] = i
+                f_weight[f] = factors[t, 2 + i]
+                need[i] = max(need[i], 1)  # the factor reads x_i from table[i, 1]
+                f += 1
+    return e_start, e_input, e_degree, f_start, f_input, f_weight, need
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _term_network_output(
     table: np.ndarray,
-    exponents: np.ndarray,
+    plan,
+    factors: np.ndarray,
+    t0: int,
+    t1: int,
     weights: np.ndarray,
     feature_branch: np.ndarray,
     tanh_output: bool,
     output_scale: float,
     sums: np.ndarray,
 ) -> float:
-    """Network part of the output: sum over branches of (tanh of) the weighted product terms.
+    """Network part of the output over terms t0..t1: sum over branches of (tanh of) the weighted product terms.
 
-    ``sums`` is the caller's scratch of one entry per branch, so no sample allocates.
+    ``plan`` is :func:`_sparse_terms` of the terms; ``sums`` the caller's scratch of one
+    entry per branch, so no sample allocates.
     """
+    e_start, e_input, e_degree, f_start, f_input, f_weight, _need = plan
     sums[:] = 0.0
-    for t in range(exponents.shape[0]):
+    for t in range(t0, t1):
         value = weights[t]
-        for i in range(table.shape[0]):  # the network inputs (y_lags + u_lags)
-            e = exponents[t, i]
-            if e:
-                value *= table[i, e]
+        for e in range(e_start[t], e_start[t + 1]):
+            value *= table[e_input[e], e_degree[e]]
+        if f_start[t + 1] > f_start[t] or (factors.shape[0] > 0 and factors[t, 0] != 0.0):
+            z = factors[t, 1]
+            for f in range(f_start[t], f_start[t + 1]):
+                z += f_weight[f] * table[f_input[f], 1]
+            value *= factor_value(int(factors[t, 0]), z)
         sums[feature_branch[t]] += value
     out = 0.0
     for b in range(len(sums)):
         out += output_scale * math.tanh(sums[b]) if tanh_output else sums[b]
     return out
+
+
+@njit(cache=True, nogil=True)
+def simulate_pieces(
+    u: np.ndarray,
+    y: np.ndarray,
+    first: np.ndarray,
+    stop: np.ndarray,
+    group: np.ndarray,
+    warm: int,
+    y_lags: int,
+    u_lags: int,
+    y_offset: float,
+    y_scale: float,
+    u_offset: float,
+    u_scale: float,
+    exponents: np.ndarray,
+    factors: np.ndarray,
+    weights: np.ndarray,
+    basis: int,
+    divergence_bound: float,
+    out: np.ndarray,
+) -> None:
+    """Free runs of samples first[p]..stop[p] (each from the ``warm`` measured samples before it), pooled per group.
+
+    Piece p is simulated with the weights ``weights[group[p]]`` (a fold's); ``out[g]``
+    accumulates [sum of squared errors, samples, sum of squares about each piece's
+    mean, clipped inputs, diverged (1.0)]. One call scores a prefix on every block, so
+    the selection pays no Python per simulation.
+    """
+    longest = 0
+    for p in range(len(first)):
+        longest = max(longest, stop[p] - first[p])
+    scratch = np.empty(longest + warm)
+    branch = np.zeros(exponents.shape[0], dtype=np.int64)
+    none = np.zeros(0)
+    for p in range(len(first)):
+        a, b, g = first[p], stop[p], group[p]
+        buffer = scratch[: b - a + warm]
+        buffer[:] = y[a - warm : b]
+        clipped, diverged_at = free_run_functional_link(
+            u[a - warm : b], buffer, warm, y_lags, u_lags, y_offset, y_scale, u_offset, u_scale, 0.0, none, none,
+            exponents, factors, weights[g], branch, 1, basis, False, 1.0, divergence_bound, buffer,
+        )  # fmt: skip
+        mean = 0.0
+        for k in range(a, b):
+            mean += y[k]
+        mean /= b - a
+        squared, deviation = 0.0, 0.0
+        for k in range(a, b):
+            error = buffer[k - a + warm] - y[k]
+            squared += error * error
+            deviation += (y[k] - mean) * (y[k] - mean)
+        out[g, 0] += squared
+        out[g, 1] += b - a
+        out[g, 2] += deviation
+        out[g, 3] += clipped
+        if diverged_at >= 0:
+            out[g, 4] = 1.0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _factor_slope(kind: int, z: float) -> float:
+    """g'(z) of a factor kind (0 where g is not differentiable: |z| and relu at 0)."""
+    if kind == 1:
+        return 1.0
+    if kind == 2:
+        return 1.0 if z > 0.0 else (-1.0 if z < 0.0 else 0.0)
+    if kind == 3:
+        return 1.0 if z > 0.0 else 0.0
+    if kind == 4:
+        t = math.tanh(z)
+        return 1.0 - t * t
+    if kind == 5:
+        return -math.sin(z)
+    if kind == 6:
+        return 2.0 * abs(z)
+    return 0.0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _slope_row(x: float, top: int, basis: int, values: np.ndarray, out: np.ndarray) -> None:
+    """out[n] = P_n'(x) for n <= top, from the recursion differentiated (``values`` holds P_0..P_top)."""
+    out[0] = 0.0
+    if top == 0:
+        return
+    out[1] = 1.0
+    for n in range(1, top):
+        if basis == 0:
+            out[n + 1] = ((2 * n + 1) * (values[n] + x * out[n]) - n * out[n - 1]) / (n + 1)
+        else:
+            out[n + 1] = 2.0 * values[n] + 2.0 * x * out[n] - out[n - 1]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _polynomial_gradient(
+    table: np.ndarray, slopes: np.ndarray, alive: np.ndarray, plan, t: int, weight: float, gradient: np.ndarray
+) -> None:
+    """gradient[i] += weight * d(prod of term t's polynomials) / dx_i for its live fed-back inputs."""
+    e_start, e_input, e_degree = plan[0], plan[1], plan[2]
+    for e in range(e_start[t], e_start[t + 1]):
+        i = e_input[e]
+        if i < len(alive) and alive[i]:
+            others = 1.0
+            for o in range(e_start[t], e_start[t + 1]):
+                if o != e:
+                    others *= table[e_input[o], e_degree[o]]
+            gradient[i] += weight * others * slopes[i, e_degree[e]]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _features_and_gradient(
+    table: np.ndarray,
+    slopes: np.ndarray,
+    alive: np.ndarray,
+    plan,
+    factors: np.ndarray,
+    weights: np.ndarray,
+    phi: np.ndarray,
+    gradient: np.ndarray,
+) -> None:
+    """phi[t] = term t's feature; gradient[i] = dN/dx_i for every live fed-back input i (< len(alive))."""
+    e_start, e_input, e_degree, f_start, f_input, f_weight, _need = plan
+    y_lags = len(alive)
+    gradient[:] = 0.0
+    for t in range(len(phi)):
+        product = 1.0
+        for e in range(e_start[t], e_start[t + 1]):
+            product *= table[e_input[e], e_degree[e]]
+        g, slope, kind = 1.0, 0.0, 0
+        if factors.shape[0] > 0 and factors[t, 0] != 0.0:
+            kind = int(factors[t, 0])
+            z = factors[t, 1]
+            for f in range(f_start[t], f_start[t + 1]):
+                z += f_weight[f] * table[f_input[f], 1]
+            g, slope = factor_value(kind, z), _factor_slope(kind, z)
+        phi[t] = product * g
+        w = weights[t]
+        _polynomial_gradient(table, slopes, alive, plan, t, w * g, gradient)
+        if kind:
+            for f in range(f_start[t], f_start[t + 1]):
+                i = f_input[f]
+                if i < y_lags and alive[i]:
+                    gradient[i] += w * product * slope * f_weight[f]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _sensitivity_row(
+    row: np.ndarray, phi: np.ndarray, gradient: np.ndarray, alive: np.ndarray, history: np.ndarray, y_scale: float
+) -> None:
+    """row = d y^(k+1) / d w = phi + sum_i dN/dx_i d x_i / d w; then pushed into ``history`` (newest first)."""
+    row[:] = phi
+    y_lags = len(alive)
+    for i in range(y_lags):
+        if alive[i]:
+            scale = gradient[i] / y_scale
+            for j in range(len(row)):
+                row[j] += scale * history[i, j]
+    for i in range(y_lags - 1, 0, -1):
+        history[i, :] = history[i - 1, :]
+    if y_lags:
+        history[0, :] = row
+
+
+@njit(cache=True, nogil=True)
+def free_run_jacobian(
+    u: np.ndarray,
+    y_out: np.ndarray,
+    start: int,
+    y_lags: int,
+    u_lags: int,
+    y_offset: float,
+    y_scale: float,
+    u_offset: float,
+    u_scale: float,
+    exponents: np.ndarray,
+    factors: np.ndarray,
+    weights: np.ndarray,
+    basis: int,
+    divergence_bound: float,
+    jacobian: np.ndarray,
+) -> tuple[int, int]:
+    """:func:`free_run_functional_link` of a linear-output term model, with d y^(k) / d w in one pass.
+
+    The outputs are computed as :func:`free_run_functional_link` computes them (the same
+    bits); ``jacobian[k - start, j]`` gets d y^(k) / d w_j by forward sensitivity:
+    d y^(k+1) = phi(x(k)) + sum_i dN/dx_i (k) dx_i(k), where x_i is a fed-back output
+    y^(k-i) scaled (zero when it is clipped or still measured). One pass replaces a
+    free run per nudged weight, and it is exact. Legendre and Chebyshev bases only.
+    """
+    n, n_terms = len(u), exponents.shape[0]
+    plan = _sparse_terms(exponents, factors)
+    need = plan[6]
+    top = max(1, _top_degree(exponents))
+    table = np.empty((y_lags + u_lags, top + 1))
+    slopes = np.zeros((y_lags, top + 1))
+    sums = np.zeros(1)
+    branch = np.zeros(n_terms, dtype=np.int64)
+    history = np.zeros((max(y_lags, 1), n_terms))  # d y^(k-i) / d w, newest first
+    phi = np.empty(n_terms)
+    gradient = np.zeros(y_lags)
+    alive = np.zeros(y_lags, dtype=np.bool_)
+    clipped = 0
+    for k in range(start - 1, n - 1):
+        clipped += _polynomial_table(u, y_out, k, y_lags, u_lags, y_offset, y_scale, u_offset, u_scale, basis, need,
+                                     table)  # fmt: skip
+        out = _term_network_output(table, plan, factors, 0, n_terms, weights, branch, False, 1.0, sums)
+        for i in range(y_lags):
+            value = (y_out[k - i] - y_offset) / y_scale
+            alive[i] = k - i >= start and -1.0 < value < 1.0  # a clipped or measured input has no slope
+            if alive[i]:
+                _slope_row(table[i, 1], need[i], basis, table[i], slopes[i])
+        _features_and_gradient(table, slopes, alive, plan, factors, weights, phi, gradient)
+        if not math.isfinite(out) or abs(out - y_offset) > divergence_bound * y_scale:
+            for j in range(k + 1, n):
+                y_out[j] = np.nan
+            return clipped, k + 1
+        y_out[k + 1] = out
+        _sensitivity_row(jacobian[k + 1 - start], phi, gradient, alive, history, y_scale)
+    return clipped, -1
 
 
 # -- batch expansion and least squares ---------------------------------------------------
@@ -615,7 +919,14 @@ def _univariate_block(x: np.ndarray, k0: int, count: int, i: int, top: int, basi
 
 @njit(cache=True, nogil=True, inline="always")
 def _expand_block(
-    x: np.ndarray, k0: int, count: int, exponents: np.ndarray, basis: int, table: np.ndarray, phi: np.ndarray
+    x: np.ndarray,
+    k0: int,
+    count: int,
+    exponents: np.ndarray,
+    factors: np.ndarray,
+    basis: int,
+    table: np.ndarray,
+    phi: np.ndarray,
 ) -> None:
     """phi[t, b] = prod_i P_{e_ti}(x[k0 + b, i]), multiplied from 1.0 in input order.
 
@@ -633,10 +944,14 @@ def _expand_block(
             if e:
                 for b in range(count):
                     phi[t, b] *= table[i, e, b]
+    for t in range(factors.shape[0]):
+        if factors[t, 0] != 0.0:
+            for b in range(count):
+                phi[t, b] *= _factor_of_row(factors, t, x[k0 + b])
 
 
 @njit(cache=True, nogil=True)
-def term_expansion(x: np.ndarray, exponents: np.ndarray, basis: int, out: np.ndarray) -> None:
+def term_expansion(x: np.ndarray, exponents: np.ndarray, basis: int, factors: np.ndarray, out: np.ndarray) -> None:
     """out[k, t] = prod_i P_{e_ti}(x[k, i]): ``expansions.term_features`` in one compiled pass.
 
     Each sample's polynomials are computed once and shared by all its terms; numpy
@@ -648,7 +963,7 @@ def term_expansion(x: np.ndarray, exponents: np.ndarray, basis: int, out: np.nda
     phi = np.empty((exponents.shape[0], EXPANSION_BLOCK))
     for k0 in range(0, n_samples, EXPANSION_BLOCK):
         count = min(EXPANSION_BLOCK, n_samples - k0)
-        _expand_block(x, k0, count, exponents, basis, table, phi)
+        _expand_block(x, k0, count, exponents, factors, basis, table, phi)
         for b in range(count):
             for t in range(exponents.shape[0]):
                 out[k0 + b, t] = phi[t, b]
@@ -660,6 +975,7 @@ def _augmented_rows(
     targets: np.ndarray,
     k0: int,
     exponents: np.ndarray,
+    factors: np.ndarray,
     basis: int,
     table: np.ndarray,
     phi: np.ndarray,
@@ -672,7 +988,7 @@ def _augmented_rows(
     """
     n_terms = exponents.shape[0]
     count = min(EXPANSION_BLOCK, x.shape[0] - k0)
-    _expand_block(x, k0, count, exponents, basis, table, phi)
+    _expand_block(x, k0, count, exponents, factors, basis, table, phi)
     for b in range(count):
         for t in range(n_terms):
             rows[b, t] = phi[t, b]
@@ -681,7 +997,9 @@ def _augmented_rows(
 
 
 @njit(cache=True, nogil=True)
-def normal_equations(x: np.ndarray, targets: np.ndarray, exponents: np.ndarray, basis: int, gram: np.ndarray) -> None:
+def normal_equations(
+    x: np.ndarray, targets: np.ndarray, exponents: np.ndarray, factors: np.ndarray, basis: int, gram: np.ndarray
+) -> None:
     """gram += [Phi | d]' [Phi | d], each sample's features expanded on the fly.
 
     The batch least-squares fit needs only Phi' Phi (gram[:p, :p]), Phi' d
@@ -694,7 +1012,7 @@ def normal_equations(x: np.ndarray, targets: np.ndarray, exponents: np.ndarray, 
     rows = np.empty((EXPANSION_BLOCK, n_terms + 1))
     phi = np.empty((n_terms, EXPANSION_BLOCK))
     for k0 in range(0, n_samples, EXPANSION_BLOCK):
-        count = _augmented_rows(x, targets, k0, exponents, basis, table, phi, rows)
+        count = _augmented_rows(x, targets, k0, exponents, factors, basis, table, phi, rows)
         for b in range(count):
             for i in range(n_terms + 1):
                 v = rows[b, i]
@@ -703,7 +1021,9 @@ def normal_equations(x: np.ndarray, targets: np.ndarray, exponents: np.ndarray, 
 
 
 @njit(cache=True, nogil=True)
-def qr_rows(x: np.ndarray, targets: np.ndarray, exponents: np.ndarray, basis: int, r: np.ndarray) -> None:
+def qr_rows(
+    x: np.ndarray, targets: np.ndarray, exponents: np.ndarray, factors: np.ndarray, basis: int, r: np.ndarray
+) -> None:
     """Update the triangular R of [Phi | d] (p + 1 columns) with every sample, by Givens rotations.
 
     R' R = [Phi | d]' [Phi | d] as with :func:`normal_equations`, but R is formed from
@@ -718,7 +1038,7 @@ def qr_rows(x: np.ndarray, targets: np.ndarray, exponents: np.ndarray, basis: in
     rows = np.empty((EXPANSION_BLOCK, n_terms + 1))
     phi = np.empty((n_terms, EXPANSION_BLOCK))
     for k0 in range(0, n_samples, EXPANSION_BLOCK):
-        count = _augmented_rows(x, targets, k0, exponents, basis, table, phi, rows)
+        count = _augmented_rows(x, targets, k0, exponents, factors, basis, table, phi, rows)
         for b in range(count):
             _givens_row(r, rows[b])
 

@@ -354,10 +354,16 @@ class MimoIdentifier:
         entries = [_channel_inputs(i.structure, j, picks[j]) for j, i in enumerate(self.outputs)]
         width = max(len(rows) for rows in entries)
         exponents = np.zeros((sum(len(t[0]) for t in terms), width), dtype=np.int64)
+        factors = np.zeros((len(exponents), width + 2))
         row = 0
-        for rows, _branch in terms:
+        for (rows, _branch), model in zip(terms, models, strict=True):
             exponents[row : row + len(rows), : rows.shape[1]] = rows
+            own = model.term_factors()
+            if len(own):
+                factors[row : row + len(rows), : own.shape[1]] = own
             row += len(rows)
+        if not factors[:, 0].any():
+            factors = factors[:0]
         flat = [entry for rows in entries for entry in rows]
         values = np.ascontiguousarray(np.concatenate((y_model, u), axis=1))
         clipped = np.zeros(len(models), dtype=np.int64)
@@ -372,6 +378,7 @@ class MimoIdentifier:
             np.array([entry[3] for entry in flat], dtype=np.float64),
             np.cumsum([0] + [len(t[0]) for t in terms]).astype(np.int64),
             exponents,
+            factors,
             np.ascontiguousarray(np.concatenate([m.weights_.reshape(-1) for m in models]), dtype=np.float64),
             np.concatenate([t[1] for t in terms]).astype(np.int64),
             np.array([m.output == "tanh" for m in models]),

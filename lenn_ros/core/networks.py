@@ -25,7 +25,15 @@ from typing import Any, ClassVar
 import numpy as np
 
 from lenn_ros.core import kernels
-from lenn_ros.core.expansions import BASES, COMPILED_BASES, expand, feature_count, full_exponents, term_features
+from lenn_ros.core.expansions import (
+    BASES,
+    COMPILED_BASES,
+    checked_factors,
+    expand,
+    feature_count,
+    full_exponents,
+    term_features,
+)
 
 SOLVERS = ("sgd", "nlms", "rls")
 OUTPUTS = ("tanh", "linear")
@@ -283,7 +291,17 @@ class FunctionalLinkNetwork(OnlineRegressor):
 
     _state_names = ("weights_", "momentum_", "covariance_")
     _kind = "functional_link"
-    _structural_params = ("n_inputs", "order", "basis", "cross_degree", "branches", "output", "solver", "exponents")
+    _structural_params = (
+        "n_inputs",
+        "order",
+        "basis",
+        "cross_degree",
+        "branches",
+        "output",
+        "solver",
+        "exponents",
+        "factors",
+    )
 
     def __init__(
         self,
@@ -305,6 +323,7 @@ class FunctionalLinkNetwork(OnlineRegressor):
         out_of_range: str = "clip",
         random_state: int | None = 0,
         exponents: list[list[int]] | None = None,
+        factors: list[list[float]] | None = None,
     ) -> None:
         super().__init__(
             n_inputs=n_inputs,
@@ -325,12 +344,15 @@ class FunctionalLinkNetwork(OnlineRegressor):
             out_of_range=out_of_range,
             random_state=random_state,
             exponents=None if exponents is None else [[int(e) for e in row] for row in exponents],
+            factors=None if factors is None else [[float(v) for v in row] for row in factors],
         )
         self._validate()
 
     def _validate(self) -> None:
         if self.exponents is not None:
             self._validate_exponents()
+        elif self.factors is not None:
+            raise ValueError("factors go with selected terms (exponents), one row per term")
         if self.basis not in BASES:
             raise ValueError(f"basis must be one of {', '.join(BASES)}, not {self.basis!r}")
         if self.solver not in SOLVERS:
@@ -354,6 +376,8 @@ class FunctionalLinkNetwork(OnlineRegressor):
             raise ValueError(f"exponents must be non-empty rows of {self.n_inputs} non-negative integers")
         if self.branches is not None and len(self.branches) > 1:
             raise ValueError("selected terms (exponents) make one combiner: use branches=None")
+        if self.factors is not None:
+            checked_factors(np.asarray(self.factors, dtype=np.float64), len(self.exponents), int(self.n_inputs))
 
     @property
     def branch_inputs_(self) -> list[list[int]]:
@@ -384,6 +408,13 @@ class FunctionalLinkNetwork(OnlineRegressor):
             branch_of += [index] * len(local)
         return np.vstack(blocks), np.array(branch_of, dtype=np.int64)
 
+    def term_factors(self) -> np.ndarray:
+        """Factor row of every weight (:mod:`~lenn_ros.core.expansions`), or (0, n_inputs + 2) when none has one."""
+        n = int(self.n_inputs)
+        if self.factors is None:
+            return np.zeros((0, n + 2))
+        return checked_factors(np.asarray(self.factors, dtype=np.float64), len(self.exponents), n)
+
     def _initialise(self) -> None:
         rng = np.random.default_rng(self.random_state)
         branch_of = []
@@ -406,7 +437,7 @@ class FunctionalLinkNetwork(OnlineRegressor):
         """Expanded pattern (bias first) of each branch, concatenated."""
         x = self._check_inputs(x)
         if self.exponents is not None:
-            return term_features(x, np.asarray(self.exponents, dtype=np.int64), self.basis)
+            return term_features(x, np.asarray(self.exponents, dtype=np.int64), self.basis, self.term_factors())
         if x.shape[0] > 1 and kernels.JIT and self.basis in COMPILED_BASES:
             # one compiled pass over all branches, in the column order of the hstack below
             # (the same bits; test_offline_speed checks it); one sample keeps expand's scalar path

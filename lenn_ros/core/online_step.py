@@ -165,6 +165,7 @@ def functional_link_step(
     known_a: np.ndarray,
     known_b: np.ndarray,
     exponents: np.ndarray,
+    factors: np.ndarray,
     basis: int,
     solver: int,
     weights: np.ndarray,
@@ -192,8 +193,8 @@ def functional_link_step(
     if not _push(u_history, y_history, counts, u, y):
         return
     linear, clipped = _regressor(x, u_history, y_history, geometry, lags, known_a, known_b)
-    _predict(linear, clipped, x, exponents, basis, counts, linear_pending, phi, scratch, solver, weights, momentum,
-             covariance, feature_branch, n_branches, rule, tanh_output, out)  # fmt: skip
+    _predict(linear, clipped, x, exponents, factors, basis, counts, linear_pending, phi, scratch, solver, weights,
+             momentum, covariance, feature_branch, n_branches, rule, tanh_output, out)  # fmt: skip
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -252,6 +253,7 @@ def _predict(
     clipped: int,
     x: np.ndarray,
     exponents: np.ndarray,
+    factors: np.ndarray,
     basis: int,
     counts: np.ndarray,
     linear_pending: np.ndarray,
@@ -273,7 +275,7 @@ def _predict(
         return
     out[CLIPPED] = clipped
     target, y_out = scratch[0:1], scratch[1:2]
-    term_expansion(x, exponents, basis, phi)
+    term_expansion(x, exponents, basis, factors, phi)
     _rule(
         solver, weights, momentum, covariance, phi, target, feature_branch, n_branches, rule, tanh_output, False, y_out
     )
@@ -341,6 +343,7 @@ def channel_step(
     geometry: np.ndarray,
     lags: np.ndarray,
     exponents: np.ndarray,
+    factors: np.ndarray,
     basis: int,
     solver: int,
     weights: np.ndarray,
@@ -359,8 +362,8 @@ def channel_step(
     if not _push_channels(u_history, y_history, counts, u, y):
         return
     linear, clipped = _channel_regressor(x, u_history, y_history, geometry, lags)
-    _predict(linear, clipped, x, exponents, basis, counts, linear_pending, phi, scratch, solver, weights, momentum,
-             covariance, feature_branch, n_branches, rule, tanh_output, out)  # fmt: skip
+    _predict(linear, clipped, x, exponents, factors, basis, counts, linear_pending, phi, scratch, solver, weights,
+             momentum, covariance, feature_branch, n_branches, rule, tanh_output, out)  # fmt: skip
 
 
 @dataclass
@@ -378,6 +381,7 @@ class StepPlan:
     known_a: np.ndarray
     known_b: np.ndarray
     exponents: np.ndarray
+    factors: np.ndarray
     basis: int
     solver: int
     tanh_output: bool
@@ -414,6 +418,7 @@ class StepPlan:
             known_a=np.asarray(structure.known_a, dtype=np.float64),
             known_b=np.asarray(structure.known_b, dtype=np.float64),
             exponents=np.ascontiguousarray(exponents, dtype=np.int64),
+            factors=model.term_factors(),
             basis=kernels.BASIS_CODES[model.basis],
             solver=SOLVER_CODES[model.solver],
             tanh_output=model.output == "tanh",
@@ -434,6 +439,7 @@ class StepPlan:
             known_a=np.zeros(0),
             known_b=np.zeros(0),
             exponents=np.ascontiguousarray(exponents, dtype=np.int64),
+            factors=model.term_factors(),
             basis=_basis_code(model.basis),
             solver=SOLVER_CODES[model.solver],
             tanh_output=model.output == "tanh",
@@ -473,6 +479,7 @@ class StepPlan:
             self.geometry,
             self.lags,
             self.exponents,
+            self.factors,
             self.basis,
             self.solver,
             model.weights_,
@@ -504,6 +511,7 @@ class StepPlan:
             self.known_a,
             self.known_b,
             self.exponents,
+            self.factors,
             self.basis,
             self.solver,
             model.weights_,

@@ -1,61 +1,80 @@
-"""Structure selection for a LeNN on real data: the LeNN's counterpart of FROLS.
+"""Structure selection for a functional-link model of real data, judged by simulation.
 
 A functional-link network is linear in its weights, so choosing its structure is
-choosing columns of a feature matrix. For every candidate (lags of y and u,
-polynomial degree, basis) a dictionary of Legendre terms (per-input and cross
-terms) is built from the estimation part of the training data, and orthogonal
-forward regression ranks the terms by their error-reduction ratio (ERR). Up to
-here this is Billings' FROLS. The difference is how a model is judged: every prefix
-of every ranked list is fitted by least squares and *simulated* (free run, the
-model fed its own outputs) over a held-out tail of the training data, and the
-lowest simulation error wins. One-step error rewards models that lean on the
-measured past; simulation error is what a model is used for, and a candidate whose
-simulation diverges or leaves the range it was trained on is rejected outright.
+choosing columns of a feature matrix. Each candidate is a *family* of terms at some
+lags (:mod:`lenn_ros.core.families`: polynomials, hinges, increments with friction-like
+terms of the velocity), a dictionary built from the training data; orthogonal forward
+regression ranks its terms by error-reduction ratio (Billings' FROLS). Up to here this
+is FROLS. The difference is how a model is judged: every prefix of every ranked list is
+fitted by least squares and *simulated* (free run, the model fed its own outputs), and
+the lowest simulation error wins. One-step error rewards models that lean on the
+measured past; simulation is what a model is used for.
 
-One short held-out tail is a weak judge on small data sets (a few hundred samples):
-a model can simulate it well by luck and still run away elsewhere. So a model is
-also rejected when its held-out free run is worse than predicting the held-out mean
-(NMSE > 0 dB), and when its free run over its own estimation samples (in-sample,
-the data its weights were fitted to) diverges, leaves the range or is worse than
-their mean: a structure that cannot simulate the data it was built on has not
-captured the plant. Degree-1 candidates (linear ARX) are always in the grid, so a
-nonlinear model is chosen only when it beats the linear ones on held-out free run;
-and of candidates within PARSIMONY of the lowest held-out error the one with the
+One held-out tail is a weak judge (a short tail can be simulated well by luck), so the
+training samples are cut into contiguous blocks (:func:`fold_blocks`): each block is
+simulated from the measured outputs just before it by the weights fitted to all the
+other blocks, and the score pools every block's simulation error. A prefix is refused
+when any block's simulation diverges, leaves the training range (clipped inputs) or
+does worse than the block's mean. The preferred prefix must then pass two checks
+before its candidate counts (:func:`soundness_problem`): the weights fitted to all
+training samples simulate the whole training record soundly, and they stay bounded
+when driven by the training input cut into blocks and shuffled (an input like those
+the model was built for, but in an order it has not seen: a model that runs away on it
+sits on the edge of stability and will run away on new data).
+
+Degree-1 candidates (linear ARX, and the linear increment form) are always in the grid
+and a nonlinear candidate must beat the best linear one by ``NONLINEAR_GAIN`` to be
+chosen; among candidates within ``PARSIMONY`` of the lowest score the one with the
 fewest terms is chosen, as within a candidate.
+
+Records that are not one contiguous run (gaps in a recording) are handled by
+``breaks``: no regression row reaches across a break and every simulation restarts
+from the measured outputs after it.
 """
 
 from __future__ import annotations
 
+import itertools
 import math
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from functools import partial
 
 import numpy as np
 
 from lenn_ros.core import kernels
-from lenn_ros.core.expansions import dictionary_exponents, format_terms, term_features
+from lenn_ros.core.expansions import checked_factors, format_terms, term_features
+from lenn_ros.core.families import Dictionary, Spec, candidate_specs
 from lenn_ros.core.scaling import Scaling
 from lenn_ros.core.structure import FREE_RUN_DIVERGENCE_BOUND, ModelStructure
 
-#: a candidate whose free run on training data clips more than this fraction of inputs is rejected.
-#: Zero: the scaling comes from the training samples with a margin, so measured u and y there never
-#: clip; a clipped input is the simulated output beyond the range plus margin, i.e. running away.
-MAX_CLIPPED_FRACTION = 0.0
-#: the same, for the fallback selection (``strict=False``): the rule before the in-sample check
-LOOSE_CLIPPED_FRACTION = 0.01
-#: relative held-out error a term must buy to be kept (see :func:`evaluate_prefixes`)
+#: relative simulation error a term (or a candidate's extra terms) must buy to be kept
 PARSIMONY = 0.01
-#: degree-3 dictionaries may also offer single-input terms of u up to this degree (of u only:
-#: a high power of the fed-back y is what makes a polynomial simulation blow up off its data).
-#: Off (3 = nothing beyond the cubic): with 7, the shared real sets did not improve and the
-#: Example-1 bag (sinusoid test after a random-input training) simulated worse, 1.18 -> 2.6.
-PURE_DEGREE = 3
+#: a nonlinear candidate is chosen only if its score is below (1 - NONLINEAR_GAIN) x the best linear one's
+NONLINEAR_GAIN = 0.03
+#: largest share of a block's network inputs its free run may clip before the prefix is refused:
+#: the scaling spans the training range plus a margin, so a measured input never clips; a
+#: clipped one is the simulated output beyond range and margin, i.e. running away
+MAX_CLIPPED_FRACTION = 0.0
+#: the same for ``fit``'s fallback selection (``strict=False``)
+LOOSE_CLIPPED_FRACTION = 0.01
+#: most blocks the training samples are cut into, and the fewest samples a block may hold
+MAX_FOLDS = 5
+MIN_BLOCK = 60
+#: most terms a ranked list offers (FROLS stops there), and at most one term per this many samples
+MAX_TERMS = 40
+SAMPLES_PER_TERM = 10
+#: shuffled-input runs of the stress check, and how many blocks the input is cut into for them
+STRESS_RUNS = 3
+STRESS_BLOCKS = 10
+#: prefixes scored past the best one so far before the rest of a ranked list is left out
+PATIENCE = 12
+#: relative ridge on the normal equations (numerically singular columns must not break a solve)
+RIDGE = 1e-10
 
 
 @dataclass
 class TermModel:
-    """y(k) = sum_t w_t prod_i P_{e_ti}(x_i(k)), x = scaled y(k-1..k-ny), u(k-1..k-nu)."""
+    """y(k) = sum_t w_t prod_i P_{e_ti}(x_i(k)) [g_t(b_t + w_t . x(k))], x = scaled y(k-1..), u(k-1..)."""
 
     y_lags: int
     u_lags: int
@@ -63,6 +82,11 @@ class TermModel:
     exponents: np.ndarray
     basis: str = "legendre"
     weights: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    factors: np.ndarray | None = None  # (terms, n_inputs + 2) factor rows, None: polynomials only
+
+    def __post_init__(self) -> None:
+        self.exponents = np.ascontiguousarray(self.exponents, dtype=np.int64)
+        self.factors = checked_factors(self.factors, len(self.exponents), self.y_lags + self.u_lags)
 
     @property
     def structure(self) -> ModelStructure:
@@ -82,16 +106,25 @@ class TermModel:
 
     @property
     def terms(self) -> list[str]:
-        return format_terms(self.exponents, self.y_lags)
+        return format_terms(self.exponents, self.y_lags, self.factors)
 
-    def regression(self, u: np.ndarray, y: np.ndarray, exponents: np.ndarray | None = None):
-        """(features of every complete regressor, target y(k+1)); inputs clipped to [-1, 1].
+    def with_weights(self, weights: np.ndarray) -> TermModel:
+        return TermModel(
+            self.y_lags, self.u_lags, self.scaling, self.exponents, self.basis, np.asarray(weights), self.factors
+        )
+
+    def inputs(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(network inputs x(k) clipped to [-1, 1], target y(k+1)) of every complete regressor.
 
         The structure has no known linear part, so the series-parallel target is y(k+1) itself.
         """
         x, targets, _ = self.structure.training_pairs(u, y)
-        rows = self.exponents if exponents is None else exponents
-        return term_features(np.clip(x, -1.0, 1.0), rows, self.basis), targets
+        return np.clip(x, -1.0, 1.0), targets
+
+    def regression(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(features of every complete regressor, target y(k+1))."""
+        x, targets = self.inputs(u, y)
+        return term_features(x, self.exponents, self.basis, self.factors), targets
 
     def free_run(
         self, u: np.ndarray, y: np.ndarray, start: int, weights: np.ndarray | None = None
@@ -113,7 +146,8 @@ class TermModel:
             0.0,
             np.zeros(0),
             np.zeros(0),
-            np.ascontiguousarray(self.exponents, dtype=np.int64),
+            self.exponents,
+            self.factors,
             np.ascontiguousarray(w, dtype=np.float64),
             np.zeros(len(self.exponents), dtype=np.int64),
             1,
@@ -129,61 +163,254 @@ class TermModel:
 def forward_regression(features: np.ndarray, targets: np.ndarray, max_terms: int) -> tuple[list[int], list[float]]:
     """Orthogonal forward regression: columns in order of error-reduction ratio.
 
-    Classical Gram-Schmidt of the remaining columns against each chosen one, so every
-    step scores all candidates by the share of the target's energy they explain
-    beyond the terms already chosen (Billings' ERR). Returns (column order, ERR of each).
+    Every step scores all remaining columns by the share of the target's energy they
+    explain beyond the terms already chosen (Billings' ERR); see :func:`forward_regression_gram`.
+    Returns (column order, ERR of each).
     """
-    work = np.array(features, dtype=np.float64, copy=True)
+    features = np.asarray(features, dtype=np.float64)
     d = np.asarray(targets, dtype=np.float64)
-    energy = float(d @ d) or 1.0
-    norms = np.einsum("ij,ij->j", work, work)
-    alive = norms > 1e-12 * max(float(norms.max(initial=0.0)), 1e-300)
+    return forward_regression_gram(features.T @ features, features.T @ d, float(d @ d), max_terms)
+
+
+def forward_regression_gram(
+    gram: np.ndarray, moment: np.ndarray, energy: float, max_terms: int
+) -> tuple[list[int], list[float]]:
+    """:func:`forward_regression` from the normal equations: Gram-Schmidt in the columns' inner products.
+
+    With A[s, j] = <q_s, f_j> for the orthonormalised chosen columns q_s, a column's
+    part orthogonal to them has squared norm G_jj - sum_s A[s, j]^2 and inner product
+    with the target c_j - sum_s A[s, j] <q_s, d>: each step costs (columns x chosen)
+    instead of a pass over the N samples, and one Gram matrix serves a family's nested
+    dictionaries (degree 1 is the start of degree 2's, which is the start of degree 3's).
+    """
+    n_columns = gram.shape[0]
+    energy = energy or 1.0
+    diagonal = np.diag(gram).copy()
+    alive = diagonal > 1e-12 * max(float(diagonal.max(initial=0.0)), 1e-300)
+    residual = diagonal.copy()
+    projection = np.array(moment, dtype=np.float64, copy=True)
+    inner = np.zeros((min(max_terms, n_columns), n_columns))
     chosen: list[int] = []
     ratios: list[float] = []
-    for _ in range(min(max_terms, work.shape[1])):
-        squares = np.einsum("ij,ij->j", work, work)
-        projections = work.T @ d
+    for step in range(min(max_terms, n_columns)):
         with np.errstate(divide="ignore", invalid="ignore"):
-            err = np.where(alive & (squares > 1e-10 * norms), projections**2 / (squares * energy), -1.0)
+            err = np.where(alive & (residual > 1e-10 * diagonal), projection**2 / (residual * energy), -1.0)
         best = int(np.argmax(err))
         if err[best] <= 0.0:
             break
         chosen.append(best)
         ratios.append(float(err[best]))
         alive[best] = False
-        q = work[:, best] / math.sqrt(squares[best])
-        work -= np.outer(q, q @ work)
+        norm = math.sqrt(residual[best])
+        row = (gram[best] - inner[:step, best] @ inner[:step]) / norm
+        inner[step] = row
+        along = projection[best] / norm
+        residual -= row**2
+        projection -= row * along
     return chosen, ratios
+
+
+# -- the record: contiguous runs, blocks ------------------------------------------------------
+
+
+def runs(start: int, stop: int, breaks: np.ndarray) -> list[tuple[int, int]]:
+    """The contiguous pieces of samples [start, stop): cut at every break (a sample that starts a new run)."""
+    cuts = [int(b) for b in breaks if start < b < stop]
+    edges = [start, *cuts, stop]
+    return [(a, b) for a, b in itertools.pairwise(edges) if b > a]
+
+
+def fold_blocks(n: int, warm_up: int) -> list[tuple[int, int]]:
+    """Contiguous blocks of samples [warm_up, n), each simulated by the weights of all the others.
+
+    As many as ``MAX_FOLDS``, none shorter than ``MIN_BLOCK`` samples, at least two: a
+    400-sample record gets 5 blocks of about 80, a 40 000-sample one 5 of 8 000.
+    """
+    usable = n - warm_up
+    count = max(2, min(MAX_FOLDS, usable // MIN_BLOCK))
+    edges = np.linspace(warm_up, n, count + 1).round().astype(int)
+    return list(zip(edges[:-1].tolist(), edges[1:].tolist(), strict=True))
+
+
+@dataclass
+class Record:
+    """The training samples as the selection sees them: series, breaks, blocks."""
+
+    u: np.ndarray
+    y: np.ndarray
+    breaks: np.ndarray  # sample indices that start a new contiguous run (0 is implied)
+
+    @classmethod
+    def of(cls, u: np.ndarray, y: np.ndarray, breaks: np.ndarray | list[int] | None = None) -> Record:
+        cuts = np.unique(np.asarray([] if breaks is None else breaks, dtype=np.int64))
+        u, y = np.ascontiguousarray(u, dtype=np.float64), np.ascontiguousarray(y, dtype=np.float64)
+        return cls(u, y, cuts[cuts > 0])
+
+    @property
+    def n(self) -> int:
+        return len(self.y)
+
+    def valid_rows(self, warm_up: int) -> np.ndarray:
+        """Mask of regression rows (row r predicts sample warm_up + r) whose window crosses no break."""
+        target = np.arange(warm_up, self.n)
+        valid = np.ones(len(target), dtype=bool)
+        for b in self.breaks:
+            valid &= ~((target >= b) & (target - warm_up < b))
+        return valid
+
+    def pieces(self, start: int, stop: int, warm: int) -> list[tuple[int, int]]:
+        """(first simulated sample, stop) of each contiguous piece of [start, stop), ``warm`` measured samples before.
+
+        The first piece starts at ``start`` when the samples before it belong to the same
+        run (a block simulated from the measured outputs just before it); a piece that
+        starts at a break first spends ``warm`` of its own samples as history.
+        """
+        found = []
+        for a, b in runs(start, stop, self.breaks):
+            first = a if (a == start and a >= warm and not self._break_in(a - warm, a)) else a + warm
+            if b - first > 0:
+                found.append((first, b))
+        return found
+
+    def simulate(self, model: TermModel, start: int, stop: int, weights: np.ndarray | None = None) -> Simulation:
+        """Free run of samples [start, stop): one run per contiguous piece, each from its measured warm-up."""
+        w = model.weights if weights is None else weights
+        result = Simulation()
+        warm = model.warm_up
+        for first, b in self.pieces(start, stop, warm):
+            y_sim, clipped, diverged_at = model.free_run(self.u[first - warm : b], self.y[first - warm : b], warm, w)
+            result.add(self.y[first:b], y_sim, clipped, diverged_at >= 0, model.y_lags + model.u_lags)
+        return result
+
+    def _break_in(self, a: int, b: int) -> bool:
+        return bool(np.any((self.breaks > a) & (self.breaks <= b)))
+
+
+@dataclass
+class Simulation:
+    """Pooled outcome of one or more free runs."""
+
+    squared: float = 0.0
+    samples: int = 0
+    deviation: float = 0.0  # sum of squares of the measured samples about each run's mean
+    clipped: int = 0
+    inputs: int = 0
+    diverged: bool = False
+
+    def add(self, measured: np.ndarray, simulated: np.ndarray, clipped: int, diverged: bool, width: int) -> None:
+        self.diverged |= diverged
+        self.clipped += clipped
+        self.inputs += len(measured) * width
+        if not diverged:
+            self.squared += float(np.sum((simulated - measured) ** 2))
+        self.deviation += float(np.sum((measured - measured.mean()) ** 2))
+        self.samples += len(measured)
+
+    @property
+    def rmse(self) -> float:
+        return math.sqrt(self.squared / self.samples) if self.samples and not self.diverged else math.inf
+
+    @property
+    def mean_rmse(self) -> float:
+        """The score of predicting each run's mean: a model above it is worth nothing."""
+        return math.sqrt(self.deviation / self.samples) if self.samples else math.inf
+
+    def problem(self, where: str, strict: bool = True) -> str:
+        """What disqualifies this simulation (``""``: nothing); not strict: only divergence and leaving the range."""
+        if self.diverged:
+            return f"{where} free run diverged"
+        if self.clipped > (MAX_CLIPPED_FRACTION if strict else LOOSE_CLIPPED_FRACTION) * self.inputs:
+            return f"{where} free run left the training range"
+        if strict and self.rmse > self.mean_rmse:
+            return f"{where} free run worse than its mean"
+        return ""
+
+
+# -- least squares on folds --------------------------------------------------------------------
+
+
+@dataclass
+class Folds:
+    """Normal equations of every block's rows, so each fold's system is the total minus one block."""
+
+    blocks: list[tuple[int, int]]
+    gram: np.ndarray  # over all valid rows
+    moment: np.ndarray
+    block_grams: list[np.ndarray]
+    block_moments: list[np.ndarray]
+
+    @classmethod
+    def of(cls, features: np.ndarray, targets: np.ndarray, rows: np.ndarray, blocks, warm_up: int) -> Folds:
+        """``rows``: the sample each row predicts; a block drops the rows predicting its samples and the
+        ``warm_up`` after it (their regressors hold the block's measured outputs)."""
+        grams, moments = [], []
+        for a, b in blocks:
+            mask = (rows >= a) & (rows < b + warm_up)
+            f = features[mask]
+            grams.append(f.T @ f)
+            moments.append(f.T @ targets[mask])
+        gram, moment = features.T @ features, features.T @ targets
+        return cls(list(blocks), gram, moment, grams, moments)
+
+    def __post_init__(self) -> None:
+        # every fold's system at once: the total less each block
+        self._fold_grams = self.gram[None] - np.array(self.block_grams)
+        self._fold_moments = self.moment[None] - np.array(self.block_moments)
+
+    def all_weights(self, m: int) -> np.ndarray | None:
+        """Every fold's least-squares weights of the first ``m`` columns, one row per fold, in one solve."""
+        g = self._fold_grams[:, :m, :m]
+        ridge = RIDGE * np.maximum(np.trace(g, axis1=1, axis2=2) / m, 1e-300)
+        try:
+            return np.linalg.solve(g + ridge[:, None, None] * np.eye(m), self._fold_moments[:, :m, None])[:, :, 0]
+        except np.linalg.LinAlgError:
+            return None
+
+    def weights(self, m: int, fold: int | None = None) -> np.ndarray | None:
+        """Least-squares weights of the first ``m`` columns without block ``fold`` (None: all rows)."""
+        g, v = self.gram[:m, :m], self.moment[:m]
+        if fold is not None:
+            g, v = g - self.block_grams[fold][:m, :m], v - self.block_moments[fold][:m]
+        ridge = RIDGE * max(float(np.trace(g)) / max(m, 1), 1e-300)
+        try:
+            return np.linalg.solve(g + ridge * np.eye(m), v)
+        except np.linalg.LinAlgError:
+            return None
+
+
+# -- candidates --------------------------------------------------------------------------------
 
 
 @dataclass
 class Candidate:
     """One structure tried, with its verdict: every choice ``fit`` makes is one of these."""
 
-    y_lags: int
-    u_lags: int
-    degree: int
-    basis: str
+    spec: Spec
     dictionary: int  # terms offered
     terms: int = 0  # terms kept (best prefix)
-    rmse_validation: float = math.inf  # free-run RMSE on the held-out tail
-    rmse_one_step_validation: float = math.inf
+    rmse_validation: float = math.inf  # pooled free-run RMSE over the blocks
+    block_rmse: list[float] = field(default_factory=list)
     rejected: str = ""  # why no prefix of this candidate was usable
-    model: TermModel | None = None
-    note: str = ""  # why it comes first although another scored lower (parsimony, see _simplest_first)
+    model: TermModel | None = None  # the kept terms with the weights of all training samples
+    fold_weights: list[np.ndarray] = field(default_factory=list)  # each block's weights (without it)
+    note: str = ""  # why it comes first although another scored lower
+    refinement: dict | None = None
+    fallback: tuple | None = field(default=None, repr=False)  # what :func:`loosen` needs
+
+    @property
+    def linear(self) -> bool:
+        return self.spec.degree == 1
 
     def as_dict(self) -> dict:
         return {
-            "y_lags": self.y_lags,
-            "u_lags": self.u_lags,
-            "degree": self.degree,
-            "basis": self.basis,
+            **self.spec.as_dict(),
             "dictionary": self.dictionary,
             "terms": self.terms,
             "rmse_free_run_validation": _finite(self.rmse_validation),
-            "rmse_one_step_validation": _finite(self.rmse_one_step_validation),
+            "rmse_free_run_blocks": [_finite(v) for v in self.block_rmse],
             "rejected": self.rejected,
             "note": self.note,
+            **({"refinement": self.refinement} if self.refinement else {}),
         }
 
 
@@ -191,214 +418,304 @@ def _finite(value: float) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
-def candidate_grid(n_train: int, max_lag: int = 10) -> list[tuple[int, int, int]]:
-    """(lags, degree, nonlinear lags) to try, bounded by how much data there is.
+def _stress_inputs(u: np.ndarray, seed: int = 0) -> list[np.ndarray]:
+    """The training input cut into STRESS_BLOCKS blocks and shuffled, STRESS_RUNS times (fixed seed)."""
+    rng = np.random.default_rng(seed)
+    edges = np.linspace(0, len(u), STRESS_BLOCKS + 1).round().astype(int)
+    pieces = [u[a:b] for a, b in itertools.pairwise(edges)]
+    return [np.concatenate([pieces[i] for i in rng.permutation(len(pieces))]) for _ in range(STRESS_RUNS)]
 
-    Equal y and u lags 1..max_lag (long lags let the linear part of a resonant or
-    slow plant be right), degree 1-3; nonlinear terms only over the 3 most recent
-    lags of each signal, the usual home of a static nonlinearity in a NARX model.
+
+def soundness_problem(model: TermModel, record: Record) -> str:
+    """What is wrong with a model fitted to all training samples (``""``: nothing).
+
+    Its free run over the whole training record (each contiguous run from its measured
+    start) must not diverge, clip or do worse than the mean: this is the easiest
+    simulation the model will ever face. And driven by the training input shuffled in
+    blocks it must stay bounded (not diverge, not clip): an input like the ones it was
+    built for, in an order it has not seen. One seed, fixed, so the verdict is repeatable.
     """
-    grid = []
-    for lags in (1, 2, 3, 4, 5, 6, 8, 10):
-        if lags > max_lag or 20 * 2 * lags > n_train:
-            continue
-        for degree in (1, 2, 3):
-            grid.append((lags, degree, min(lags, 3)))
-    return grid
-
-
-def evaluate_prefixes(
-    model: TermModel,
-    ranked: list[int],
-    folds: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]],
-    dictionary: np.ndarray,
-    reference: float = math.inf,
-    check: Callable[[np.ndarray, np.ndarray], str] | None = None,
-    max_clipped: float = MAX_CLIPPED_FRACTION,
-) -> tuple[int, float, np.ndarray, str]:
-    """Best number of ranked terms by held-out simulation error: (terms, rmse, weights, why-none).
-
-    Each fold is (gram, moment, u, y, start): the least-squares system of its estimation
-    samples over the ranked columns, and the series whose samples from ``start`` on it
-    simulates. The score is the RMS over all folds' held-out samples; the weights
-    returned are those of the first fold. A score above ``reference`` (the held-out
-    samples' RMS deviation from their mean) is worse than predicting the mean and is
-    refused. ``check(exponents, weights)`` names what is wrong with the preferred prefix
-    (``""``: nothing); it is asked of one prefix at a time, in order of preference, so
-    an expensive check costs one run unless the preferred prefix fails it.
-    """
-    best = (0, math.inf, np.zeros(0))
-    reasons: list[str] = []
-    scores: list[tuple[int, float, np.ndarray]] = []
-    for m in range(1, len(ranked) + 1):
-        squared, count, first_weights, failed = 0.0, 0, None, ""
-        for gram, moment, u, y, start in folds:
-            try:
-                weights = np.linalg.solve(gram[:m, :m], moment[:m])
-            except np.linalg.LinAlgError:
-                failed = "singular"
-                break
-            trial = TermModel(model.y_lags, model.u_lags, model.scaling, dictionary[ranked[:m]], model.basis, weights)
-            y_sim, clipped, diverged_at = trial.free_run(u, y, start)
-            if diverged_at >= 0:
-                failed = "held-out free run diverged"
-                break
-            if clipped > max_clipped * len(y_sim) * (model.y_lags + model.u_lags):
-                failed = "held-out free run left the training range"
-                break
-            squared += float(np.sum((y_sim - y[start:]) ** 2))
-            count += len(y_sim)
-            first_weights = weights if first_weights is None else first_weights
-        if failed:
-            reasons.append(failed)
-            continue
-        score = math.sqrt(squared / count)
-        if score > reference:
-            reasons.append("held-out free run worse than its mean")
-            continue
-        scores.append((m, score, first_weights))
-    while scores:
-        lowest = min(entry[1] for entry in scores)
-        # parsimony: the fewest terms within PARSIMONY of the lowest error (extra terms that
-        # buy less than that fit the held-out noise, not the plant)
-        preferred = next(entry for entry in scores if entry[1] <= lowest * (1.0 + PARSIMONY))
-        problem = check(dictionary[ranked[: preferred[0]]], preferred[2]) if check else ""
-        if not problem:
-            best = preferred
-            break
-        reasons.append(problem)
-        scores = [entry for entry in scores if entry is not preferred]
-    why = "" if best[0] else (f"every prefix: {'; '.join(sorted(set(reasons)))}" if reasons else "no usable term")
-    return best[0], best[1], best[2], why
-
-
-def in_sample_problem(model: TermModel, u: np.ndarray, y: np.ndarray) -> str:
-    """What is wrong with ``model``'s free run over its own estimation samples (``""``: nothing).
-
-    The weights were fitted to these samples, so this is the easiest simulation the model
-    will ever face: diverging, leaving the range plus margin, or doing worse than their
-    mean here means the structure does not capture the plant, however well it happened
-    to simulate a short held-out tail.
-    """
-    y = np.asarray(y, dtype=np.float64)
-    start = model.warm_up
-    y_sim, clipped, diverged_at = model.free_run(u, y, start)
-    if diverged_at >= 0:
-        return "in-sample free run diverged"
-    if clipped > MAX_CLIPPED_FRACTION * len(y_sim) * (model.y_lags + model.u_lags):
-        return "in-sample free run left the training range"
-    measured = y[start:]
-    if float(np.mean((y_sim - measured) ** 2)) > float(np.var(measured)):
-        return "in-sample free run worse than its mean"
+    whole = record.simulate(model, 0, record.n)
+    problem = whole.problem("in-sample")
+    if problem:
+        return problem
+    warm = model.warm_up
+    for shuffled in _stress_inputs(record.u):
+        _, clipped, diverged_at = model.free_run(shuffled, record.y, warm)
+        if diverged_at >= 0 or clipped > 0:
+            return "free run on the training input shuffled in blocks " + (
+                "diverged" if diverged_at >= 0 else "left the training range"
+            )
     return ""
 
 
-def _in_sample_check(model: TermModel, u: np.ndarray, y: np.ndarray, exponents: np.ndarray, weights: np.ndarray) -> str:
-    trial = TermModel(model.y_lags, model.u_lags, model.scaling, exponents, model.basis, weights)
-    return in_sample_problem(trial, u, y)
+@dataclass
+class Design:
+    """A dictionary's regression over the record: features, the target its terms explain, normal equations."""
+
+    dictionary: Dictionary
+    features: np.ndarray
+    targets: np.ndarray  # y(k+1), less the pass-through in the increment form
+    predicted: np.ndarray  # the sample each row predicts
+    gram: np.ndarray
+    moment: np.ndarray
+    energy: float
+
+    @classmethod
+    def of(cls, spec: Spec, record: Record, scaling: Scaling) -> Design:
+        base = TermModel(spec.lags, spec.lags, scaling, np.zeros((1, 2 * spec.lags), dtype=np.int64))
+        x, targets = base.inputs(record.u, record.y)
+        valid = record.valid_rows(base.warm_up)
+        x, targets = x[valid], targets[valid]
+        dictionary = spec.dictionary(x)
+        features = term_features(x, dictionary.exponents, "legendre", dictionary.factors)
+        targets = targets - dictionary.pass_through(x, scaling)
+        predicted = np.arange(base.warm_up, record.n)[valid]
+        return cls(dictionary, features, targets, predicted, features.T @ features, features.T @ targets,
+                   float(targets @ targets))  # fmt: skip
+
+    def leading(self, dictionary: Dictionary) -> Design | None:
+        """This design cut to ``dictionary`` when that is its start (a lower degree of the family), else None."""
+        count = len(dictionary.exponents)
+        mine = self.dictionary
+        if not (
+            count <= len(mine.exponents)
+            and dictionary.increment == mine.increment
+            and np.array_equal(mine.exponents[:count], dictionary.exponents)
+            and np.array_equal(mine.factors[:count], dictionary.factors)
+        ):
+            return None
+        return Design(dictionary, self.features[:, :count], self.targets, self.predicted,
+                      self.gram[:count, :count], self.moment[:count], self.energy)  # fmt: skip
 
 
-def _held_out_spread(folds: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]]) -> float:
-    """RMS deviation of the folds' held-out samples from each fold's mean: the mean predictor's score."""
-    squared, count = 0.0, 0
-    for *_, y, start in folds:
-        held_out = np.asarray(y[start:], dtype=np.float64)
-        squared += float(np.sum((held_out - held_out.mean()) ** 2))
-        count += len(held_out)
-    return math.sqrt(squared / count) if count else math.inf
+def evaluate_candidate(spec: Spec, record: Record, scaling: Scaling, design: Design, strict: bool = True) -> Candidate:
+    """Rank the dictionary's terms by FROLS, score every prefix by blocked free runs, keep the preferred sound one.
+
+    ``strict=False`` (``fit``'s fallback, with a warning, when nothing passes) refuses
+    only divergence and leaving the range, and skips :func:`soundness_problem`.
+    """
+    dictionary = design.dictionary
+    candidate = Candidate(spec, len(dictionary.exponents))
+    base = TermModel(spec.lags, spec.lags, scaling, dictionary.exponents, "legendre", factors=dictionary.factors)
+    warm = base.warm_up
+    limit = min(MAX_TERMS, len(dictionary.exponents), max(1, len(design.targets) // SAMPLES_PER_TERM))
+    ranked, _ = forward_regression_gram(design.gram, design.moment, design.energy, limit)
+    if not ranked:
+        candidate.rejected = "no usable term"
+        return candidate
+    prefixes = Prefixes(base, dictionary, ranked, Folds.of(design.features[:, ranked], design.targets,
+                        design.predicted, fold_blocks(record.n, warm), warm))  # fmt: skip
+    scores, loose_scores, reasons, loose_reasons = _score_prefixes(prefixes, record)
+    _choose_prefix(candidate, prefixes, record, scores if strict else loose_scores,
+                   reasons if strict else loose_reasons, strict)  # fmt: skip
+    candidate.fallback = (prefixes, loose_scores, loose_reasons)
+    return candidate
 
 
-def _normal_equations(features: np.ndarray, targets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return features.T @ features + 1e-10 * np.eye(features.shape[1]), features.T @ targets
+def loosen(candidates: list[Candidate], record: Record) -> list[Candidate]:
+    """The candidates again under the loose rules (``fit``'s fallback, with a warning, when none passed).
+
+    Only divergence and leaving the range refuse a prefix, and the soundness check is
+    skipped; the prefixes' scores are those already computed, so nothing is simulated again.
+    """
+    loose = []
+    for old in candidates:
+        candidate = Candidate(old.spec, old.dictionary)
+        if old.fallback is None:
+            candidate.rejected = old.rejected
+        else:
+            prefixes, scores, reasons = old.fallback
+            _choose_prefix(candidate, prefixes, record, list(scores), list(reasons), strict=False)
+        loose.append(candidate)
+    return order_candidates(loose)
+
+
+@dataclass
+class Prefixes:
+    """A candidate's ranked terms, and the model each prefix of them makes.
+
+    In the increment form every prefix also holds the pass-through y(k) (the bias and
+    ``y1`` with fixed weights): appended as two more terms while prefixes are scored
+    (the same function as folding them into equal terms of the prefix), folded in for
+    the model delivered (:meth:`Dictionary.with_pass_through`).
+    """
+
+    base: TermModel
+    dictionary: Dictionary
+    ranked: list[int]
+    folds: Folds
+
+    def __post_init__(self) -> None:
+        d, n = self.dictionary, 2 * self.base.y_lags
+        rows = d.exponents[self.ranked]
+        factors = d.factors[self.ranked]
+        self.passing = np.zeros(0)
+        if d.increment:
+            rows = np.vstack([rows, np.zeros((2, n), dtype=np.int64)])
+            rows[-1, 0] = 1  # y1; the row before is the bias
+            factors = np.vstack([factors, np.zeros((2, n + 2))])
+            self.passing = np.array([self.base.scaling.y_offset, self.base.scaling.y_scale])
+        self.rows, self.factor_rows = rows, factors
+
+    def arrays(self, m: int) -> tuple[np.ndarray, np.ndarray]:
+        """(exponents, factors) of prefix ``m`` as scored (the pass-through appended)."""
+        keep = np.concatenate([np.arange(m), np.arange(len(self.ranked), len(self.rows))])
+        factors = self.factor_rows[keep]
+        return np.ascontiguousarray(self.rows[keep]), factors if factors[:, 0].any() else factors[:0]
+
+    def fold_weights(self, m: int) -> np.ndarray | None:
+        """Each block's least-squares weights of prefix ``m`` as scored, one row per block (None: singular)."""
+        weights = self.folds.all_weights(m)
+        if weights is None:
+            return None
+        return np.hstack([weights, np.broadcast_to(self.passing, (len(weights), len(self.passing)))])
+
+    def model(self, m: int, weights: np.ndarray) -> TermModel:
+        """The model delivered for prefix ``m`` with its own (least-squares) weights, the pass-through folded in."""
+        exponents, factors, weights = self.dictionary.with_pass_through(self.ranked[:m], weights, self.base.scaling)
+        b = self.base
+        return TermModel(b.y_lags, b.u_lags, b.scaling, exponents, b.basis, weights, factors)
+
+
+def _block_pieces(record: Record, blocks: list[tuple[int, int]], warm: int) -> tuple[np.ndarray, ...]:
+    """(first, stop, block) of every piece of every block, as :func:`kernels.simulate_pieces` takes them."""
+    found = [(first, stop, index) for index, (a, b) in enumerate(blocks) for first, stop in record.pieces(a, b, warm)]
+    return tuple(np.array([piece[i] for piece in found], dtype=np.int64) for i in range(3))
+
+
+def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], list[tuple], list[str], list[str]]:
+    """(m, pooled RMSE, per-block RMSE) of every prefix usable under the strict rules, the same under the
+    loose ones, and why the others failed under each.
+
+    Each prefix's blocks are simulated in one compiled call (:func:`kernels.simulate_pieces`).
+    """
+    base, blocks = prefixes.base, prefixes.folds.blocks
+    s, warm = base.scaling, base.warm_up
+    first, stop, group = _block_pieces(record, blocks, warm)
+    width = base.y_lags + base.u_lags
+    scores, loose, reasons, loose_reasons = [], [], [], []
+    best_m, lowest = 0, math.inf
+    for m in range(1, len(prefixes.ranked) + 1):
+        if m > best_m + PATIENCE and best_m:
+            break  # the ranked list's later terms are what FROLS could least vouch for
+        weights = prefixes.fold_weights(m)
+        if weights is None:
+            reasons.append("singular")
+            loose_reasons.append("singular")
+            continue
+        exponents, factors = prefixes.arrays(m)
+        out = np.zeros((len(blocks), 5))
+        kernels.simulate_pieces(
+            record.u, record.y, first, stop, group, warm, base.y_lags, base.u_lags, s.y_offset, s.y_scale,
+            s.u_offset, s.u_scale, exponents, factors, weights, kernels.BASIS_CODES[base.basis],
+            FREE_RUN_DIVERGENCE_BOUND, out,
+        )  # fmt: skip
+        runs_of = [Simulation(r[0], int(r[1]), r[2], int(r[3]), int(r[1]) * width, bool(r[4])) for r in out]
+        pooled = math.sqrt(float(out[:, 0].sum()) / float(out[:, 1].sum()))
+        entry = (m, pooled, [run.rmse for run in runs_of])
+        for strict, kept, why in ((True, scores, reasons), (False, loose, loose_reasons)):
+            failed = next((p for p in (run.problem("held-out", strict=strict) for run in runs_of) if p), "")
+            if failed:
+                why.append(failed)
+            else:
+                kept.append(entry)
+        if scores and scores[-1] is entry and pooled < lowest:
+            best_m, lowest = m, pooled
+        elif not scores and loose and loose[-1] is entry and pooled < lowest:
+            best_m, lowest = m, pooled  # nothing strict yet: patience counts from the best loose prefix
+    return scores, loose, reasons, loose_reasons
+
+
+def _choose_prefix(candidate, prefixes: Prefixes, record: Record, scores, reasons, strict: bool) -> None:
+    """The fewest terms within PARSIMONY of the lowest score that passes :func:`soundness_problem`."""
+    folds = prefixes.folds
+    while scores:
+        lowest = min(entry[1] for entry in scores)
+        preferred = next(entry for entry in scores if entry[1] <= lowest * (1.0 + PARSIMONY))
+        m = preferred[0]
+        weights = folds.weights(m)
+        if weights is None:
+            problem = "singular"
+        else:
+            model = prefixes.model(m, weights)
+            problem = soundness_problem(model, record) if strict else ""
+        if not problem:
+            candidate.terms, candidate.rmse_validation, candidate.block_rmse = m, preferred[1], preferred[2]
+            candidate.fold_weights = [prefixes.model(m, folds.weights(m, f)).weights for f in range(len(folds.blocks))]
+            candidate.model = model
+            return
+        reasons.append(problem)
+        scores = [entry for entry in scores if entry is not preferred]
+    candidate.rejected = f"every prefix: {'; '.join(sorted(set(reasons)))}" if reasons else "no usable term"
 
 
 def select_structure(
     u: np.ndarray,
     y: np.ndarray,
-    validation_start: int,
     scaling: Scaling,
-    bases: tuple[str, ...] = ("legendre",),
-    max_terms: int = 40,
-    max_lag: int = 10,
-    two_fold: bool = True,
-    strict: bool = True,
+    breaks: np.ndarray | list[int] | None = None,
+    specs: list[Spec] | None = None,
+    progress: Callable[[Candidate], None] | None = None,
 ) -> list[Candidate]:
-    """Try every candidate structure; returns them all, the one to use first, then by held-out free-run RMSE.
-
-    ``u``/``y`` are the training data; samples from ``validation_start`` on are the
-    held-out tail, simulated from the measured outputs just before it. Terms are
-    ranked by FROLS on the samples before it. With ``two_fold``, each candidate is
-    also estimated on the last part and simulated over the first part of the same
-    length, and the two held-out errors are pooled: one short tail alone is a noisy
-    judge on small data sets. ``strict`` adds the checks of the module docstring
-    (held-out free run better than the mean, in-sample free run sound); without it
-    only divergence and leaving the range on the held-out part reject (``fit`` falls
-    back to that, with a warning, when no candidate passes). The one to use is the
-    simplest within PARSIMONY of the lowest score (:func:`_simplest_first`).
-    """
-    u = np.asarray(u, dtype=np.float64)
-    y = np.asarray(y, dtype=np.float64)
-    head = len(y) - validation_start
+    """Every candidate of the grid, judged; sorted with the one to use first (:func:`order_candidates`)."""
+    record = Record.of(u, y, breaks)
+    specs = specs if specs is not None else candidate_specs(record.n)
+    designs = _designs(specs, record, scaling)
     candidates = []
-    for lags, degree, nonlinear_lags in candidate_grid(validation_start, max_lag):
-        nonlinear = list(range(nonlinear_lags)) + [lags + i for i in range(nonlinear_lags)]
-        recent_u = [lags + i for i in range(nonlinear_lags)]
-        dictionary = dictionary_exponents(2 * lags, degree, nonlinear, PURE_DEGREE if degree == 3 else 0, recent_u)
-        for basis in bases if degree > 1 else bases[:1]:
-            candidate = Candidate(lags, lags, degree, basis, len(dictionary))
-            candidates.append(candidate)
-            model = TermModel(lags, lags, scaling, dictionary, basis)
-            features, targets = model.regression(u[:validation_start], y[:validation_start])
-            limit = min(max_terms, len(dictionary), max(1, len(targets) // 10))
-            ranked, _ = forward_regression(features, targets, limit)
-            if not ranked:
-                candidate.rejected = "no usable term"
+    for spec in specs:
+        candidates.append(evaluate_candidate(spec, record, scaling, designs[spec]))
+        if progress:
+            progress(candidates[-1])
+    return order_candidates(candidates)
+
+
+def _designs(specs: list[Spec], record: Record, scaling: Scaling) -> dict[Spec, Design]:
+    """Each spec's design; a family's lower degrees at the same lags reuse its highest degree's features."""
+    designs: dict[Spec, Design] = {}
+    for spec in sorted(specs, key=lambda s: (s.family, s.lags, -s.degree)):
+        top = next((d for other, d in designs.items() if (other.family, other.lags) == (spec.family, spec.lags)), None)
+        if top is not None:
+            base = TermModel(spec.lags, spec.lags, scaling, np.zeros((1, 2 * spec.lags), dtype=np.int64))
+            x = base.inputs(record.u, record.y)[0][record.valid_rows(base.warm_up)]
+            shared = top.leading(spec.dictionary(x))
+            if shared is not None:
+                designs[spec] = shared
                 continue
-            folds = [(*_normal_equations(features[:, ranked], targets), u, y, validation_start)]
-            if two_fold and head > 2 * lags:
-                tail_features, tail_targets = model.regression(u[head - lags :], y[head - lags :], dictionary[ranked])
-                folds.append((*_normal_equations(tail_features, tail_targets), u[:head], y[:head], lags))
-            if strict:
-                check = partial(_in_sample_check, model, u[:validation_start], y[:validation_start])
-                terms, error, weights, why = evaluate_prefixes(
-                    model, ranked, folds, dictionary, _held_out_spread(folds), check
-                )
-            else:
-                terms, error, weights, why = evaluate_prefixes(
-                    model, ranked, folds, dictionary, max_clipped=LOOSE_CLIPPED_FRACTION
-                )
-            if not terms:
-                candidate.rejected = why
-                continue
-            candidate.terms, candidate.rmse_validation = terms, error
-            candidate.model = TermModel(lags, lags, scaling, dictionary[ranked[:terms]], basis, weights)
-            f_val, t_val = candidate.model.regression(u[validation_start - lags :], y[validation_start - lags :])
-            candidate.rmse_one_step_validation = float(np.sqrt(np.mean((f_val @ weights - t_val) ** 2)))
-    candidates.sort(key=lambda c: c.rmse_validation)
-    _simplest_first(candidates)
-    return candidates
+        designs[spec] = Design.of(spec, record, scaling)
+    return designs
 
 
-def _simplest_first(candidates: list[Candidate]) -> None:
-    """Move the candidate with the fewest terms within PARSIMONY of the lowest held-out RMSE to the front.
+def order_candidates(candidates: list[Candidate]) -> list[Candidate]:
+    """Sorted by score, then the one to use moved first.
 
-    The rule that picks the number of terms within one candidate, applied across them:
-    held-out scores this close do not tell the structures apart (a 133-sample tail on
-    the ball-and-beam scored a 23-term and a 10-term model 0.15 % apart), and of those
-    the one with the fewest weights has fitted the least noise and has the fewest terms
-    that can run away off the data. The candidates are sorted by held-out RMSE.
+    A nonlinear candidate must beat the best linear one by NONLINEAR_GAIN (linear models
+    extrapolate gracefully; a nonlinearity the blocks barely vouch for may not); and of
+    the candidates within PARSIMONY of the lowest score the one with the fewest terms is
+    used (it has fitted the least noise and has the fewest terms that can run away).
     """
-    if not candidates or candidates[0].model is None:
-        return
-    best = candidates[0]
-    close = [
-        c for c in candidates if c.model is not None and c.rmse_validation <= best.rmse_validation * (1 + PARSIMONY)
-    ]
-    simplest = min(close, key=lambda c: (c.terms, c.rmse_validation))
-    if simplest is not best:
-        simplest.note = (
-            f"fewest terms within {PARSIMONY:.0%} of the lowest held-out free-run RMSE ({best.rmse_validation:.5g}: "
-            f"lags {best.y_lags}/{best.u_lags}, degree {best.degree}, {best.terms} terms)"
+    ordered = sorted(candidates, key=lambda c: c.rmse_validation)
+    for candidate in ordered:
+        candidate.note = ""
+    usable = [c for c in ordered if c.model is not None]
+    if not usable:
+        return ordered
+    linear = [c for c in usable if c.linear]
+    bar = linear[0].rmse_validation * (1.0 - NONLINEAR_GAIN) if linear else math.inf
+    eligible = [c for c in usable if c.linear or c.rmse_validation <= bar] or usable
+    best = eligible[0]
+    close = [c for c in eligible if c.rmse_validation <= best.rmse_validation * (1.0 + PARSIMONY)]
+    chosen = min(close, key=lambda c: (c.terms, c.rmse_validation))
+    if chosen is not ordered[0]:
+        top = ordered[0]
+        chosen.note = (
+            f"chosen over {top.spec.label} ({top.rmse_validation:.5g}): "
+            + (
+                f"fewest terms within {PARSIMONY:.0%} of the lowest score"
+                if top in eligible
+                else f"a nonlinear candidate must beat the best linear one by {NONLINEAR_GAIN:.0%}"
+            )
         )
-        candidates.remove(simplest)
-        candidates.insert(0, simplest)
+        ordered.remove(chosen)
+        ordered.insert(0, chosen)
+    return ordered

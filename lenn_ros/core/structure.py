@@ -490,6 +490,7 @@ class Identifier:
             np.asarray(structure.known_a, dtype=np.float64),
             np.asarray(structure.known_b, dtype=np.float64),
             exponents,
+            model.term_factors(),
             np.ascontiguousarray(model.weights_, dtype=np.float64),
             branch_of,
             int(branch_of.max(initial=0)) + 1,

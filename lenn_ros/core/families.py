@@ -1,0 +1,272 @@
+"""Model families ``lenn-ros fit`` chooses among: the dictionaries of terms it selects from.
+
+Every family is a functional link (fixed features, weights linear), so each is one
+:class:`~lenn_ros.core.selection.TermModel`: the identifier node runs and adapts any of
+them by RLS with the same compiled step. What they offer:
+
+- ``polynomial``: Legendre polynomials of the lags and their products up to a degree
+  (degree 1 is a linear ARX): smooth nonlinearities such as a hardening spring.
+- ``hinge``: the linear terms plus hinges relu(x - c) of the most recent output and
+  input at knots on their training quantiles: saturation, overflow, dead zones and
+  absolute values (|x - c| is a combination of a hinge and the linear terms) are
+  piecewise linear, which no low-degree polynomial follows.
+- ``increment``: the model predicts the change y(k+1) - y(k) from the increments of the
+  output, the inputs and, from degree 2, friction-like functions of the velocity:
+  tanh (Coulomb friction, stiction's sign), |v| and v|v| (drag); degree 3 adds
+  polynomials of the position (gravity, a spring) and of the input. A plant that
+  integrates (a motor position driven by a torque) keeps its integrator exactly
+  instead of a least-squares estimate of it that drifts. For lag spans beyond 10
+  samples (a record sampled far faster than its dynamics, such as a 1 kHz robot) the
+  increments are taken over spans 1, 2, 4, ... and the input averaged over them
+  (multi-scale), so a long memory costs a few terms, not one per sample.
+
+The term parameters (knots, velocity scales) come from the training inputs and are
+rounded to six significant digits, which is how ``format_terms`` writes them: the
+params file holds the very terms the weights were fitted with.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from lenn_ros.core.expansions import FACTOR_KINDS, dictionary_exponents
+from lenn_ros.core.scaling import Scaling
+
+#: lags (equal for y and u) tried per family, and the degrees
+POLYNOMIAL_LAGS = (1, 2, 3, 4, 6, 8, 10)
+HINGE_LAGS = (1, 2, 4, 8)
+INCREMENT_LAGS = (2, 3, 4, 6, 10)
+#: long lag spans (multi-scale increments) for records sampled far faster than their dynamics
+LONG_SPANS = (17, 33, 65)
+#: training quantiles at which the hinges' knots sit
+KNOT_QUANTILES = (0.1, 0.25, 0.5, 0.75, 0.9)
+#: sharpness of the tanh velocity terms, in units of the velocity's standard deviation
+VELOCITY_SHARPNESS = (3.0, 10.0, 30.0)
+#: nonlinear terms involve the 3 most recent lags of each signal (the usual home of a static nonlinearity)
+RECENT = 3
+#: a candidate needs this many samples per lag of y and u
+SAMPLES_PER_LAG = 20
+
+
+def _round6(value: float) -> float:
+    return float(f"{value:.6g}")
+
+
+@dataclass(frozen=True)
+class Spec:
+    """One candidate structure: a family at some lags and degree."""
+
+    family: str
+    lags: int
+    degree: int
+
+    @property
+    def label(self) -> str:
+        return f"{self.family} degree {self.degree}, lags {self.lags}/{self.lags}"
+
+    @property
+    def increment(self) -> bool:
+        return self.family == "increment"
+
+    def as_dict(self) -> dict:
+        return {
+            "family": self.family,
+            "y_lags": self.lags,
+            "u_lags": self.lags,
+            "degree": self.degree,
+            "form": "increment: y(k+1) = y(k) + f(...)" if self.increment else "y(k+1) = f(...)",
+            "multi_scale": self.increment and self.lags > max(INCREMENT_LAGS),
+        }
+
+    def dictionary(self, x: np.ndarray) -> Dictionary:
+        """The terms this candidate offers, their parameters taken from the training inputs ``x``."""
+        builder = {"polynomial": _polynomial, "hinge": _hinge, "increment": _increment}[self.family]
+        return builder(self, np.asarray(x, dtype=np.float64))
+
+
+def candidate_specs(n_samples: int) -> list[Spec]:
+    """The grid, bounded by how much data there is (SAMPLES_PER_LAG samples per lag of y and u)."""
+    specs = []
+
+    def fits(lags: int) -> bool:
+        return SAMPLES_PER_LAG * 2 * lags <= n_samples
+
+    for lags in POLYNOMIAL_LAGS:
+        if fits(lags):
+            specs += [Spec("polynomial", lags, degree) for degree in (1, 2, 3)]
+    for lags in HINGE_LAGS:
+        if fits(lags):
+            specs.append(Spec("hinge", lags, 2))
+    for lags in INCREMENT_LAGS:
+        if fits(lags):
+            specs += [Spec("increment", lags, degree) for degree in (1, 2, 3)]
+    for lags in LONG_SPANS:
+        if fits(lags):
+            specs += [Spec("increment", lags, degree) for degree in (1, 3)]
+    return specs
+
+
+@dataclass
+class Dictionary:
+    """Candidate terms: exponent rows, factor rows, and whether the target is the increment."""
+
+    exponents: np.ndarray
+    factors: np.ndarray
+    increment: bool = False
+
+    def pass_through(self, x: np.ndarray, scaling: Scaling) -> np.ndarray:
+        """The part of the target the terms need not explain: y(k) in the increment form, else 0."""
+        if not self.increment:
+            return np.zeros(len(x))
+        return x[:, 0] * scaling.y_scale + scaling.y_offset
+
+    def with_pass_through(
+        self, chosen: list[int], weights: np.ndarray, scaling: Scaling
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(exponents, factors, weights) of the chosen terms; in the increment form plus y(k) itself.
+
+        y(k) = y_scale * x_1 + y_offset, i.e. weight y_scale on the term ``y1`` and
+        y_offset on the bias, added to those terms' weights (appended if not chosen).
+        """
+        exponents = self.exponents[chosen]
+        factors = self.factors[chosen]
+        weights = np.array(weights, dtype=np.float64)
+        if not self.increment:
+            return exponents, factors, weights
+        n = exponents.shape[1]
+        for row in _pass_through_rows(n):
+            if not len(_matching(exponents, factors, row)):
+                exponents = np.vstack([exponents, row])
+                factors = np.vstack([factors, np.zeros(n + 2)])
+                weights = np.append(weights, 0.0)
+        return exponents, factors, weights + pass_through_weights(exponents, factors, scaling)
+
+
+def _pass_through_rows(n: int) -> list[np.ndarray]:
+    """Exponent rows of the bias and of ``y1`` (P1 of the scaled y(k): x_1 itself)."""
+    bias, first = np.zeros(n, dtype=np.int64), np.zeros(n, dtype=np.int64)
+    first[0] = 1
+    return [bias, first]
+
+
+def _matching(exponents: np.ndarray, factors: np.ndarray, row: np.ndarray) -> np.ndarray:
+    """Indices of the terms that are exactly ``row`` with no factor."""
+    plain = factors[:, 0] == 0 if len(factors) else np.ones(len(exponents), dtype=bool)
+    return np.flatnonzero((exponents == row).all(axis=1) & plain)
+
+
+def pass_through_weights(
+    exponents: np.ndarray, factors: np.ndarray, scaling: Scaling, with_offset: bool = True
+) -> np.ndarray:
+    """Weights that make the terms compute y(k) = y_scale x_1 + y_offset (the bias part only ``with_offset``).
+
+    The increment form's given part, in the basis the node runs: the terms must hold
+    ``y1`` (and the bias, for the offset) without factors.
+    """
+    weights = np.zeros(len(exponents))
+    bias, first = _pass_through_rows(exponents.shape[1])
+    for row, value in ((first, scaling.y_scale), (bias, scaling.y_offset if with_offset else 0.0)):
+        match = _matching(exponents, factors, row)
+        if not len(match):
+            raise ValueError("the increment form needs the terms y1 and 1")
+        weights[match[0]] += value
+    return weights
+
+
+class _Builder:
+    """Rows of a dictionary under construction, over ``n`` network inputs."""
+
+    def __init__(self, n: int) -> None:
+        self.n = n
+        self.exponents: list[list[int]] = []
+        self.factors: list[np.ndarray] = []
+
+    def add(self, exponents: list[int] | np.ndarray | None = None, kind: str = "", w=None, b: float = 0.0) -> None:
+        row = np.zeros(self.n, dtype=np.int64) if exponents is None else np.asarray(exponents, dtype=np.int64)
+        factor = np.zeros(self.n + 2)
+        if kind:
+            factor[0] = FACTOR_KINDS[kind]
+            factor[1] = _round6(b)
+            factor[2:] = [_round6(v) for v in w]
+        self.exponents.append(row.tolist())
+        self.factors.append(factor)
+
+    def power(self, i: int, degree: int) -> list[int]:
+        row = [0] * self.n
+        row[i] = degree
+        return row
+
+    def unit(self, i: int) -> np.ndarray:
+        return np.eye(self.n)[i]
+
+    def build(self, increment: bool = False) -> Dictionary:
+        exponents = np.array(self.exponents, dtype=np.int64).reshape(len(self.exponents), self.n)
+        return Dictionary(exponents, np.array(self.factors).reshape(len(self.factors), self.n + 2), increment)
+
+
+def _recent(spec: Spec) -> list[int]:
+    """Network inputs of the RECENT most recent lags of y, then of u."""
+    count = min(spec.lags, RECENT)
+    return list(range(count)) + [spec.lags + i for i in range(count)]
+
+
+def _polynomial(spec: Spec, x: np.ndarray) -> Dictionary:
+    rows = dictionary_exponents(2 * spec.lags, spec.degree, _recent(spec))
+    return Dictionary(rows, np.zeros((len(rows), 2 * spec.lags + 2)))
+
+
+def _hinge(spec: Spec, x: np.ndarray) -> Dictionary:
+    """Linear terms, the recent lags' squares and products (degree 2), and hinges of y(k), u(k) (and the lag before)."""
+    built = _Builder(2 * spec.lags)
+    for row in dictionary_exponents(2 * spec.lags, spec.degree, _recent(spec)):
+        built.add(row)
+    for i in [0, spec.lags] + ([1, spec.lags + 1] if spec.lags > 1 else []):
+        for knot in np.unique([_round6(q) for q in np.quantile(x[:, i], KNOT_QUANTILES)]):
+            built.add(None, "relu", built.unit(i), -knot)
+    return built.build()
+
+
+def _velocity_terms(built: _Builder, x: np.ndarray, span: int) -> None:
+    """tanh at three sharpnesses, |v| and v|v| of v = (x_1 - x_{1+span}) / span, scaled to unit spread."""
+    difference = (x[:, 0] - x[:, span]) / span
+    spread = float(np.std(difference)) or 1.0
+    direction = (built.unit(0) - built.unit(span)) / span / spread
+    for sharpness in VELOCITY_SHARPNESS:
+        built.add(None, "tanh", direction * sharpness)
+    built.add(None, "abs", direction)
+    built.add(None, "sqabs", direction)
+
+
+def _increment(spec: Spec, x: np.ndarray) -> Dictionary:
+    """y(k+1) - y(k) from output increments, inputs, and (degree >= 2) velocity and position nonlinearities."""
+    lags = spec.lags
+    built = _Builder(2 * lags)
+    built.add()  # the bias: a constant force (gravity at rest, an offset)
+    multi_scale = lags > max(INCREMENT_LAGS)
+    spans = [s for s in (1, 2, 4, 8, 16, 32, 64, 128) if s < lags] if multi_scale else list(range(1, lags))
+    for s in spans:
+        # multi-scale: y(k) - y(k-s); else consecutive increments y(k-j+1) - y(k-j)
+        first = 0 if multi_scale else s - 1
+        built.add(None, "lin", built.unit(first) - built.unit(s))
+    if multi_scale:
+        for s in [1] + [s for s in (2, 4, 8, 16, 32, 64, 128) if s <= lags]:
+            w = np.zeros(2 * lags)
+            w[lags : lags + s] = 1.0 / s
+            built.add(None, "lin", w)
+        for j in range(1, min(lags, RECENT)):
+            built.add(built.power(lags + j, 1))
+    else:
+        for j in range(lags):
+            built.add(built.power(lags + j, 1))
+    if spec.degree >= 2 and lags >= 2:
+        velocity_spans = sorted({1, spans[len(spans) // 2], spans[-1]})
+        for span in velocity_spans:
+            _velocity_terms(built, x, span)
+        built.add(built.power(lags, 2))
+    if spec.degree >= 3:
+        for degree in (1, 2, 3):
+            built.add(built.power(0, degree))
+        built.add(built.power(lags, 3))
+    return built.build(increment=True)

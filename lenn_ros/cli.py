@@ -172,17 +172,36 @@ def _add_fit(commands: Any) -> None:
         "samples, refine on simulation error, score on the test part; -o DIR writes a params file and "
         "weights the identifier node starts from.",
     )
-    p.add_argument("data", help="CSV file (columns by name or 0-based index) or bag directory with u and y_p")
+    p.add_argument(
+        "data",
+        help="CSV file (columns by name or 0-based index) or a bag: its u / y_p topics as the identifier read them "
+        "(identifier_config: types, fields, pairing, remapped topics), or the topics named by --u/--y",
+    )
     p.add_argument(
         "--u",
         action="append",
         help="CSV column of the plant input (default: 'u', or the first of two columns); repeat for several "
-        "inputs (MIMO: one model per output over every channel, compared with one SISO model per output)",
+        "inputs (MIMO: one model per output over every channel, compared with one SISO model per output). "
+        "For a bag: the input topic (e.g. /arm/cmd), read with --u-field",
     )
     p.add_argument(
         "--y",
         action="append",
-        help="CSV column of the plant output (default: 'y', or the second of two columns); repeat for several outputs",
+        help="CSV column of the plant output (default: 'y', or the second of two columns); repeat for several outputs. "
+        "For a bag: the output topic (e.g. /joint_states), read with --y-field",
+    )
+    p.add_argument("--u-field", metavar="PATH", help="bag: field of the input message, e.g. data[0] (node's u_field)")
+    p.add_argument(
+        "--y-field", metavar="PATH", help="bag: field of the output message, e.g. position[elbow] (node's y_field)"
+    )
+    p.add_argument(
+        "--sample-period",
+        type=float,
+        metavar="T",
+        help="bag: seconds between samples; pairs the topics on that grid (the node's pairing: sample)",
+    )
+    p.add_argument(
+        "--pairing", choices=["sequence", "stamp", "sample"], help="bag: how the topics become samples (node's pairing)"
     )
     p.add_argument("--dt", type=float, help="sample time in seconds (reported only)")
     p.add_argument(
@@ -190,8 +209,8 @@ def _add_fit(commands: Any) -> None:
         type=int,
         metavar="K",
         help="1-based index of the first test sample: samples 1..K-1 build the model, K.. score it "
-        "(row K of the data, not counting a header; the same meaning as in evaluate and import-csv). "
-        "Required for a CSV; a bag's recorded test start is the default",
+        "(row K of the data, not counting a header; the same meaning as in evaluate and import-csv; in a bag "
+        "the sample index as the identifier counts it). Required for a CSV; a bag's recorded test start is the default",
     )
     p.add_argument("--json", action="store_true", help="print the report as a JSON object")
     p.add_argument("--plot", metavar="FILE", help="write plant vs model (one-step and free run) on the test part")

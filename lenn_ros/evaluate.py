@@ -56,6 +56,7 @@ from lenn_ros.evaluate_mimo import MimoBagEvaluation, score_mimo
 from lenn_ros.evaluate_mimo import report as report_mimo
 
 _NODE_DEFAULTS = {parameter.name: parameter.default for parameter in NODE_PARAMETERS}
+RESOLVED_TOPICS = topics.RESOLVED_TOPICS
 
 
 class EvaluateError(ValueError):
@@ -152,7 +153,8 @@ def _as_node_builds_it(identifier: Identifier, values: dict[str, Any], source: s
     return identifier
 
 
-def _configuration(path: str, params: str | None) -> tuple[Identifier, dict[str, Any]]:
+def configuration(path: str, params: str | None) -> tuple[Identifier, dict[str, Any]]:
+    """The identifier and node values a recording is read with: the params file given, else its identifier_config."""
     if params:
         return identifier_from_params(params)
     recorded = [message for message in bags.iter_messages(path, [topics.IDENTIFIER_CONFIG])]
@@ -163,13 +165,15 @@ def _configuration(path: str, params: str | None) -> tuple[Identifier, dict[str,
         )
     values = json.loads(recorded[-1].message.data)
     network = values.pop("network", "lenn")
+    resolved_topics = values.pop(RESOLVED_TOPICS, {})
     model_values, _ = resolve({**{k: v for k, v in values.items() if k not in _NODE_DEFAULTS}, "network": network})
-    values = {**_NODE_DEFAULTS, **values}
+    values = {**_NODE_DEFAULTS, **values, RESOLVED_TOPICS: resolved_topics}
     identifier = build_identifier({**values, **model_values}, network)
     return _as_node_builds_it(identifier, values, f"identifier configuration recorded in {path}"), values
 
 
-def _session(identifier: Identifier, values: dict[str, Any]) -> Session:
+def make_session(identifier: Identifier, values: dict[str, Any]) -> Session:
+    """The node's session over a recording: its pairing, learning on (the phases are the recording's)."""
     return Session(identifier, SessionConfig.from_values(values, follow_test_start=False, learning=True))
 
 
@@ -200,16 +204,30 @@ def _raw_losses(path: str) -> dict[str, int]:
     return losses
 
 
-def _pair_raw(path: str, session: Session, values: dict[str, Any]) -> tuple[np.ndarray, ...]:
-    """Pair the recorded u / y_p messages the way the node would have."""
+def recorded_topic(path: str, types: dict[str, str], name: str, values: dict[str, Any]) -> str:
+    """The bag's topic the node read as ``name``: the name it resolved (remapped) to, else one ending in ``name``.
+
+    The identifier records its resolved input topics in ``identifier_config``
+    (``resolved_topics``: ``u`` -> ``/arm/joint_cmd``), which is what the recorder saw.
+    """
+    resolved = values.get(RESOLVED_TOPICS, {}).get(name)
+    if resolved in types:
+        return resolved
+    short = name.rstrip("/").rsplit("/", 1)[-1]
+    found = [topic for topic in types if topic == name or topic.rstrip("/").rsplit("/", 1)[-1] == short]
+    if not found:
+        shown = f"{name} (remapped to {resolved})" if resolved else name
+        raise EvaluateError(f"{path}: no {shown} topic in the bag (topics: {', '.join(sorted(types)) or 'none'})")
+    return found[0]
+
+
+def pair_raw(path: str, session: Session, values: dict[str, Any]) -> tuple[np.ndarray, ...]:
+    """Pair the recorded u / y_p messages the way the node would have: (index, u, y, paired by order)."""
     types = bags.topic_types(path)
     names, parts = {}, {}
     for channel, part, name in input_topics(values):
-        short = name.rstrip("/").rsplit("/", 1)[-1]
-        found = [topic for topic in types if topic == name or topic.rstrip("/").rsplit("/", 1)[-1] == short]
-        if not found:
-            raise EvaluateError(f"{path}: no {name} topic in the bag (topics: {', '.join(sorted(types)) or 'none'})")
-        names[found[0]], parts[found[0]] = channel, part
+        topic = recorded_topic(path, types, name, values)
+        names[topic], parts[topic] = channel, part
     extract = {side: field_extractor(values, side) for side in (U, Y)}
     messages = list(bags.iter_messages(path, list(names)))
     by_order = values["pairing"] == "sequence" and not any(message.sequence for message in messages)
@@ -267,8 +285,8 @@ def evaluate_bag(
     path: str, params: str | None = None, test_from: int | None = None
 ) -> BagEvaluation | MimoBagEvaluation:
     """Train on the bag's training phase, score the frozen model on its test phase."""
-    identifier, values = _configuration(path, params)
-    session = _session(identifier, values)
+    identifier, values = configuration(path, params)
+    session = make_session(identifier, values)
     index, u, y, learn, start, source = _samples(path, session, values, test_from)
     if isinstance(identifier, MimoIdentifier):
         return score_mimo(session, index, u, y, learn, start, source)
@@ -310,7 +328,7 @@ def _samples(
         if test_from is not None:
             learn = learn & (index < test_from)
     else:
-        index, u, y, by_order = _pair_raw(path, session, values)
+        index, u, y, by_order = pair_raw(path, session, values)
         source = f"u/y_p by {'order (no sequence numbers recorded)' if by_order else values['pairing']}"
         start = test_from if test_from is not None else recorded_start(path)
         if start is None:

@@ -75,20 +75,21 @@ class Data:
     source: str  # what was read, for the report
     test_start: int | None = None  # 1-based, recorded in a bag (its test_start topic)
     breaks: list[int] = dataclasses.field(default_factory=list)  # 0-based samples that start a new run (gaps)
+    index: np.ndarray | None = None  # a bag's sample indices, as the node counts them (--test-from is one)
+    interpretation: dict[str, Any] = dataclasses.field(default_factory=dict)  # node values: types, fields, pairing
 
 
-def load_data(path: str | Path, u_column: str | None = None, y_column: str | None = None) -> Data:
-    """u and y from a bag (directory or .mcap) or a CSV file (columns by name or 0-based index)."""
+def load_data(
+    path: str | Path, u_column: str | None = None, y_column: str | None = None, flags: dict[str, Any] | None = None
+) -> Data:
+    """u and y from a bag (directory or .mcap: :mod:`lenn_ros.fit_bag`) or a CSV file (columns by name or index)."""
     path = Path(path)
     if not path.exists():
         raise FitError(f"{path} does not exist (expected a CSV file or a bag directory)")
     if path.is_dir() or path.suffix == ".mcap":
-        from lenn_ros.bag import read_run
+        from lenn_ros.fit_bag import load_bag
 
-        run = read_run(path)
-        pairs = min(len(run.u), len(run.y_p))
-        u, y = np.asarray(run.u[:pairs], float), np.asarray(run.y_p[:pairs], float)
-        return Data(u, y, f"bag {path}: u, y_p", getattr(run, "test_start", None))
+        return load_bag(path, {**(flags or {}), "u": u_column, "y": y_column})
     return _load_csv(path, u_column, y_column)
 
 
@@ -573,8 +574,18 @@ def _learning_values(identifier: Identifier, forgetting: float) -> dict[str, Any
     return {"solver": "rls", "forgetting": float(forgetting)}
 
 
-def write_outputs(directory: str | Path, result: dict[str, Any], u: np.ndarray, y: np.ndarray) -> dict[str, str]:
+def write_outputs(
+    directory: str | Path,
+    result: dict[str, Any],
+    u: np.ndarray,
+    y: np.ndarray,
+    interpretation: dict[str, Any] | None = None,
+) -> dict[str, str]:
     """``DIR/params.yaml`` (key ``/**``: any node name or namespace) and ``DIR/weights.npz``.
+
+    ``interpretation``: the node values that say how its topics become samples (a
+    bag's types, fields, pairing, sample period: :mod:`lenn_ros.fit_bag`), so the node
+    started from the file reads the topics the model was fitted on, the same way.
 
     ``weights_in`` in the params file is the absolute path of the weights: the node
     opens a relative path from its own working directory (it cannot know where the
@@ -587,7 +598,11 @@ def write_outputs(directory: str | Path, result: dict[str, Any], u: np.ndarray, 
     forgetting = result["report"]["model"]["live"].get("forgetting", 1.0)
     weights = directory / "weights.npz"
     identifier.model.save(weights)
-    values = {**params_values(identifier, model, forgetting, u, y), "weights_in": str(weights.resolve())}
+    values = {
+        **(interpretation or {}),
+        **params_values(identifier, model, forgetting, u, y),
+        "weights_in": str(weights.resolve()),
+    }
     note = "starts from weights_in below;\n# move the directory and weights_in must follow: it is absolute"
     params = write_params(directory, result["report"], values, note)
     return {"params": str(params), "weights": str(weights)}
@@ -625,15 +640,20 @@ def main(args: Any) -> int:
     import sys
 
     u_columns, y_columns = columns(args.u), columns(args.y)
-    data = load_data(args.data, u_columns[0] if u_columns else None, y_columns[0] if y_columns else None)
+    flags = {key: getattr(args, key, None) for key in ("u_field", "y_field", "sample_period", "pairing")}
+    data = load_data(args.data, u_columns[0] if u_columns else None, y_columns[0] if y_columns else None, flags)
     progress = None if args.json else (lambda text: print(text, file=sys.stderr, flush=True))
     network = getattr(args, "network", "lenn") or "lenn"
-    test_from = args.test_from if args.test_from is not None else data.test_start
+    test_from = data.test_start
+    if args.test_from is not None:  # a bag's is a sample index, as the node counts: the row it starts
+        test_from = args.test_from if data.index is None else int(np.searchsorted(data.index, args.test_from)) + 1
     solver = getattr(args, "solver", "ls") or "ls"
     result = fit(data, test_from, refine=not args.no_refine, network=network, solver=solver, progress=progress)
     report = result["report"]
     if args.output:
-        report["files"] = write_outputs(args.output, result, data.u[: report["train_samples"]], data.y)
+        report["files"] = write_outputs(
+            args.output, result, data.u[: report["train_samples"]], data.y, data.interpretation
+        )
     if args.plot:
         from lenn_ros.plotting import plot_identification
 

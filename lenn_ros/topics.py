@@ -33,6 +33,8 @@ Y_HAT_STAMPED = "y_hat_stamped"
 ERROR_STAMPED = "error_stamped"
 #: The identifier's resolved configuration (JSON, latched): ``evaluate`` reads it from a bag.
 IDENTIFIER_CONFIG = "identifier_config"
+#: key of the identifier_config JSON naming the topic each input resolved to (after remapping): u -> /arm/cmd
+RESOLVED_TOPICS = "resolved_topics"
 #: Standard ROS diagnostics (absolute name: rqt_robot_monitor and friends listen there).
 DIAGNOSTICS = "/diagnostics"
 

@@ -43,7 +43,9 @@ def noise_std(noise_db: float | None, signal_power: float = UNIFORM_INPUT_POWER)
     return float(np.sqrt(signal_power * 10.0 ** (noise_db / 10.0)))
 
 
-SIGNALS = ("paper", "uniform", "sinusoid")
+SIGNALS = ("paper", "uniform", "sinusoid", "steps")
+#: "steps": each level U[-1, 1] held for this many samples (uniform, inclusive): a robot's usual excitation
+STEP_HOLD = (10, 60)
 
 
 class Excitation:
@@ -51,9 +53,11 @@ class Excitation:
 
     ``"paper"``: uniform random for ``train_samples``, then eq. 11 for
     ``test_samples`` (then exhausted); ``"uniform"`` / ``"sinusoid"``: one of the
-    two forever. Values are drawn in blocks from two seeded streams (input, noise),
-    and a block draw equals the same draws one by one, so the live plant simulator
-    and the offline ``simulate`` produce identical data for the same seed.
+    two forever; ``"steps"``: random levels held for STEP_HOLD samples, forever
+    (the usual excitation of a joint: white noise barely moves a body with inertia).
+    Values are drawn in blocks from two seeded streams (input, noise), and a block
+    draw equals the same draws one by one, so the live plant simulator and the
+    offline ``simulate`` produce identical data for the same seed.
     """
 
     block = 4096
@@ -85,6 +89,7 @@ class Excitation:
         self._u = np.empty(0)
         self._noise = np.empty(0)
         self._offset = 0  # k of self._u[0]
+        self._level, self._left = 0.0, 0  # "steps": the level held and for how many more samples
 
     @property
     def length(self) -> int | None:
@@ -131,7 +136,9 @@ class Excitation:
         k = np.arange(start, start + count)
         train = (k < self.train_samples) | (self.train_samples < 0)
         u = np.empty(count)
-        u[train] = uniform_input(int(train.sum()), self._input_rng)
+        u[train] = self._steps(int(train.sum())) if self.signal == "steps" else uniform_input(
+            int(train.sum()), self._input_rng
+        )
         test_k = k[~train] - max(self.train_samples, 0) + 1
         if len(test_k):
             u[~train] = test_sinusoid(len(test_k), start=int(test_k[0]) + self._test_shift)
@@ -139,3 +146,17 @@ class Excitation:
         if not self.test_noise:
             noise[~train] = 0.0
         return u, noise
+
+    def _steps(self, count: int) -> np.ndarray:
+        """The next ``count`` samples of random steps; the level held carries over from the last block."""
+        out = np.empty(count)
+        filled = 0
+        while filled < count:
+            if self._left == 0:
+                self._level = float(self._input_rng.uniform(-1.0, 1.0))
+                self._left = int(self._input_rng.integers(STEP_HOLD[0], STEP_HOLD[1] + 1))
+            n = min(self._left, count - filled)
+            out[filled : filled + n] = self._level
+            self._left -= n
+            filled += n
+        return out

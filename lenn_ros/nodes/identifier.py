@@ -159,7 +159,9 @@ class IdentifierNode(Node):
         self.status_publisher = self.create_publisher(String, topics.STATUS, topics.data_qos())
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
         config_publisher = self.create_publisher(String, topics.IDENTIFIER_CONFIG, topics.latched_qos())
-        config_publisher.publish(String(data=json.dumps(json_safe({**self.values, "network": self.network}))))
+        resolved = {name: self.resolve_topic_name(name) for _, _, name in self.inputs}
+        config = {**self.values, "network": self.network, topics.RESOLVED_TOPICS: resolved}
+        config_publisher.publish(String(data=json.dumps(json_safe(config))))
         self._sim_time = bool(self.get_parameter("use_sim_time").value)
         self._subscribe(message_types)
         self._warn_unknown_qos_overrides()

@@ -50,7 +50,9 @@ class RobotController(Node):
         declare("test_samples", 600, describe("signal paper: commands of the eq. 11 sinusoid after them", 0, 10**9))
         declare("duration", 0.0, describe("seconds to run from the first command (0 = to the signal's end)", 0.0, 1e9))
         declare("depth", 10, describe("publisher history depth", 1, 10_000))
+        declare("amplitude", 1.0, describe("commands are amplitude x the signal (2.0: torques of +-2 N m)", 0, 1e9))
         p = self.get_parameter
+        self.amplitude = float(p("amplitude").value)
         try:
             self.excitation = Excitation(
                 p("seed").value, p("signal").value, p("train_samples").value, p("test_samples").value
@@ -79,7 +81,7 @@ class RobotController(Node):
             self.get_logger().info(f"done: {self.sent} commands sent")
             raise SystemExit(0)
         u, _ = self.excitation.sample(self.sent)
-        self.publisher.publish(Float64MultiArray(data=[u]))
+        self.publisher.publish(Float64MultiArray(data=[self.amplitude * u]))
         self.sent += 1
 
 

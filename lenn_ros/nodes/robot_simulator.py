@@ -40,6 +40,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
 from lenn_ros.core.examples import get_example
+from lenn_ros.core.physical import physical_plant
 from lenn_ros.core.robot import CommandHold, SimulatedRobot
 from lenn_ros.nodes import run_node
 from lenn_ros.nodes.robot_controller import CMD, describe
@@ -55,6 +56,9 @@ class RobotSimulator(Node):
         super().__init__("robot_simulator")
         declare = self.declare_parameter
         declare("example", 1, describe("paper example 1-4 whose plant the robot is", 1, 4))
+        declare(
+            "plant", "example", describe("the robot's plant: example (the paper's, above) or friction_joint (radians)")
+        )
         example = get_example(self.get_parameter("example").value)
         declare("rate_hz", 100.0, describe("plant steps per second", 0.1, 10_000.0))
         declare("start_delay", 2.0, describe("seconds after start before the first step", 0.0, 3600.0))
@@ -84,8 +88,12 @@ class RobotSimulator(Node):
         self.period_ns = round(1e9 / rate)
         limits = [n for n in (p("steps").value, round(p("duration").value * rate)) if n > 0]
         self.max_steps = min(limits) if limits else None
+        try:
+            plant = example.plant() if p("plant").value == "example" else physical_plant(p("plant").value, 1.0 / rate)
+        except ValueError as error:
+            raise SystemExit(f"robot_simulator: {error}") from None
         self.robot = SimulatedRobot(
-            example.plant(),
+            plant,
             self.period_ns,
             input_noise_db=p("noise_db").value,
             measurement_noise=p("measurement_noise").value,
@@ -93,7 +101,7 @@ class RobotSimulator(Node):
             latency_s=p("latency").value,
             jitter_s=p("jitter").value,
             seed=p("seed").value,
-            example=example.number,
+            example=example.number if p("plant").value == "example" else 0,
             stamp_jitter_s=p("stamp_jitter").value,
             stamp_offset_s=p("stamp_offset").value,
         )
@@ -124,8 +132,9 @@ class RobotSimulator(Node):
         self._t_k: int | None = None  # when step k runs (drawn once: the loop's jitter)
         self.pending: deque[tuple[int, JointState]] = deque()
         self.create_timer(max(self.period_ns * 0.5e-9, 0.001), self._tick)
+        described = example.description if p("plant").value == "example" else plant.name
         self.get_logger().info(
-            f"{example.description}: {rate} Hz from {p('start_delay').value} s, "
+            f"{described}: {rate} Hz from {p('start_delay').value} s, "
             f"{self.max_steps or 'unlimited'} steps, loss {p('loss').value}, "
             f"publication delay {p('latency').value}+U[0,{p('jitter').value}] s, stamp jitter "
             f"±{p('stamp_jitter').value} s, stamp offset {p('stamp_offset').value} s; "

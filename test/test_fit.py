@@ -20,8 +20,8 @@ from lenn_ros.config import ConfigError, build_identifier, read_params_file, res
 from lenn_ros.core.evaluation import free_run_problems
 from lenn_ros.core.examples import get_example
 from lenn_ros.core.expansions import format_terms, parse_terms
-from lenn_ros.core.scaling import Scaling
 from lenn_ros.core.families import Spec
+from lenn_ros.core.scaling import Scaling
 from lenn_ros.core.selection import (
     NONLINEAR_GAIN,
     PARSIMONY,

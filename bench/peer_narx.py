@@ -1,12 +1,15 @@
-"""``lenn-ros fit`` against SysIdentPy's FROLS polynomial NARX on every shared data set.
+"""``lenn-ros fit`` against SysIdentPy's FROLS polynomial NARX and a linear ARX on every shared data set.
 
-Both get the same protocol, in the same run, on the same splits:
+All get the same protocol, in the same run, on the same splits:
 - only the samples before the test start build the model;
-- the structure is chosen on the last 20 % of those samples by free-run RMSE
-  (FROLS: a grid of lags and polynomial degrees, terms chosen by FROLS with AIC, as a
+- ``lenn-ros fit`` with its defaults (no per-set setting);
+- FROLS: the structure chosen on the last 20 % of the build samples by free-run RMSE
+  (a grid of lags and polynomial degrees, terms chosen by FROLS with AIC, as a
   competent user would; grid limited to dictionaries of <= 60 candidate terms, since
   SysIdentPy's FROLS takes minutes beyond that on the Silverbox), then refitted on all
   of them;
+- linear ARX: least squares, its lags (1..10, equal for y and u) chosen the same way
+  by free run on the last 20 % of the build samples, then refitted on all of them;
 - the score is the free-run (simulation) RMSE on the test part, the free run starting
   from the measured outputs just before it (a live switch from series-parallel to
   parallel); a diverged run scores nan;
@@ -14,10 +17,12 @@ Both get the same protocol, in the same run, on the same splits:
 - beside them, the test-mean predictor: the RMSE of predicting every test sample by the
   mean of the test part (its standard deviation, an oracle no causal model is handed).
   A free-run RMSE above it means the model simulates the test part worse than a flat
-  line would, whichever tool is ahead (NMSE above 0 dB); such rows are marked.
+  line would, whichever tool is ahead (NMSE above 0 dB); such rows are marked;
+- where a best free-run figure on the same test is published, that figure
+  (``PUBLISHED``, with its source), in its own column.
 
     pip install -e .[bench]                 # sysidentpy
-    python bench/peer_narx.py               # all sets, ~10 minutes on 2 cores
+    python bench/peer_narx.py               # all sets, ~15 minutes on 2 cores
     python bench/peer_narx.py --quick       # the small sets only
 """
 
@@ -34,6 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lenn_ros.core.scaling import Scaling
+from lenn_ros.core.selection import TermModel
 from lenn_ros.fit import Data, fit
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
@@ -49,6 +56,14 @@ class Split:
     y: np.ndarray
     test_from: int  # 1-based, as lenn-ros fit --test-from
     note: str
+    published: str = ""  # best published free-run RMSE on this test, with its source
+
+
+#: best published free-run RMSE on the same test part (README of ../shared/data)
+PUBLISHED = {
+    "silverbox_multisine": "0.00030 (GP-NARX; SUBNET 0.00036)",
+    "bouc_wen": "1.87e-05 (PNLSS tailored; dynoNet 4.52e-05)",
+}
 
 
 def _csv(name: str, u: str, y: str) -> tuple[np.ndarray, np.ndarray]:
@@ -74,8 +89,10 @@ def splits(quick: bool) -> list[Split]:
     )
     if quick:
         return result
+    u, y = _csv("bouc_wen_multisine.csv", "u", "y")
+    result.append(Split("bouc_wen", u, y, 40_961, "README split", PUBLISHED["bouc_wen"]))
     u, y = _csv("silverbox_multisine.csv", "u", "y")
-    result.append(Split("silverbox_multisine", u, y, 65_063, "README split"))
+    result.append(Split("silverbox_multisine", u, y, 65_063, "README split", PUBLISHED["silverbox_multisine"]))
     u, y = _csv("silverbox_arrow.csv", "u", "y")
     result.append(Split("silverbox_arrow (first 32 000 test)", u[: 65_062 + 32_000], y[: 65_062 + 32_000], 65_063,
                         "test rows inside the build amplitudes"))  # fmt: skip
@@ -144,12 +161,49 @@ def run_lenn(split: Split) -> dict:
     result = fit(Data(split.u, split.y, split.name), split.test_from)
     report = result["report"]
     m = report["model"]
+    refined = report["choices"]["refinement"].get("iterations", 0)
     return {
         "rmse_free_run": report["rmse_free_run"],
         "seconds": time.perf_counter() - began,
-        "model": f"lags {m['structure']['y_lags']}/{m['structure']['u_lags']}, "
-        f"degree {m['expansion']['degree']}, {m['n_terms']} terms",
+        "model": f"{m['family']} degree {m['expansion']['degree']}, lags {m['structure']['y_lags']}, "
+        f"{m['n_terms']} terms" + (f", refined {refined}x" if refined else ""),
         "clipped": report["free_run"]["clipped_inputs"],
+    }
+
+
+ARX_LAGS = (1, 2, 3, 4, 6, 8, 10)
+
+
+def _arx(lag: int, u: np.ndarray, y: np.ndarray, scaling) -> TermModel:
+    """Least-squares ARX(lag, lag) with a bias, as a term model (its compiled free run)."""
+    rows = np.zeros((2 * lag + 1, 2 * lag), dtype=np.int64)
+    rows[1:] = np.eye(2 * lag, dtype=np.int64)
+    model = TermModel(lag, lag, scaling, rows)
+    features, targets = model.regression(u, y)
+    model.weights = np.linalg.lstsq(features, targets, rcond=None)[0]
+    return model
+
+
+def run_arx(split: Split) -> dict:
+    """A linear ARX, its lags chosen by free-run RMSE on the last 20 % of the build samples, refitted on all."""
+    began = time.perf_counter()
+    start = split.test_from - 1
+    u, y = split.u[:start], split.y[:start]
+    scaling = Scaling.from_training(u, y, margin=10.0)  # wide: a linear model needs no clipping
+    validation = start - max(50, round(VALIDATION_FRACTION * start))
+    tried = []
+    for lag in ARX_LAGS:
+        if 40 * lag > validation:
+            continue
+        y_sim, _, diverged_at = _arx(lag, u[:validation], y[:validation], scaling).free_run(u, y, validation)
+        tried.append((_rmse(y[validation:], y_sim) if diverged_at < 0 else math.inf, lag))
+    score, lag = min(tried)
+    model = _arx(lag, u, y, scaling)
+    y_free, _, diverged_at = model.free_run(split.u, split.y, start)
+    return {
+        "rmse_free_run": _rmse(split.y[start:], y_free) if diverged_at < 0 else math.nan,
+        "seconds": time.perf_counter() - began,
+        "model": f"ARX lags {lag}/{lag}" + ("" if math.isfinite(score) else " (every lag diverged on the tail)"),
     }
 
 
@@ -199,9 +253,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     rows = []
     for split in splits(args.quick):
-        lenn, frols = run_lenn(split), run_frols(split)
+        lenn, frols, arx = run_lenn(split), run_frols(split), run_arx(split)
         rows.append({"data": split.name, "split": split.note, "test_samples": len(split.y) - split.test_from + 1,
-                     "test_mean_rmse": test_mean_rmse(split), "lenn": lenn, "frols": frols})  # fmt: skip
+                     "test_mean_rmse": test_mean_rmse(split), "lenn": lenn, "frols": frols, "arx": arx,
+                     "published": split.published})  # fmt: skip
         print(f"done {split.name}", file=sys.stderr, flush=True)
     if args.json:
         print(json.dumps(rows, indent=1))
@@ -221,19 +276,22 @@ def _vs_mean(value: float, mean: float) -> str:
 
 
 def table(rows: list[dict]) -> str:
-    """The README's Markdown table: both tools, the test-mean predictor, ratio, times, models."""
+    """The RESULTS table: the three tools' free-run RMSE and times, the test-mean predictor, the published best."""
     lines = [
-        "| data (test samples) | lenn-ros fit: free-run RMSE | SysIdentPy FROLS: free-run RMSE | test-mean predictor: "
-        "RMSE | ratio | lenn-ros fit: time (s) | FROLS: time (s) | lenn-ros model | FROLS model |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| data (test samples) | lenn-ros fit: free-run RMSE | SysIdentPy FROLS: free-run RMSE | linear ARX: free-run "
+        "RMSE | test-mean predictor: RMSE | best published | lenn-ros fit: time (s) | FROLS: time (s) | ARX: time (s) "
+        "| lenn-ros model | FROLS model | ARX model |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+    missing = {"rmse_free_run": math.nan, "seconds": math.nan, "model": "-"}
     for row in rows:
         lenn, frols, mean = row["lenn"], row["frols"], row["test_mean_rmse"]
-        ratio = lenn["rmse_free_run"] / frols["rmse_free_run"] if math.isfinite(frols["rmse_free_run"]) else math.nan
+        arx = row.get("arx", missing)
         lines.append(
             f"| {row['data']} ({row['test_samples']}) | {_vs_mean(lenn['rmse_free_run'], mean)} "
-            f"| {_vs_mean(frols['rmse_free_run'], mean)} | {_fmt(mean)} | {_fmt(ratio)} | {lenn['seconds']:.1f} "
-            f"| {frols['seconds']:.1f} | {lenn['model']} | {frols['model']} |"
+            f"| {_vs_mean(frols['rmse_free_run'], mean)} | {_vs_mean(arx['rmse_free_run'], mean)} | {_fmt(mean)} "
+            f"| {row.get('published') or '-'} | {lenn['seconds']:.1f} | {frols['seconds']:.1f} | {arx['seconds']:.1f} "
+            f"| {lenn['model']} | {frols['model']} | {arx['model']} |"
         )
     return "\n".join(lines)
 

@@ -356,16 +356,28 @@ def test_peer_table_shows_the_test_mean_predictor_and_marks_rows_worse_than_it()
     assert mean == pytest.approx(np.std([1.0, -1.0, 1.0, -1.0, 1.0]))
     model = {"seconds": 1.0, "model": "m"}
     rows = [
-        {"data": "good", "test_samples": 5, "test_mean_rmse": mean,
-         "lenn": {**model, "rmse_free_run": 0.1}, "frols": {**model, "rmse_free_run": 2.0}},
+        {"data": "good", "test_samples": 5, "test_mean_rmse": mean, "published": "0.05 (someone)",
+         "lenn": {**model, "rmse_free_run": 0.1}, "frols": {**model, "rmse_free_run": 2.0},
+         "arx": {**model, "rmse_free_run": 0.5}},
         {"data": "bad", "test_samples": 5, "test_mean_rmse": mean,
          "lenn": {**model, "rmse_free_run": 1.5}, "frols": {**model, "rmse_free_run": float("nan")}},
     ]  # fmt: skip
     lines = peer_narx.table(rows).splitlines()
-    assert "test-mean predictor" in lines[0] and lines[0].count("|") == lines[1].count("|")
+    assert "test-mean predictor" in lines[0] and lines[0].count("|") == lines[1].count("|") == lines[2].count("|")
     good, bad = lines[2].split(" | "), lines[3].split(" | ")
-    assert good[1] == "0.1" and good[2] == "2 (worse than the mean)" and good[3] == f"{mean:.4g}"
+    assert good[1] == "0.1" and good[2] == "2 (worse than the mean)" and good[3] == "0.5" and good[4] == f"{mean:.4g}"
+    assert good[5] == "0.05 (someone)" and bad[5] == "-"
     assert bad[1] == "1.5 (worse than the mean)" and bad[2] == "diverged (worse than the mean)"
+
+
+def test_peer_linear_arx_is_least_squares_with_lags_chosen_on_the_tail() -> None:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    import peer_narx
+
+    u, y = cubic_plant(3000, 2)
+    linear = peer_narx.run_arx(peer_narx.Split("cubic", u, y, 2001, ""))
+    assert linear["model"].startswith("ARX lags ")
+    assert linear["rmse_free_run"] == pytest.approx(linear_arx_free_run(u, y, 2000), rel=0.3)
 
 
 def test_fit_solver_sgd_trains_the_selected_terms_by_epochs_and_round_trips(tmp_path: Path) -> None:

@@ -410,3 +410,49 @@ def test_one_sample_expansion_is_bitwise_the_batch_expansion(
     monkeypatch.setitem(expansions._UNIVARIATE, basis, batch_only)
     one_by_one = np.vstack([expand(x[i : i + 1], 5, basis, cross) for i in range(200)])
     assert np.array_equal(one_by_one, batch)
+
+
+@pytest.mark.skipif(not kernels.JIT, reason="the compiled step exists only where numba compiles")
+def test_terms_with_factors_step_compiled_as_in_python_and_in_batch(monkeypatch) -> None:
+    """Every factor kind in a selected-terms model: compiled step = Python step = batch run, bit for bit."""
+    from lenn_ros.core import structure
+    from lenn_ros.core.expansions import parse_terms
+    from lenn_ros.core.networks import FunctionalLinkNetwork
+    from lenn_ros.core.structure import ModelStructure
+
+    names = ["1", "y1", "lin(y1-y2)", "tanh(8*y1-8*y2)", "u1*abs(3*y1-3*y2)", "relu(u1-0.2)", "cos(1.5*y1+0.7*u2-0.3)",
+             "sqabs(2*y1-2*y2)", "y1^2*u2"]  # fmt: skip
+    exponents, factors = parse_terms(names, 2, 2)
+    shape = ModelStructure(y_lags=2, u_lags=2, y_scale=2.0, u_scale=1.5)
+    series = simulate(EXAMPLES[1].plant(), -20.0, 4, 1200, 100)
+    u, y = 1.6 * series.u, series.y  # inputs beyond the scale: clipped
+    learn = np.arange(1300) < 1200
+
+    def network() -> FunctionalLinkNetwork:
+        return FunctionalLinkNetwork(n_inputs=4, exponents=exponents.tolist(), factors=factors.tolist(),
+                                     output="linear", solver="rls", forgetting=0.999, init_scale=0.0)  # fmt: skip
+
+    runs = []
+    for compiled in (True, False):
+        if not compiled:
+            monkeypatch.setattr(structure.StepPlan, "for_model", classmethod(lambda cls, model, shape: None))
+        identifier = Identifier(shape, network(), health_interval=300)
+        runs.append(([identifier.step(k + 1, u[k], y[k], bool(learn[k])) for k in range(1300)], identifier))
+    (fast, fast_id), (slow, slow_id) = runs
+    assert fast_id._plan is not None and slow_id._plan is None
+    assert [r.y_hat for r in fast] == [r.y_hat for r in slow]
+    assert np.array_equal(fast_id.model.weights_, slow_id.model.weights_)
+    batch = Identifier(shape, network(), health_interval=300)
+    y_batch = batch.run(u, y, learn)
+    stepped = np.array([np.nan if r.y_hat is None else r.y_hat for r in fast])
+    assert np.array_equal(np.isnan(y_batch), np.isnan(stepped))
+    assert np.allclose(y_batch[~np.isnan(y_batch)], stepped[~np.isnan(stepped)], rtol=0, atol=1e-12)
+    assert fast_id.counters["clipped"] > 0
+    # the compiled free run of the same model: the Python loop of one prediction per sample
+    frozen = slow_id
+    compiled = frozen.free_run(u, y, 1000)
+    y_model, window = y.copy(), shape.warm_up
+    for k in range(999, 1299):
+        x, linear = shape.regressors(u[k - window + 1 : k + 1], y_model[k - window + 1 : k + 1])
+        y_model[k + 1] = linear[-1] + frozen.model.predict(np.clip(x[-1:], -1.0, 1.0))[0]
+    assert np.allclose(compiled, y_model[1000:], rtol=0, atol=1e-12)

@@ -167,10 +167,12 @@ def _add_evaluate(commands: Any) -> None:
 def _add_fit(commands: Any) -> None:
     p = commands.add_parser(
         "fit",
-        help="build a LeNN model of logged data automatically (structure, terms, weights) and score it",
-        description="Select lags, degree and terms by free-run error on a held-out tail of the training "
-        "samples, refine on simulation error, score on the test part; -o DIR writes a params file and "
-        "weights the identifier node starts from.",
+        help="build a model of logged data automatically (family, structure, terms, weights) and score it",
+        description="Choose the model family (polynomial, hinge, increment form), lags and terms by the free "
+        "runs of blocks of the training samples, each simulated by the weights of the others; refine on "
+        "simulation error as far as the blocks vouch for; score on the test part. A bag is read as the "
+        "identifier read it (its identifier_config, or --u/--u-field/--y/--y-field/--sample-period). "
+        "-o DIR writes a params file and weights the identifier node starts from.",
     )
     p.add_argument(
         "data",

@@ -10,6 +10,10 @@ them by RLS with the same compiled step. What they offer:
   input at knots on their training quantiles: saturation, overflow, dead zones and
   absolute values (|x - c| is a combination of a hinge and the linear terms) are
   piecewise linear, which no low-degree polynomial follows.
+- ``rff``: the linear terms plus random Fourier features cos(w . x + b) of the recent
+  lags, w drawn with the spread of the training regressors (the median-distance rule):
+  a smooth nonlinearity of several lags at once, the feature map of a GP-NARX's
+  squared-exponential kernel, of which FROLS keeps the few that matter.
 - ``increment``: the model predicts the change y(k+1) - y(k) from the increments of the
   output, the inputs and, from degree 2, friction-like functions of the velocity:
   tanh (Coulomb friction, stiction's sign), |v| and v|v| (drag); degree 3 adds
@@ -37,6 +41,10 @@ from lenn_ros.core.scaling import Scaling
 #: lags (equal for y and u) tried per family, and the degrees
 POLYNOMIAL_LAGS = (1, 2, 3, 4, 6, 8, 10)
 HINGE_LAGS = (1, 2, 4, 8)
+RFF_LAGS = (2, 4)
+#: random Fourier features offered, and the seed they are drawn with (fixed: a fit is repeatable)
+RFF_FEATURES = 60
+RFF_SEED = 0
 INCREMENT_LAGS = (2, 3, 4, 6, 10)
 #: long lag spans (multi-scale increments) for records sampled far faster than their dynamics
 LONG_SPANS = (17, 33, 65)
@@ -82,30 +90,29 @@ class Spec:
 
     def dictionary(self, x: np.ndarray) -> Dictionary:
         """The terms this candidate offers, their parameters taken from the training inputs ``x``."""
-        builder = {"polynomial": _polynomial, "hinge": _hinge, "increment": _increment}[self.family]
+        builder = {"polynomial": _polynomial, "hinge": _hinge, "rff": _fourier, "increment": _increment}[self.family]
         return builder(self, np.asarray(x, dtype=np.float64))
+
+
+#: the grid: (family, lags tried, degrees at each)
+GRID = (
+    ("polynomial", POLYNOMIAL_LAGS, (1, 2, 3)),
+    ("hinge", HINGE_LAGS, (2,)),
+    ("rff", RFF_LAGS, (2,)),
+    ("increment", INCREMENT_LAGS, (1, 2, 3)),
+    ("increment", LONG_SPANS, (1, 3)),
+)
 
 
 def candidate_specs(n_samples: int) -> list[Spec]:
     """The grid, bounded by how much data there is (SAMPLES_PER_LAG samples per lag of y and u)."""
-    specs = []
-
-    def fits(lags: int) -> bool:
-        return SAMPLES_PER_LAG * 2 * lags <= n_samples
-
-    for lags in POLYNOMIAL_LAGS:
-        if fits(lags):
-            specs += [Spec("polynomial", lags, degree) for degree in (1, 2, 3)]
-    for lags in HINGE_LAGS:
-        if fits(lags):
-            specs.append(Spec("hinge", lags, 2))
-    for lags in INCREMENT_LAGS:
-        if fits(lags):
-            specs += [Spec("increment", lags, degree) for degree in (1, 2, 3)]
-    for lags in LONG_SPANS:
-        if fits(lags):
-            specs += [Spec("increment", lags, degree) for degree in (1, 3)]
-    return specs
+    return [
+        Spec(family, lags, degree)
+        for family, lag_set, degrees in GRID
+        for lags in lag_set
+        if SAMPLES_PER_LAG * 2 * lags <= n_samples
+        for degree in degrees
+    ]
 
 
 @dataclass
@@ -225,6 +232,23 @@ def _hinge(spec: Spec, x: np.ndarray) -> Dictionary:
     for i in [0, spec.lags] + ([1, spec.lags + 1] if spec.lags > 1 else []):
         for knot in np.unique([_round6(q) for q in np.quantile(x[:, i], KNOT_QUANTILES)]):
             built.add(None, "relu", built.unit(i), -knot)
+    return built.build()
+
+
+def _fourier(spec: Spec, x: np.ndarray) -> Dictionary:
+    """Linear terms and RFF_FEATURES cos(w . x_recent + b), w ~ N(0, 1 / l^2), l the regressors' median distance."""
+    built = _Builder(2 * spec.lags)
+    for row in dictionary_exponents(2 * spec.lags, 1):
+        built.add(row)
+    recent = _recent(spec)
+    rng = np.random.default_rng(RFF_SEED)
+    sample = x[rng.choice(len(x), min(len(x), 400), replace=False)][:, recent]
+    distances = np.sqrt(((sample[:, None, :] - sample[None, :, :]) ** 2).sum(axis=-1))
+    length = float(np.median(distances[distances > 0])) if np.any(distances > 0) else 1.0
+    for _ in range(RFF_FEATURES):
+        w = np.zeros(2 * spec.lags)
+        w[recent] = rng.normal(0.0, 1.0 / length, len(recent))
+        built.add(None, "cos", w, float(rng.uniform(0.0, 2.0 * np.pi)))
     return built.build()
 
 

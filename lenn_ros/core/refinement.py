@@ -28,7 +28,9 @@ from lenn_ros.core.selection import Candidate, Record, TermModel, fold_blocks, r
 from lenn_ros.core.structure import FREE_RUN_DIVERGENCE_BOUND
 
 #: most Levenberg-Marquardt iterations tried per fold (and then on all samples)
-ITERATIONS = 12
+ITERATIONS = 15
+#: a fold stops once its held-out error has not improved for this many iterations
+PATIENCE = 3
 #: the held-out blocks of a long record are simulated on at most this many samples each
 #: (the refinement's cost is iterations x weights x samples free-run steps)
 MAX_REFINED_SAMPLES = 30_000
@@ -77,7 +79,7 @@ def levenberg_marquardt(
     """Up to ``iterations`` LM steps on the free-run error over ``pieces``; ``after_each(weights)`` per step.
 
     Stops early when no damping lowers the cost (a minimum, or a model on the edge of
-    stability, where the linearisation means nothing).
+    stability, where the linearisation means nothing), or when ``after_each`` returns True.
     """
     weights = np.array(weights, dtype=np.float64, copy=True)
     found = jacobian(model, record, pieces, weights)
@@ -95,8 +97,8 @@ def levenberg_marquardt(
         if step is None:
             break
         weights, residual, cost, damping = step
-        if after_each is not None:
-            after_each(weights)
+        if after_each is not None and after_each(weights):
+            break
     return weights
 
 
@@ -171,15 +173,17 @@ def cross_validated_refinement(candidate: Candidate, record: Record, iterations:
         scored = _held_out(blocks[fold], record.n)
         history = []
 
-        def score(w: np.ndarray, scored=scored, history=history) -> None:
+        def score(w: np.ndarray, scored=scored, history=history) -> bool:
+            """Record the block's error; True (stop) once it has not improved for PATIENCE iterations."""
             r = residuals(model, record, [scored], w)
             history.append(math.inf if r is None else float(r @ r))
+            return len(history) - 1 - int(np.argmin(history)) >= PATIENCE
 
         first = residuals(model, record, [scored], weights)
         history.append(math.inf if first is None else float(first @ first))
         count = 0 if first is None else len(first)
         levenberg_marquardt(model, record, _training_pieces(blocks, fold, record.n), weights, iterations, score)
-        history += [history[-1]] * (iterations + 1 - len(history))  # stopped early: the last weights stay
+        history += [history[-1]] * (iterations + 1 - len(history))  # stopped early: its last score stands
         squared += np.array(history)
         counts += count
     pooled = np.sqrt(squared / np.maximum(counts, 1))

@@ -79,7 +79,7 @@ def test_fit_finds_the_cubic_term_and_beats_linear_arx(seed: int) -> None:
     lowest = min(c["rmse_free_run_validation"] for c in scored)
     close = [c for c in scored if c["rmse_free_run_validation"] <= lowest * 1.01]
     assert chosen["rmse_free_run_validation"] <= lowest * 1.01  # parsimony: the fewest terms of those within 1 %
-    assert chosen["terms"] == min(c["terms"] for c in close)
+    assert chosen["weights"] == min(c["weights"] for c in close)
 
 
 def test_cli_json_params_and_weights_rebuild_the_same_model(tmp_path: Path) -> None:
@@ -305,7 +305,9 @@ def test_blocks_breaks_and_fold_weights() -> None:
 
 
 def _candidate(family: str, degree: int, terms: int, score: float, stub: TermModel) -> Candidate:
-    return Candidate(Spec(family, 2, degree), 50, terms=terms, rmse_validation=score, model=stub)
+    model = stub.with_weights(np.ones(terms))
+    model.exponents = np.repeat(stub.exponents, terms, axis=0)
+    return Candidate(Spec(family, 2, degree), 50, terms=terms, rmse_validation=score, model=model)
 
 
 def test_candidates_fewest_terms_within_parsimony_and_linear_unless_beaten() -> None:

@@ -30,7 +30,7 @@ from lenn_ros.core.structure import FREE_RUN_DIVERGENCE_BOUND
 #: most Levenberg-Marquardt iterations tried per fold (and then on all samples)
 ITERATIONS = 15
 #: a fold stops once its held-out error has not improved for this many iterations
-PATIENCE = 3
+PATIENCE = 6
 #: the held-out blocks of a long record are simulated on at most this many samples each
 #: (the refinement's cost is iterations x weights x samples free-run steps)
 MAX_REFINED_SAMPLES = 30_000

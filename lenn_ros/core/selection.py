@@ -401,11 +401,17 @@ class Candidate:
     def linear(self) -> bool:
         return self.spec.degree == 1
 
+    @property
+    def weights(self) -> int:
+        """Weights of the model delivered: the kept terms, and the increment form's pass-through if added."""
+        return len(self.model.exponents) if self.model is not None else 0
+
     def as_dict(self) -> dict:
         return {
             **self.spec.as_dict(),
             "dictionary": self.dictionary,
             "terms": self.terms,
+            "weights": self.weights,
             "rmse_free_run_validation": _finite(self.rmse_validation),
             "rmse_free_run_blocks": [_finite(v) for v in self.block_rmse],
             "rejected": self.rejected,
@@ -692,7 +698,8 @@ def order_candidates(candidates: list[Candidate]) -> list[Candidate]:
     A nonlinear candidate must beat the best linear one by NONLINEAR_GAIN (linear models
     extrapolate gracefully; a nonlinearity the blocks barely vouch for may not); and of
     the candidates within PARSIMONY of the lowest score the one with the fewest terms is
-    used (it has fitted the least noise and has the fewest terms that can run away).
+    used (it has fitted the least noise and has the fewest terms that can run away); the
+    increment form's pass-through terms count, as the weights the node will adapt.
     """
     ordered = sorted(candidates, key=lambda c: c.rmse_validation)
     for candidate in ordered:
@@ -705,7 +712,7 @@ def order_candidates(candidates: list[Candidate]) -> list[Candidate]:
     eligible = [c for c in usable if c.linear or c.rmse_validation <= bar] or usable
     best = eligible[0]
     close = [c for c in eligible if c.rmse_validation <= best.rmse_validation * (1.0 + PARSIMONY)]
-    chosen = min(close, key=lambda c: (c.terms, c.rmse_validation))
+    chosen = min(close, key=lambda c: (c.weights, c.rmse_validation))
     if chosen is not ordered[0]:
         top = ordered[0]
         chosen.note = (

@@ -70,7 +70,23 @@ NODE_PARAMETERS = [
     Parameter("report_every", 100, "publish the running NMSE every N errors", 1, 10**9, live=True),
     Parameter("status_period", 1.0, "seconds between status messages", 0.05, 3600.0),
     Parameter("health_interval", 1000, "samples per divergence check", 10, 10**7),
-    Parameter("divergence_ratio", 100.0, "roll back if block MSE > ratio x var(y_p)", 1.0, 1e12, live=True),
+    Parameter(
+        "divergence_ratio",
+        100.0,
+        "roll back if block MSE > ratio x var(target) (the larger of the block's and the one learnt while it moved)",
+        1.0,
+        1e12,
+        live=True,
+    ),
+    Parameter(
+        "resume_after",
+        10,
+        "after a divergence, learning resumes by itself from the healthy state after this many health_interval "
+        "blocks of samples, doubled for each divergence that follows (0 = stay off until learning:=true)",
+        0,
+        10**6,
+        live=True,
+    ),
     # -- where u and y_p come from (issue 9: a real robot's topics) --
     Parameter("u_type", "std_msgs/msg/Float64", "message type on u (e.g. std_msgs/msg/Float64MultiArray)"),
     Parameter("y_type", "std_msgs/msg/Float64", "message type on y_p (e.g. sensor_msgs/msg/JointState)"),

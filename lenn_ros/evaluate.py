@@ -89,10 +89,10 @@ class BagEvaluation:
             )
         if self.counters.get("diverged", 0):
             found.append(
-                f"learning diverged ({self.counters['diverged']} time(s)): the weights were rolled "
-                "back to the last healthy block and learning stopped, so the test scores the weights from before "
-                "the divergence; lower alpha (or nlms_step), set y_scale/u_scale/offsets for the signals, or use "
-                "lenn-ros fit"
+                f"learning diverged ({self.counters['diverged']} time(s), resumed {self.counters.get('resumed', 0)} "
+                "time(s)): the weights were rolled back to the last healthy block and learning paused (resuming "
+                "after resume_after blocks), so the test scores weights learnt around the divergence; lower alpha "
+                "(or nlms_step), set y_scale/u_scale/offsets for the signals, or use lenn-ros fit"
             )
         return found + list(self.evaluation.free_run_warnings)
 
@@ -139,6 +139,7 @@ def _as_node_builds_it(identifier: Identifier, values: dict[str, Any], source: s
     """What the node's ``_build_model`` adds to the bare identifier: divergence guard and start weights."""
     identifier.health_interval = int(values["health_interval"])
     identifier.divergence_ratio = float(values["divergence_ratio"])
+    identifier.resume_after = int(values["resume_after"])
     if values.get("weights_in"):
         path = weights_path(values["weights_in"])
         if not path.is_file():
@@ -162,6 +163,7 @@ def _configuration(path: str, params: str | None) -> tuple[Identifier, dict[str,
             "params file the identifier ran with (e.g. config/example1_lenn.yaml)"
         )
     values = json.loads(recorded[-1].message.data)
+    values.setdefault("resume_after", 0)  # recorded before learning resumed by itself: it never did live
     network = values.pop("network", "lenn")
     model_values, _ = resolve({**{k: v for k, v in values.items() if k not in _NODE_DEFAULTS}, "network": network})
     values = {**_NODE_DEFAULTS, **values}

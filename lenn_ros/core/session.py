@@ -465,13 +465,35 @@ class Session:
             self.phase_nmse.reset()
             self._say("phase", f"sample {pair.index}: {'training' if learn else 'frozen (test)'} phase")
         result = self.identifier.step(pair.index, pair.u, pair.y, learn)
-        if result.event in ("gap", "diverged"):
+        if result.event == "gap":
             self._say(result.event, f"sample {pair.index}: {result.event}; counters {self.identifier.counters}")
+        elif result.event in ("diverged", "resumed"):
+            self._say(result.event, self._divergence_text(pair.index, result.event))
         if self.identifier.counters["clipped"] > self._seen_clipped:
             self._say_clipped(pair.time)
         if result.error is not None and result.y_hat is not None:
             self.phase_nmse.add(pair.y, result.y_hat)
         return Sample(pair.index, pair.time, pair.u, pair.y, result)
+
+    def _divergence_text(self, index: int, event: str) -> str:
+        """One line for a divergence (what was done, and when learning comes back) or for a resume."""
+        identifier = self.identifier
+        counters = identifier.counters
+        if event == "resumed":
+            return (
+                f"sample {index}: learning resumes from the healthy state after the pause that followed a "
+                f"divergence ({counters['diverged']} divergence(s), {counters['resumed']} resume(s) so far)"
+            )
+        text = (
+            f"sample {index}: the model diverged (its errors grew beyond divergence_ratio x the target's variance, "
+            "or a weight would have become non-finite): weights rolled back to the last healthy state"
+        )
+        if not identifier.resume_after:
+            return text + "; learning stays off until learning:=true (resume_after is 0)"
+        return (
+            f"{text}; pausing learning for {identifier.hold_off} samples, then it resumes by itself (each "
+            f"divergence doubles the pause; {counters['diverged']} so far). If it keeps diverging, lower alpha"
+        )
 
     # -- whole series (offline) --------------------------------------------------------------------
     def run_samples(self, index: np.ndarray, u: np.ndarray, y: np.ndarray, learn: np.ndarray) -> np.ndarray:
@@ -561,8 +583,9 @@ class Session:
         return json_safe(
             {
                 "pairing": self.config.pairing,
-                "learning": bool(self.phase_learning) if self.phase_learning is not None else self.config.learning,
+                "learning": self._learning_now(),
                 "diverged": self.identifier.diverged,
+                "resume_in": self.identifier.resume_in if self.identifier.diverged else None,
                 "test_start": self.test_start,
                 "refused": self.refusal,
                 "phase_samples": self.phase_nmse.count,
@@ -573,6 +596,11 @@ class Session:
                 **({"channels": self._channel_status()} if self.mimo else {}),
             }
         )
+
+    def _learning_now(self) -> bool:
+        """Whether samples are learnt now: the phase learns and the model is not paused after a divergence."""
+        phase = bool(self.phase_learning) if self.phase_learning is not None else self.config.learning
+        return phase and not self.identifier.diverged
 
     def _channel_status(self) -> dict[str, Any]:
         """Per output channel of a MIMO model: its phase NMSE and whether its model diverged."""

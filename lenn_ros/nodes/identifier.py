@@ -75,7 +75,7 @@ _QOS_OVERRIDES = QoSOverridingOptions(
     policy_kinds=(QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY)
 )
 #: Notice kinds that are news, not trouble.
-_INFO_KINDS = ("phase",)
+_INFO_KINDS = ("phase", "resumed")
 
 
 def _descriptor(parameter: Parameter) -> ParameterDescriptor:
@@ -277,6 +277,7 @@ class IdentifierNode(Node):
             raise SystemExit(f"identifier: {error}") from None
         identifier.health_interval = self.values["health_interval"]
         identifier.divergence_ratio = self.values["divergence_ratio"]
+        identifier.resume_after = self.values["resume_after"]
         if self.values["weights_in"]:
             try:
                 loader = identifier if isinstance(identifier, MimoIdentifier) else identifier.model
@@ -358,8 +359,8 @@ class IdentifierNode(Node):
             if name in ("alpha", "beta", "forgetting", "nlms_step") and name in model.get_params():
                 for each in self._models():
                     each.set_params(**{name: value})
-            elif name == "divergence_ratio":
-                self.identifier.divergence_ratio = value
+            elif name in ("divergence_ratio", "resume_after"):
+                setattr(self.identifier, name, value)
             elif name in SessionConfig.__dataclass_fields__:
                 setattr(self.session.config, name, value)
                 if name == "learning" and value and self.identifier.diverged:

@@ -49,8 +49,10 @@ from lenn_ros.core.structure import Identifier, StepResult
 PAIRING_MODES = ("sequence", "stamp", "sample")
 SESSION_COUNTERS = (
     "u_messages", "y_messages", "nan", "out_of_range", "clipped",
-    "no_sequence", "misaligned", "refused", "lone_u", "lone_y", "clock_offset",
+    "no_sequence", "misaligned", "refused", "lone_u", "lone_y", "clock_offset", "held_dropped",
 )  # fmt: skip
+#: Pairs held (not yet learnt) while the outputs wait for readers: beyond this the oldest are dropped.
+MAX_HELD = 10_000
 #: What rmw reports when it has no publication sequence numbers (rmw_cyclonedds: 2**64-1).
 SEQUENCE_UNSUPPORTED = (0, 2**64 - 1)
 #: Halves per input whose (receive - time) make the clock-offset estimate (a median: a stall does not move it).
@@ -156,6 +158,7 @@ class Session:
         self._seen_dropped = 0
         self._seen_faults = 0  # sequence mode: stale + duplicate halves already said
         self._seen_clipped = 0
+        self._said_at_count: dict[str, int] = {}  # kinds said when their count doubles: the count then
         self._clipped_said_at = -math.inf
         self._lags: dict[str, deque[float]] = {U: deque(maxlen=CLOCK_WINDOW), Y: deque(maxlen=CLOCK_WINDOW)}
         self._stamped = {U: False, Y: False}
@@ -319,6 +322,13 @@ class Session:
     def _after_merge(self, channel: str, merger: TopicMerger) -> None:
         """A side's topics that do not come together: say which, and what became of the parts."""
         names = self.config.u_parts_names if channel == U else self.config.y_parts_names
+        if merger.counters["overflow"]:
+            self._say_doubling(
+                f"{channel}_overflow",
+                merger.counters["overflow"],
+                f"{merger.counters['overflow']} incomplete {'u' if channel == U else 'y_p'} groups dropped so far: "
+                f"more than {merger.window} wait for the side's other topics ({', '.join(names)})",
+            )
         seen = self._seen_merge.setdefault(channel, {"merge_dropped": 0, "merge_stale": 0})
         for kind in ("merge_dropped", "merge_stale"):
             count = merger.counters[kind]
@@ -361,6 +371,16 @@ class Session:
             if self.clock_offset is not None:
                 text += f"; the inputs' clocks also differ by {abs(self.clock_offset):.3f} s (see clock_offset)"
             self._say("clock_jump", text)
+        overflow = aligner.counters["overflow"]
+        if overflow and aligner.overflowed is not None:
+            config = self.config
+            name, other = (config.u_name, config.y_name)[:: 1 if aligner.overflowed == U else -1]
+            self._say_doubling(
+                "overflow",
+                overflow,
+                f"{overflow} messages dropped unpaired so far: {other} is silent, so {name}'s queue is full "
+                f"({aligner.max_queue} waiting for a partner; the newest are kept). Is {other} published?",
+            )
         dropped = sum(v for k, v in aligner.counters.items() if k.startswith("dropped") or k == "grid_gaps")
         if dropped > self._seen_dropped:
             what = "grid points without a new y_p (gaps)" if isinstance(aligner, GridSampler) else "unpaired halves"
@@ -442,8 +462,38 @@ class Session:
     def _process(self, pairs: list[Pair]) -> list[Sample]:
         if self.holding:
             self._held.extend(pairs)
+            excess = len(self._held) - MAX_HELD
+            if excess > 0:  # the readers never came: keep the newest
+                del self._held[:excess]
+                self.counters["held_dropped"] += excess
+                self._say_doubling(
+                    "held_dropped",
+                    self.counters["held_dropped"],
+                    f"{self.counters['held_dropped']} held pairs dropped, never learnt: {MAX_HELD} wait for the "
+                    "outputs' readers (wait_for_*_subscribers) and no more are kept (the newest are)",
+                )
             return []
         return [self._step(pair) for pair in pairs]
+
+    def _say_doubling(self, kind: str, count: int, text: str) -> None:
+        """Say a drop that may go on for hours at its first occurrence, then each time its count doubles.
+
+        Rate-limited without a clock (the offline path has none worth trusting): a handful of
+        lines per run, each with the count, which ``status`` carries anyway.
+        """
+        said = self._said_at_count.get(kind)
+        if said is None or count >= 2 * said:
+            self._said_at_count[kind] = count
+            self._say(kind, text)
+
+    def queued(self) -> dict[str, int]:
+        """What waits in the session's queues now: halves to pair, parts to merge, pairs held (all bounded)."""
+        source = self.pairer if self.pairer is not None else self.aligner
+        return {
+            "pairing": source.queued if source is not None else 0,
+            "merging": sum(merger.queued for merger in self.mergers.values()),
+            "held": len(self._held),
+        }
 
     def _learns(self, index: int) -> bool:
         if not self.config.learning:
@@ -592,6 +642,7 @@ class Session:
                 "phase_nmse_db": self.phase_nmse.nmse_db,
                 "phase_rmse": self.phase_nmse.rmse,
                 "counters": self.all_counters(),
+                "queued": self.queued(),
                 "samples_seen": int(getattr(self.identifier.model, "n_samples_seen_", 0)),
                 **({"channels": self._channel_status()} if self.mimo else {}),
             }

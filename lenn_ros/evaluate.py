@@ -115,9 +115,10 @@ class BagEvaluation:
         }
 
 
-def identifier_from_params(path: str | None) -> tuple[Identifier, dict]:
-    """The identifier a params file describes, and every node value (defaults filled in)."""
-    values = read_params_file(path) if path else {}
+def identifier_from_params(path: str | None, node: str = "/identifier") -> tuple[Identifier, dict]:
+    """The identifier a params file describes for the node ``node`` (fully qualified, rcl's matching rules,
+    as the node itself is given its parameters), and every node value (defaults filled in)."""
+    values = read_params_file(path, node) if path else {}
     resolved, network = resolve(values)
     values = {**_NODE_DEFAULTS, **values}
     # the fields say how many channels (MIMO): node-level values, which resolve() leaves out
@@ -153,9 +154,9 @@ def _as_node_builds_it(identifier: Identifier, values: dict[str, Any], source: s
     return identifier
 
 
-def _configuration(path: str, params: str | None) -> tuple[Identifier, dict[str, Any]]:
+def _configuration(path: str, params: str | None, node: str = "/identifier") -> tuple[Identifier, dict[str, Any]]:
     if params:
-        return identifier_from_params(params)
+        return identifier_from_params(params, node)
     recorded = [message for message in bags.iter_messages(path, [topics.IDENTIFIER_CONFIG])]
     if not recorded:
         raise EvaluateError(
@@ -266,10 +267,13 @@ def _in_index_order(messages: list, names: dict[str, str]) -> list:
 
 
 def evaluate_bag(
-    path: str, params: str | None = None, test_from: int | None = None
+    path: str, params: str | None = None, test_from: int | None = None, node: str = "/identifier"
 ) -> BagEvaluation | MimoBagEvaluation:
-    """Train on the bag's training phase, score the frozen model on its test phase."""
-    identifier, values = _configuration(path, params)
+    """Train on the bag's training phase, score the frozen model on its test phase.
+
+    ``node``: whose section of the params file applies (``/robot1/identifier``), by rcl's rules.
+    """
+    identifier, values = _configuration(path, params, node)
     session = _session(identifier, values)
     index, u, y, learn, start, source = _samples(path, session, values, test_from)
     if isinstance(identifier, MimoIdentifier):
@@ -401,7 +405,7 @@ def _score(identifier: Identifier, index: np.ndarray, u: np.ndarray, y: np.ndarr
 
 
 def main(args) -> int:
-    result = evaluate_bag(args.bag, args.params, args.test_from)
+    result = evaluate_bag(args.bag, args.params, args.test_from, getattr(args, "node", "/identifier"))
     if isinstance(result, MimoBagEvaluation):
         return report_mimo(args, result)
     if args.plot:

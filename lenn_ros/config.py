@@ -126,6 +126,15 @@ NODE_PARAMETERS = [
     ),
     Parameter("use_header_stamp", True, "time a message by its header stamp when it has one (else receive time)"),
     Parameter("lone_timeout", 3.0, "warn when one input arrives alone this many seconds", 0.1, 3600.0),
+    Parameter(
+        "max_lag",
+        0.5,
+        "stamp/sample overload: a message that waited longer than this many seconds in its queue is shed "
+        "unprocessed (counted shed), so the node keeps up with the newest (0 = never shed; sequence never sheds)",
+        0.0,
+        3600.0,
+        live=True,
+    ),
     Parameter("warn_period", 5.0, "seconds between repeats of one kind of warning", 0.0, 3600.0, live=True),
 ]
 

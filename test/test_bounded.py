@@ -99,3 +99,37 @@ def test_a_merger_keeps_at_most_window_groups(mode: str) -> None:
         merger.add(0, [1.0], 1000.0 + k / RATE, 1000.0 + k / RATE, sequence=k + 1)
     assert merger.queued <= 501
     assert merger.counters["overflow"] + merger.counters["merge_dropped"] + merger.queued == 5000
+
+
+# -- overload: the newest win (issue 18, item 3; the node over DDS: test_overload.py) -----------
+def test_a_backlog_is_shed_down_to_the_newest_and_counted() -> None:
+    """A queue 0.6 s behind: shed until a message is fresh (10 % of the limit), then all processed again."""
+    live = session("sample")
+    live.config.queue_depth = 10_000
+    now, admitted = 2000.0, []
+    for k in range(7000):  # 1 kHz of arrivals, the node reaching them 0.6 s late and catching up 10x faster
+        received = now - 0.6 + k * 1e-3
+        taken_at = now + k * 1e-4
+        admitted.append(live.admit(("y", 0), received, taken_at))
+    first_kept = admitted.index(True, admitted.index(False))
+    lag_then = (now + first_kept * 1e-4) - (now - 0.6 + first_kept * 1e-3)
+    assert admitted[0] is False and lag_then <= 0.05 + 1e-9  # shed down to 10 % of the 0.5 s limit
+    assert all(admitted[first_kept:])  # caught up: from there on everything is processed
+    assert live.counters["shed"] == admitted.count(False) == first_kept
+    said = [n.text for n in live.take_notices() if n.kind == "shed"]
+    assert 1 <= len(said) <= 12 and said[0].startswith("overloaded: 1 messages shed unprocessed so far")
+
+
+def test_the_lag_limit_shrinks_with_the_rate_so_the_middleware_never_drops_first() -> None:
+    from lenn_ros.core.overload import Shedder
+
+    shedder = Shedder(max_lag=0.5, depth=10_000)
+    assert shedder.limit(1000.0) == 0.5  # 10 s to fill the queue: max_lag decides
+    assert shedder.limit(40_000.0) == 0.125  # a 40 kHz burst fills it in 0.25 s: shed at half that
+    assert Shedder(max_lag=0.5, depth=0).limit(40_000.0) == 0.5  # KEEP_ALL or unknown depth
+
+
+def test_sequence_mode_never_sheds() -> None:
+    live = session("sequence")
+    assert all(live.admit(("y", 0), 100.0, 100.0 + lag) for lag in (0.1, 5.0, 60.0))
+    assert live.counters["shed"] == 0

@@ -43,13 +43,14 @@ from lenn_ros.core.alignment import GridSampler, Pair, StampAligner
 from lenn_ros.core.merging import TopicMerger, default_max_age
 from lenn_ros.core.metrics import ChannelsNMSE, RunningNMSE
 from lenn_ros.core.mimo import MimoIdentifier, MimoStepResult
+from lenn_ros.core.overload import Shedder
 from lenn_ros.core.pairing import Pairer, U, Y, screen, screen_values
 from lenn_ros.core.structure import Identifier, StepResult
 
 PAIRING_MODES = ("sequence", "stamp", "sample")
 SESSION_COUNTERS = (
     "u_messages", "y_messages", "nan", "out_of_range", "clipped",
-    "no_sequence", "misaligned", "refused", "lone_u", "lone_y", "clock_offset", "held_dropped",
+    "no_sequence", "misaligned", "refused", "lone_u", "lone_y", "clock_offset", "held_dropped", "shed",
 )  # fmt: skip
 #: Pairs held (not yet learnt) while the outputs wait for readers: beyond this the oldest are dropped.
 MAX_HELD = 10_000
@@ -72,6 +73,8 @@ class SessionConfig:
     lone_timeout: float = 3.0  # say so when one input arrives alone this long
     max_clock_offset: float = 0.0  # stamp/sample: say so when the inputs' clocks differ more (0 = max(T/2, 50 ms))
     warn_period: float = 5.0  # s of sample time between repeats of a notice said per sample (clipped_inputs)
+    max_lag: float = 0.5  # live: a message that waited longer in its queue is shed (0 = never; see core.overload)
+    queue_depth: int = 0  # live: the subscription queues' depth (0: unknown, max_lag alone)
     u_limit: float = 1.0e3
     y_limit: float = 1.0e3
     out_of_range: str = "reject"
@@ -164,8 +167,34 @@ class Session:
         self._stamped = {U: False, Y: False}
         self._offset_checks = 0
         self.clock_offset: float | None = None  # median lag of y_p minus that of u while it stands, s
+        self.shedder = Shedder(config.max_lag, config.queue_depth)
 
     # -- input -------------------------------------------------------------------------------
+    def admit(self, queue: object, received: float, now: float) -> bool:
+        """Whether a message taken from ``queue`` (received at ``received``, taken at ``now``, system clock, s)
+        is processed, or shed because the node is behind (:mod:`~lenn_ros.core.overload`); shed ones are
+        counted and said at the first and each time their count doubles.
+
+        Never in ``sequence`` mode: its one lockstep publisher waits for the identifier (it
+        cannot flood it), and a sample shed there would be a gap where offline has none.
+        """
+        if self.pairer is not None:
+            return True
+        shedder = self.shedder
+        shedder.max_lag, shedder.depth = self.config.max_lag, self.config.queue_depth
+        if shedder.admit(queue, received, now):
+            return True
+        self.counters["shed"] = shedder.shed
+        self._say_doubling(
+            "shed",
+            shedder.shed,
+            f"overloaded: {shedder.shed} messages shed unprocessed so far (this one waited {shedder.lag:.3f} s in its "
+            f"queue, more than max_lag {self.config.max_lag:g} s or half the time its queue of "
+            f"{self.config.queue_depth or 'unknown depth'} takes to fill at this rate): messages arrive faster than "
+            "the node can learn from them, so it keeps up with the newest",
+        )
+        return False
+
     def offer(
         self,
         channel: str,
@@ -643,6 +672,7 @@ class Session:
                 "phase_rmse": self.phase_nmse.rmse,
                 "counters": self.all_counters(),
                 "queued": self.queued(),
+                "lag_s": self.shedder.lag,
                 "samples_seen": int(getattr(self.identifier.model, "n_samples_seen_", 0)),
                 **({"channels": self._channel_status()} if self.mimo else {}),
             }

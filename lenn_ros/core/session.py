@@ -179,6 +179,7 @@ class Session:
         cannot flood it), and a sample shed there would be a gap where offline has none.
         """
         if self.pairer is not None:
+            self.shedder.lag = now - received  # (still shown in status)
             return True
         shedder = self.shedder
         shedder.max_lag, shedder.depth = self.config.max_lag, self.config.queue_depth

@@ -216,6 +216,8 @@ class _WaitSetLoop:
 
     def __init__(self, nodes: list[Node], executor: SingleThreadedExecutor) -> None:
         self.nodes, self.executor = nodes, executor
+        for node in nodes:
+            node.loop_takes_messages = True  # a callback need not take what waits: this loop does (_take_all)
         self._stack = contextlib.ExitStack()
         self._snapshot: tuple[tuple[Any, ...], ...] = ()
         self._subscriptions: list[tuple[Any, Any, Any, bool, bool]] = []

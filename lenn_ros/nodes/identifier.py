@@ -114,6 +114,7 @@ class IdentifierNode(Node):
     #: messages (run_node). A reader that keeps up has them already (acknowledgements wait for
     #: the middleware's next heartbeat, up to 3 s with Fast DDS); the exit must come within 2 s
     #: of SIGINT, and the interpreter's own teardown takes 0.3-0.6 s of them.
+    loop_takes_messages = False  # set by run_node's wait-set loop (see _on_message)
     _EXIT_BUDGET = 1.2
     _ACK_FLOOR = 0.4
     _drained_for = 0.0
@@ -406,10 +407,14 @@ class IdentifierNode(Node):
         The executor rebuilds its wait set in Python for each message it hands over
         (most of the cost at kilohertz rates); taking what is queued straight from the
         subscriptions handles a burst in one wake-up. Pairing does not depend on the
-        order in which u and y_p are taken (index, stamp or time decide).
+        order in which u and y_p are taken (index, stamp or time decide). Under the wait-set
+        loop, which takes what waits itself, a message the executor hands over (with a timer
+        or a service due) is just offered: the service behind it in the executor's list
+        comes sooner.
         """
         self._offer(channel, message, info, part)
-        self._drain()
+        if not self.loop_takes_messages:
+            self._drain()
         self._emit_notices()
 
     def drain(self, _executor: Any = None) -> None:

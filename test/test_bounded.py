@@ -83,9 +83,9 @@ def test_held_pairs_are_capped_while_the_outputs_have_no_readers() -> None:
         live.offer(U, 0.2, t, received=t + 0.001)
         live.offer(Y, 0.1, t, received=t + 0.002)
     assert live.held == MAX_HELD
-    dropped = live.counters["held_dropped"]
+    dropped = live.counters["held_overflow"]
     assert dropped >= 2 * MAX_HELD - 5  # (the last few wait in the grid for a later measurement)
-    said = [notice.text for notice in live.take_notices() if notice.kind == "held_dropped"]
+    said = [notice.text for notice in live.take_notices() if notice.kind == "held_overflow"]
     assert 1 <= len(said) <= 16 and f"{MAX_HELD} wait for the outputs' readers" in said[0]
     samples = live.release()
     assert len(samples) == MAX_HELD and samples[0].index > dropped  # the newest were kept

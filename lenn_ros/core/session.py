@@ -50,7 +50,7 @@ from lenn_ros.core.structure import Identifier, StepResult
 PAIRING_MODES = ("sequence", "stamp", "sample")
 SESSION_COUNTERS = (
     "u_messages", "y_messages", "nan", "out_of_range", "clipped",
-    "no_sequence", "misaligned", "refused", "lone_u", "lone_y", "clock_offset", "held_dropped", "shed",
+    "no_sequence", "misaligned", "refused", "lone_u", "lone_y", "clock_offset", "held_overflow", "shed",
 )  # fmt: skip
 #: Pairs held (not yet learnt) while the outputs wait for readers: beyond this the oldest are dropped.
 MAX_HELD = 10_000
@@ -495,11 +495,11 @@ class Session:
             excess = len(self._held) - MAX_HELD
             if excess > 0:  # the readers never came: keep the newest
                 del self._held[:excess]
-                self.counters["held_dropped"] += excess
+                self.counters["held_overflow"] += excess
                 self._say_doubling(
-                    "held_dropped",
-                    self.counters["held_dropped"],
-                    f"{self.counters['held_dropped']} held pairs dropped, never learnt: {MAX_HELD} wait for the "
+                    "held_overflow",
+                    self.counters["held_overflow"],
+                    f"{self.counters['held_overflow']} held pairs dropped, never learnt: {MAX_HELD} wait for the "
                     "outputs' readers (wait_for_*_subscribers) and no more are kept (the newest are)",
                 )
             return []

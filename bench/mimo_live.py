@@ -26,12 +26,11 @@ import time
 from pathlib import Path
 
 import numpy as np
-import yaml
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from lenn_ros.config import build_identifier, identifier_parameters  # noqa: E402
+from lenn_ros.config import build_identifier, identifier_parameters, read_params_file  # noqa: E402
 from lenn_ros.core.evaluation import simulate_mimo  # noqa: E402
 from lenn_ros.core.metrics import nmse_db  # noqa: E402
 from lenn_ros.core.plants import narendra_mimo_plant  # noqa: E402
@@ -46,7 +45,7 @@ SISO_REMAPS = (
 )
 #: The identifier's configuration: the shipped params file (bench/make_configs.py writes it)
 CONFIG = REPO / "config" / "narendra2x2_lenn.yaml"
-MIMO_VALUES = yaml.safe_load(CONFIG.read_text())["/**/identifier"]["ros__parameters"]
+MIMO_VALUES = read_params_file(CONFIG, "/identifier")  # the shipped file, as the node is given it
 
 
 def _node(module: str, *params: str, params_file: Path | None = None, ros_args: tuple[str, ...] = ()):

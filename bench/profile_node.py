@@ -25,7 +25,7 @@ def main() -> int:
     profiler = cProfile.Profile(time.thread_time)
     profiler.enable()
     try:
-        code = identifier.main([sys.argv[0], *sys.argv[2:]])
+        code = identifier.main([sys.argv[0], *sys.argv[2:]], exit_process=False)  # (the profile is written after)
     finally:
         profiler.disable()
         profiler.dump_stats(output)

@@ -153,6 +153,13 @@ def _add_evaluate(commands: Any) -> None:
         "as in the node: a relative weights_in is taken from the current directory, as the node does",
     )
     p.add_argument(
+        "--node",
+        default="/identifier",
+        metavar="NAME",
+        help="fully qualified name of the identifier whose sections of --params apply, by ROS's own rules "
+        "(default /identifier; e.g. /robot1/identifier: a /robot2/identifier: section is not its)",
+    )
+    p.add_argument(
         "--test-from",
         type=int,
         metavar="K",

@@ -70,7 +70,23 @@ NODE_PARAMETERS = [
     Parameter("report_every", 100, "publish the running NMSE every N errors", 1, 10**9, live=True),
     Parameter("status_period", 1.0, "seconds between status messages", 0.05, 3600.0),
     Parameter("health_interval", 1000, "samples per divergence check", 10, 10**7),
-    Parameter("divergence_ratio", 100.0, "roll back if block MSE > ratio x var(y_p)", 1.0, 1e12, live=True),
+    Parameter(
+        "divergence_ratio",
+        100.0,
+        "roll back if block MSE > ratio x var(target) (the larger of the block's and the one learnt while it moved)",
+        1.0,
+        1e12,
+        live=True,
+    ),
+    Parameter(
+        "resume_after",
+        10,
+        "after a divergence, learning resumes by itself from the healthy state after this many health_interval "
+        "blocks of samples, doubled for each divergence that follows (0 = stay off until learning:=true)",
+        0,
+        10**6,
+        live=True,
+    ),
     # -- where u and y_p come from (issue 9: a real robot's topics) --
     Parameter("u_type", "std_msgs/msg/Float64", "message type on u (e.g. std_msgs/msg/Float64MultiArray)"),
     Parameter("y_type", "std_msgs/msg/Float64", "message type on y_p (e.g. sensor_msgs/msg/JointState)"),
@@ -110,6 +126,15 @@ NODE_PARAMETERS = [
     ),
     Parameter("use_header_stamp", True, "time a message by its header stamp when it has one (else receive time)"),
     Parameter("lone_timeout", 3.0, "warn when one input arrives alone this many seconds", 0.1, 3600.0),
+    Parameter(
+        "max_lag",
+        0.5,
+        "stamp/sample overload: a message that waited longer than this many seconds in its queue is shed "
+        "unprocessed (counted shed), so the node keeps up with the newest (0 = never shed; sequence never sheds)",
+        0.0,
+        3600.0,
+        live=True,
+    ),
     Parameter("warn_period", 5.0, "seconds between repeats of one kind of warning", 0.0, 3600.0, live=True),
 ]
 
@@ -388,14 +413,47 @@ def _coefficients(values: Any) -> tuple[float, ...]:
     return () if all(c == 0.0 for c in coefficients) else coefficients
 
 
-def read_params_file(path: str | Path, node_name: str = "identifier") -> dict[str, Any]:
-    """The ``ros__parameters`` for ``node_name`` in a ROS 2 params file.
+def read_params_file(path: str | Path, node: str = "/identifier") -> dict[str, Any]:
+    """The ``ros__parameters`` a ROS 2 params file gives the node ``node``, by rcl's rules.
 
-    Accepts the keys ROS 2 itself matches: ``/**`` (any node), ``/**/identifier``,
-    ``identifier``, ``/identifier`` and ``/ns/identifier`` (any namespace); several
-    matching sections are merged, the more specific one winning, as ROS 2 does.
+    ``node`` is the fully qualified name (``/robot1/identifier``; a bare name is in the
+    root namespace). See :func:`read_params_files`: one file is the case of one.
     """
-    path = Path(path)
+    return read_params_files([path], node)
+
+
+def read_params_files(paths: list[str | Path] | tuple[str | Path, ...], node: str = "/identifier") -> dict[str, Any]:
+    """The parameters rcl gives ``node`` from these files (``--params-file`` after ``--params-file``).
+
+    rcl's rules, as rclpy applies them (checked against rclpy in test_params_keys.py):
+    every section whose key matches the node (:func:`node_key_matches`: ``/**``,
+    ``/**/identifier``, ``/robot1/*``, ``identifier`` = the root namespace's) applies, in
+    the order the keys first appear over the files, a later one overriding an earlier one
+    name by name; a key repeated (in the file or a later file) is merged into its first
+    place. No "most specific wins": ``/**/identifier`` above ``/**`` is overridden by it.
+    ``/robot1/identifier`` and ``/robot2/identifier`` are two nodes, never merged.
+    """
+    name = "/" + str(node).strip().lstrip("/")
+    sections: dict[str, dict[str, Any]] = {}  # key as written -> its parameters, in first-appearance order
+    for path in paths:
+        for key, parameters in _params_sections(Path(path)).items():
+            sections.setdefault(key, {}).update(parameters)
+    matched = [key for key in sections if node_key_matches(key, name)]
+    if not matched:
+        shown = ", ".join(sections) or "none"
+        files = ", ".join(str(path) for path in paths)
+        raise ConfigError(
+            f"params file {files} has no section for the node {name} (its keys: {shown}): name a section '/**:' "
+            f"(any node), '/**/{name.rsplit('/', 1)[-1]}:' or '{name}:', each with 'ros__parameters:'"
+        )
+    merged: dict[str, Any] = {}
+    for key in matched:
+        merged.update(sections[key])
+    return merged
+
+
+def _params_sections(path: Path) -> dict[str, dict[str, Any]]:
+    """A params file's sections: key -> its flattened ``ros__parameters`` (a file ROS would refuse is an error)."""
     try:
         document = yaml.safe_load(path.read_text())
     except FileNotFoundError:
@@ -406,25 +464,15 @@ def read_params_file(path: str | Path, node_name: str = "identifier") -> dict[st
         raise ConfigError(f"params file {path} is not valid YAML: {str(error).splitlines()[0]}") from None
     if not isinstance(document, dict):
         raise ConfigError(f"params file {path} must map node names to {{ros__parameters: ...}}")
-    merged: dict[str, Any] = {}
-    found = False
-    for key in sorted(document, key=lambda k: _specificity(str(k), node_name)):
-        if _specificity(str(key), node_name) < 0:
-            continue
-        section = document[key]
+    sections = {}
+    for key, section in document.items():
         if isinstance(section, dict) and isinstance(section.get("ros__parameters"), dict):
-            merged.update(_flatten(section["ros__parameters"]))
-            found = True
-    if not found:
-        raise ConfigError(
-            f"params file {path} has no section for the node: start it with '/**:' (any node) "
-            f"or '{node_name}:', then 'ros__parameters:'"
-        )
-    return merged
+            sections[str(key).strip()] = _flatten(section["ros__parameters"])
+    return sections
 
 
 def node_key_matches(key: str, fully_qualified_name: str) -> bool:
-    """Whether a params-file key addresses a node, by rcl's rules.
+    """Whether a params-file key addresses a node, by rcl's rules: the one matcher of the package.
 
     ``*`` stands for one name token, ``**`` for any number of them (none included); a
     key without a leading ``/`` is taken from the root namespace.
@@ -442,6 +490,11 @@ def node_key_matches(key: str, fully_qualified_name: str) -> bool:
     return match(0, 0)
 
 
+def params_files(argv: list[str]) -> list[str]:
+    """The ``--params-file`` paths in a command line, in order."""
+    return [argv[i + 1] for i, argument in enumerate(argv[:-1]) if argument == "--params-file"]
+
+
 def unmatched_params_files(argv: list[str], fully_qualified_name: str) -> list[tuple[str, list[str]]]:
     """The ``--params-file`` files in ``argv`` with no section for this node, and their keys.
 
@@ -449,28 +502,14 @@ def unmatched_params_files(argv: list[str], fully_qualified_name: str) -> list[t
     defaults while the user believes their file is in force.
     """
     unmatched = []
-    for position, argument in enumerate(argv[:-1]):
-        if argument != "--params-file":
-            continue
-        path = argv[position + 1]
+    for path in params_files(argv):
         try:
-            document = yaml.safe_load(Path(path).read_text())
-        except (OSError, yaml.YAMLError):
+            keys = list(_params_sections(Path(path)))
+        except ConfigError:
             continue  # rclpy itself refuses a file it cannot read, with its own message
-        if isinstance(document, dict) and not any(node_key_matches(key, fully_qualified_name) for key in document):
-            unmatched.append((path, [str(key) for key in document]))
+        if not any(node_key_matches(key, fully_qualified_name) for key in keys):
+            unmatched.append((path, keys))
     return unmatched
-
-
-def _specificity(key: str, node_name: str) -> int:
-    """-1: the key does not address the node; else higher = more specific."""
-    key = key.strip()
-    if key in ("/**", "**"):
-        return 0
-    last = key.rstrip("/").rsplit("/", 1)[-1]
-    if last != node_name:
-        return -1
-    return 1 if key.startswith("/**") else 2
 
 
 def _flatten(parameters: dict[str, Any], prefix: str = "") -> dict[str, Any]:

@@ -90,10 +90,10 @@ class BagEvaluation:
             )
         if self.counters.get("diverged", 0):
             found.append(
-                f"learning diverged ({self.counters['diverged']} time(s)): the weights were rolled "
-                "back to the last healthy block and learning stopped, so the test scores the weights from before "
-                "the divergence; lower alpha (or nlms_step), set y_scale/u_scale/offsets for the signals, or use "
-                "lenn-ros fit"
+                f"learning diverged ({self.counters['diverged']} time(s), resumed {self.counters.get('resumed', 0)} "
+                "time(s)): the weights were rolled back to the last healthy block and learning paused (resuming "
+                "after resume_after blocks), so the test scores weights learnt around the divergence; lower alpha "
+                "(or nlms_step), set y_scale/u_scale/offsets for the signals, or use lenn-ros fit"
             )
         return found + list(self.evaluation.free_run_warnings)
 
@@ -116,9 +116,10 @@ class BagEvaluation:
         }
 
 
-def identifier_from_params(path: str | None) -> tuple[Identifier, dict]:
-    """The identifier a params file describes, and every node value (defaults filled in)."""
-    values = read_params_file(path) if path else {}
+def identifier_from_params(path: str | None, node: str = "/identifier") -> tuple[Identifier, dict]:
+    """The identifier a params file describes for the node ``node`` (fully qualified, rcl's matching rules,
+    as the node itself is given its parameters), and every node value (defaults filled in)."""
+    values = read_params_file(path, node) if path else {}
     resolved, network = resolve(values)
     values = {**_NODE_DEFAULTS, **values}
     # the fields say how many channels (MIMO): node-level values, which resolve() leaves out
@@ -140,6 +141,7 @@ def _as_node_builds_it(identifier: Identifier, values: dict[str, Any], source: s
     """What the node's ``_build_model`` adds to the bare identifier: divergence guard and start weights."""
     identifier.health_interval = int(values["health_interval"])
     identifier.divergence_ratio = float(values["divergence_ratio"])
+    identifier.resume_after = int(values["resume_after"])
     if values.get("weights_in"):
         path = weights_path(values["weights_in"])
         if not path.is_file():
@@ -153,10 +155,11 @@ def _as_node_builds_it(identifier: Identifier, values: dict[str, Any], source: s
     return identifier
 
 
-def configuration(path: str, params: str | None) -> tuple[Identifier, dict[str, Any]]:
-    """The identifier and node values a recording is read with: the params file given, else its identifier_config."""
+def configuration(path: str, params: str | None, node: str = "/identifier") -> tuple[Identifier, dict[str, Any]]:
+    """The identifier and node values a recording is read with: the params file given (``node``'s sections of
+    it, by rcl's rules), else its identifier_config."""
     if params:
-        return identifier_from_params(params)
+        return identifier_from_params(params, node)
     recorded = [message for message in bags.iter_messages(path, [topics.IDENTIFIER_CONFIG])]
     if not recorded:
         raise EvaluateError(
@@ -164,6 +167,7 @@ def configuration(path: str, params: str | None) -> tuple[Identifier, dict[str, 
             "params file the identifier ran with (e.g. config/example1_lenn.yaml)"
         )
     values = json.loads(recorded[-1].message.data)
+    values.setdefault("resume_after", 0)  # recorded before learning resumed by itself: it never did live
     network = values.pop("network", "lenn")
     resolved_topics = values.pop(RESOLVED_TOPICS, {})
     model_values, _ = resolve({**{k: v for k, v in values.items() if k not in _NODE_DEFAULTS}, "network": network})
@@ -282,10 +286,13 @@ def _in_index_order(messages: list, names: dict[str, str]) -> list:
 
 
 def evaluate_bag(
-    path: str, params: str | None = None, test_from: int | None = None
+    path: str, params: str | None = None, test_from: int | None = None, node: str = "/identifier"
 ) -> BagEvaluation | MimoBagEvaluation:
-    """Train on the bag's training phase, score the frozen model on its test phase."""
-    identifier, values = configuration(path, params)
+    """Train on the bag's training phase, score the frozen model on its test phase.
+
+    ``node``: whose section of the params file applies (``/robot1/identifier``), by rcl's rules.
+    """
+    identifier, values = configuration(path, params, node)
     session = make_session(identifier, values)
     index, u, y, learn, start, source = _samples(path, session, values, test_from)
     if isinstance(identifier, MimoIdentifier):
@@ -417,7 +424,7 @@ def _score(identifier: Identifier, index: np.ndarray, u: np.ndarray, y: np.ndarr
 
 
 def main(args) -> int:
-    result = evaluate_bag(args.bag, args.params, args.test_from)
+    result = evaluate_bag(args.bag, args.params, args.test_from, getattr(args, "node", "/identifier"))
     if isinstance(result, MimoBagEvaluation):
         return report_mimo(args, result)
     if args.plot:

@@ -18,7 +18,6 @@ from lenn_ros.core import kernels
 from lenn_ros.core.evaluation import simulate, train_and_test
 from lenn_ros.core.examples import EXAMPLES
 from lenn_ros.core.expansions import expand
-from lenn_ros.core.networks import FunctionalLinkNetwork
 from lenn_ros.core.plants import example4_f
 from lenn_ros.core.signals import noise_std
 from lenn_ros.core.structure import Identifier
@@ -111,7 +110,7 @@ def test_rls_bounded_trace_stops_windup_during_zero_excitation():
     model must learn again afterwards; the same stretch without the bound winds up
     (the control: it shows that the bound is what stops it).
     """
-    cross, forgetting, max_trace = 2, 0.99, FunctionalLinkNetwork().max_trace  # the default bound, 1e6
+    cross, forgetting, max_trace = 2, 0.99, 1.0e6  # the old fixed default (the model's is now its prior's trace)
     x, targets = _example4_data(1_000_000, 1, rest=slice(450_000, 550_000))
     assert not np.any(x[450_010:549_990])  # rows are k - 2: all inputs zero once the plant settled
     n = _example4_features(x[:1], cross).shape[1]

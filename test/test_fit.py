@@ -183,7 +183,9 @@ def test_params_file_keys_and_typos(tmp_path: Path) -> None:
     for key in ("/**", "/**/identifier", "identifier", "/robot/identifier"):
         path = tmp_path / "p.yaml"
         path.write_text(yaml.safe_dump({key: {"ros__parameters": {"y_lags": 2}}}))
-        assert read_params_file(path)["y_lags"] == 2
+        assert read_params_file(path, "/robot/identifier" if key.startswith("/robot") else "/identifier")["y_lags"] == 2
+    with pytest.raises(ConfigError, match="no section for the node /identifier"):
+        read_params_file(path)  # /robot/identifier is not /identifier (rcl's rules, issue 18)
     path.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"y_lag": 2, "u_type": "std_msgs/msg/Float64"}}}))
     with pytest.raises(ConfigError, match=r"'y_lag'.*did you mean 'y_lags'"):
         resolve(read_params_file(path))

@@ -317,3 +317,23 @@ def test_the_compiled_joint_free_run_equals_the_python_one_and_flags_the_same_di
     slow = identifier.free_run(series.u, series.y, 3000)
     assert fast_at is not None and fast_at == identifier.last_free_run["diverged_at"]
     np.testing.assert_array_equal(np.isnan(fast), np.isnan(slow))
+
+
+# -- name[*] picks joints by name only (issue 18, item 4) ---------------------------------------
+def test_all_joints_are_picked_by_name_never_by_position() -> None:
+    from types import SimpleNamespace
+
+    from lenn_ros.core.fields import FieldError, compile_vector
+
+    extract = compile_vector("position[*]", ["shoulder", "elbow"])
+    reordered = SimpleNamespace(name=["elbow", "wrist", "shoulder"], position=[0.3, 9.0, 0.5])
+    assert extract(reordered).tolist() == [0.5, 0.3]
+    renamed = SimpleNamespace(name=["shoulder", "elbow_joint"], position=[0.5, 0.3])  # the counts agree
+    with pytest.raises(FieldError, match=r"no joint 'elbow' in name \['shoulder', 'elbow_joint'\].*never by position"):
+        extract(renamed)  # on main: taken by position, elbow_joint's value learnt as elbow's
+    with pytest.raises(FieldError, match="no joint 'shoulder', 'elbow'"):
+        extract(SimpleNamespace(name=[], position=[0.5, 0.3]))  # a driver that names nothing
+    with pytest.raises(FieldError, match="1 values for the 2 names"):
+        extract(SimpleNamespace(name=["elbow", "shoulder"], position=[0.3]))
+    array = compile_vector("data[*]", ["a", "b"])  # no name list: the array as it is
+    assert array(SimpleNamespace(data=[1.0, 2.0])).tolist() == [1.0, 2.0]

@@ -18,6 +18,11 @@ different nodes, at their own rates and phases, so two other rules are offered:
   one is younger than ``y_max_age``, then it is reused): a lost or late
   measurement never becomes a repeated or shifted one.
 
+Both keep at most ``max_queue`` halves per input (:data:`MAX_QUEUE`): while one input is
+silent (a controller not yet started, a driver that stalled) the other's halves would
+otherwise pile up without end. The oldest go first (the newest win) and are counted
+``overflow``.
+
 Both emit :class:`Pair` with an *index* that advances by the number of sample periods
 elapsed, so a lost sample shows as a gap to the identifier (which then restarts its
 regressor history) instead of silently joining two samples that were not adjacent.
@@ -38,6 +43,9 @@ from statistics import median
 from typing import ClassVar
 
 U, Y = "u", "y"
+#: Halves kept per input while they wait for the other input: 10 s at 1 kHz, more than any
+#: max_delay a pairing waits for a late partner, and a few hundred kB at most.
+MAX_QUEUE = 10_000
 
 
 @dataclass(frozen=True)
@@ -68,8 +76,9 @@ class StampAligner:
     slop: float = 0.0
     max_delay: float = 0.5
     jump_back: float = 1.0
+    max_queue: int = MAX_QUEUE
     counters: dict[str, int] = field(
-        default_factory=lambda: _counters("paired", "dropped_u", "dropped_y", "stale", "clock_jumps")
+        default_factory=lambda: _counters("paired", "dropped_u", "dropped_y", "stale", "clock_jumps", "overflow")
     )
 
     def __post_init__(self) -> None:
@@ -79,6 +88,7 @@ class StampAligner:
         self._index = 0
         self._periods: deque[float] = deque(maxlen=31)
         self.restarted = False  # set on a clock jump; the caller restarts the model's history
+        self.overflowed: str | None = None  # the input whose queue overflowed last
 
     def add(self, channel: str, value: float, time: float, received: float) -> list[Pair]:
         last = self._last_time.get(channel)
@@ -89,8 +99,18 @@ class StampAligner:
                 self.counters["stale"] += 1
                 return []
         self._last_time[channel] = time
-        self._queues[channel].append(_Half(time, value, received))
+        queue = self._queues[channel]
+        queue.append(_Half(time, value, received))
+        if len(queue) > self.max_queue:  # the other input is silent: the newest win
+            queue.popleft()
+            self.counters["overflow"] += 1
+            self.overflowed = channel
         return self._match(now=received)
+
+    @property
+    def queued(self) -> int:
+        """Halves waiting for a partner, both inputs."""
+        return sum(len(queue) for queue in self._queues.values())
 
     def poll(self, now: float) -> list[Pair]:
         """Settle pairs that waited for a better candidate longer than ``max_delay``."""
@@ -170,8 +190,9 @@ class GridSampler:
     y_max_age: float = 0.0  # an old y_p may be reused this long (0: every sample needs a new y_p)
     u_max_age: float = 0.0  # 0: no limit (a command holds until replaced)
     jump_back: float = 1.0
+    max_queue: int = MAX_QUEUE
     counters: dict[str, int] = field(
-        default_factory=lambda: _counters("paired", "grid_gaps", "late", "clock_jumps")
+        default_factory=lambda: _counters("paired", "grid_gaps", "late", "clock_jumps", "overflow")
     )
 
     def __post_init__(self) -> None:
@@ -185,6 +206,7 @@ class GridSampler:
         self._y_age = self.y_max_age + self._epsilon if self.y_max_age else -math.inf
         self._u_age = self.u_max_age + self._epsilon if self.u_max_age else math.inf
         self.restarted = False
+        self.overflowed: str | None = None  # the input whose queue overflowed last
         self._reset()
 
     def _reset(self) -> None:
@@ -222,6 +244,10 @@ class GridSampler:
         position = bisect.bisect_right(times, time)
         times.insert(position, time)
         values.insert(position, value)
+        if len(times) > self.max_queue:  # nothing closes grid points while an input is silent: the newest win
+            del times[0], values[0]
+            self.counters["overflow"] += 1
+            self.overflowed = channel
         if self._offset is None and channel == Y:
             self._offset = math.fmod(time, self.period)
         if self._next_k is None and self._offset is not None and self._times[U]:
@@ -231,6 +257,11 @@ class GridSampler:
 
     def poll(self, now: float) -> list[Pair]:
         return self._close(now=now)
+
+    @property
+    def queued(self) -> int:
+        """Measurements and commands kept for grid points to come, both inputs."""
+        return sum(len(times) for times in self._times.values())
 
     def _latest(self, channel: str, time: float) -> int:
         """Position of the latest sample of ``channel`` at or before ``time`` (-1: none)."""

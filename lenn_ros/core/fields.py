@@ -230,8 +230,11 @@ def compile_vector(text: str, names: list[str] | tuple[str, ...] = ()) -> Callab
     """A function message -> vector of the channels ``text`` names (see :func:`channel_names`).
 
     ``name[*]`` on a message with a ``name`` list (JointState) picks the named joints in
-    the order of ``names`` when the message names them all (drivers reorder joints);
-    otherwise it takes the array as it is, which must hold exactly one value per channel.
+    the order of ``names``, by name only (drivers reorder joints): a name the message
+    lacks is an error, never a guess by position, even when the counts agree (a driver
+    that renamed one joint would otherwise feed its value to another channel). An array
+    without a ``name`` list beside it (``data[*]``) is taken as it is and must hold
+    exactly one value per channel.
     """
     wanted = channel_names(text, names)
     if ALL not in text:
@@ -247,11 +250,25 @@ def compile_vector(text: str, names: list[str] | tuple[str, ...] = ()) -> Callab
         values = getattr(parent, steps[-1].attribute, None)
         if values is None:
             raise FieldError(f"message has no field {steps[-1].attribute!r} ({text!r})")
-        listed = list(getattr(parent, "name", ()) or ())
-        if listed and all(name in listed for name in wanted) and len(values) == len(listed):
-            return np.array([values[listed.index(name)] for name in wanted], dtype=np.float64)
+        listed = getattr(parent, "name", None)
+        if listed is not None:
+            return _by_name(list(listed), values, wanted, text)
         if len(values) != len(wanted):
             raise FieldError(f"{text!r} has {len(values)} elements, the model has {len(wanted)} channels {wanted}")
         return np.asarray(values, dtype=np.float64).copy()
 
     return extract
+
+
+def _by_name(listed: list[str], values: Any, wanted: list[str], text: str) -> np.ndarray:
+    """The values of the ``wanted`` joints from a message's ``name`` list and its array, by name only."""
+    missing = [name for name in wanted if name not in listed]
+    if missing:
+        raise FieldError(
+            f"no joint {', '.join(map(repr, missing))} in name {listed} ({text!r}): joints are picked by name, "
+            "never by position (u_names / y_names must be the message's names)"
+        )
+    positions = [listed.index(name) for name in wanted]
+    if max(positions) >= len(values):
+        raise FieldError(f"{text!r}: {len(values)} values for the {len(listed)} names {listed}")
+    return np.array([values[position] for position in positions], dtype=np.float64)

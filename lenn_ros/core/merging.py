@@ -15,6 +15,9 @@ one topic. How parts belong together follows the pairing mode:
   emitted whenever one part arrives, once every part has arrived at least once and
   none is older than ``max_age`` (receive time) than the newest: a silent topic stops
   the merged stream (``merge_stale``) instead of feeding a value frozen long ago.
+
+At most ``window`` groups wait at once in every mode; beyond that the oldest is dropped
+(counted ``overflow``).
 """
 
 from __future__ import annotations
@@ -54,7 +57,9 @@ class TopicMerger:
     max_delay: float = 0.5
     max_age: float = 0.5
     window: int = 1000
-    counters: dict[str, int] = field(default_factory=lambda: {"merged": 0, "merge_dropped": 0, "merge_stale": 0})
+    counters: dict[str, int] = field(
+        default_factory=lambda: {"merged": 0, "merge_dropped": 0, "merge_stale": 0, "overflow": 0}
+    )
 
     def __post_init__(self) -> None:
         self._groups: dict[object, _Group] = {}
@@ -78,6 +83,9 @@ class TopicMerger:
             return self._hold(part, value, time, received)
         key: object = sequence if self.mode == "sequence" else self._stamp_key(part, time)
         group = self._groups.setdefault(key, _Group(time, received))
+        if len(self._groups) > self.window:  # (a long max_delay at a high rate): the oldest group goes
+            del self._groups[next(iter(self._groups))]
+            self.counters["overflow"] += 1
         group.parts[part] = value
         group.sources[part] = source_time
         released = []
@@ -123,6 +131,11 @@ class TopicMerger:
         self.counters["merged"] += 1
         value = np.concatenate([self._latest[p][0] for p in range(len(self.sizes))])
         return [Half(value, time, received)]
+
+    @property
+    def queued(self) -> int:
+        """Incomplete groups waiting for their other parts."""
+        return len(self._groups)
 
     def flush(self) -> None:
         dropped = len(self._groups)

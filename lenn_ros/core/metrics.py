@@ -56,7 +56,8 @@ class RunningNMSE:
         delta = y - self.mean
         self.mean += delta / self.count
         self.m2 += delta * (y - self.mean)
-        self.squared_error += (y - y_hat) ** 2
+        error = y - y_hat
+        self.squared_error += error * error  # (not ** 2: a float power raises OverflowError where this is inf)
 
     def extend(self, y: np.ndarray, y_hat: np.ndarray) -> None:
         """Many samples at once (Chan's merge): the same state as :meth:`add` per sample, to rounding."""

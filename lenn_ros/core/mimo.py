@@ -282,6 +282,25 @@ class MimoIdentifier:
             identifier.divergence_ratio = float(value)
 
     @property
+    def resume_after(self) -> int:
+        return self.outputs[0].resume_after
+
+    @resume_after.setter
+    def resume_after(self, value: int) -> None:
+        for identifier in self.outputs:
+            identifier.resume_after = int(value)
+
+    @property
+    def hold_off(self) -> int:
+        """The longest pause after a divergence among the outputs (each output pauses on its own)."""
+        return max(identifier.hold_off for identifier in self.outputs)
+
+    @property
+    def resume_in(self) -> int:
+        """Samples until every paused output learns again."""
+        return max(identifier.resume_in for identifier in self.outputs if identifier.diverged) if self.diverged else 0
+
+    @property
     def counters(self) -> dict[str, int]:
         shared = ("samples", "gaps", "lost", "duplicates", "rejected")
         totals = dict(self.outputs[0].counters)
@@ -304,7 +323,7 @@ class MimoIdentifier:
             for j, identifier in enumerate(self.outputs)
         ]
         events = tuple(result.event for result in results)
-        event = "diverged" if "diverged" in events else next((e for e in events if e), "")
+        event = "diverged" if "diverged" in events else next((e for e in events if e), "")  # (or "resumed")
         return MimoStepResult(
             index=index,
             y_hat_next=_stack([result.y_hat_next for result in results]),

@@ -287,6 +287,11 @@ class FunctionalLinkNetwork(OnlineRegressor):
     ``solver`` picks the learning rule: the paper's ``"sgd"`` (gradient with
     momentum; tanh or linear output), or, for a linear output only, ``"nlms"`` and
     ``"rls"`` (recursive least squares with forgetting factor and bounded trace).
+
+    ``max_trace`` bounds trace(P) under forgetting; None (the default) bounds it at the
+    prior's, ``n_weights * initial_covariance``: a plant at rest for minutes then leaves the
+    model no less certain than before it saw any data, instead of winding P up by
+    orders of magnitude (issue 18: 60 times the prior's with the old fixed 1e6, 17 weights).
     """
 
     _state_names = ("weights_", "momentum_", "covariance_")
@@ -318,7 +323,7 @@ class FunctionalLinkNetwork(OnlineRegressor):
         nlms_step: float = 0.5,
         forgetting: float = 1.0,
         initial_covariance: float = 1000.0,
-        max_trace: float = 1.0e6,
+        max_trace: float | None = None,
         init_scale: float = 0.1,
         out_of_range: str = "clip",
         random_state: int | None = 0,
@@ -378,6 +383,13 @@ class FunctionalLinkNetwork(OnlineRegressor):
             raise ValueError("selected terms (exponents) make one combiner: use branches=None")
         if self.factors is not None:
             checked_factors(np.asarray(self.factors, dtype=np.float64), len(self.exponents), int(self.n_inputs))
+
+    @property
+    def trace_bound(self) -> float:
+        """The bound on trace(P) the RLS rule keeps: ``max_trace``, or the prior's trace when that is None."""
+        if self.max_trace is not None:
+            return float(self.max_trace)
+        return float(self.n_weights) * float(self.initial_covariance)
 
     @property
     def branch_inputs_(self) -> list[list[int]]:
@@ -489,7 +501,7 @@ class FunctionalLinkNetwork(OnlineRegressor):
                 phi,
                 d,
                 float(self.forgetting),
-                float(self.max_trace),
+                self.trace_bound,
                 learn,
                 y,
             )
@@ -546,6 +558,13 @@ class MLP(OnlineRegressor):
         if any(int(h) < 1 for h in self.hidden):
             raise ValueError("hidden layer sizes must be >= 1")
         super()._validate()
+
+    @property
+    def trace_bound(self) -> float:
+        """The bound on trace(P) the RLS rule keeps: ``max_trace``, or the prior's trace when that is None."""
+        if self.max_trace is not None:
+            return float(self.max_trace)
+        return float(self.n_weights) * float(self.initial_covariance)
 
     @property
     def branch_inputs_(self) -> list[list[int]]:

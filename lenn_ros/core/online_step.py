@@ -90,7 +90,7 @@ def _rule(
     learn: bool,
     y_out: np.ndarray,
 ) -> int:
-    """The model's rule on one pattern; ``rule`` = alpha, beta, output_scale, nlms_step, forgetting, max_trace."""
+    """The model's rule on one pattern; ``rule`` = alpha, beta, output_scale, nlms_step, forgetting, trace bound."""
     if solver == 0:
         alpha, beta, scale = rule[0], rule[1], rule[2]
         return functional_link_sgd(
@@ -451,7 +451,7 @@ class StepPlan:
         """One :func:`functional_link_step` (:func:`channel_step`: MIMO); returns its ``out`` (read it at once)."""
         state = self.state
         rule = np.array(
-            [model.alpha, model.beta, model.output_scale, model.nlms_step, model.forgetting, model.max_trace],
+            [model.alpha, model.beta, model.output_scale, model.nlms_step, model.forgetting, model.trace_bound],
             dtype=np.float64,
         )
         if self.channels:

@@ -38,6 +38,12 @@ class Pairer:
         self._restart_waiting: dict[str, dict[int, Any]] = {U: {}, Y: {}}
         self._last_released = 0
 
+    @property
+    def queued(self) -> int:
+        """Halves waiting for their partner (and, after a restart of one topic, for the other's)."""
+        waiting = sum(len(halves) for halves in self._restart_waiting.values())
+        return sum(len(pending) for pending in self._pending.values()) + waiting + len(self._restart_halves)
+
     def add(self, topic: str, index: int, value: float) -> list[tuple[int, float, float]]:
         """Offer one half; returns the pairs (index, u, y) completed by it."""
         if index <= self._last_released:

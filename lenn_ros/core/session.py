@@ -43,14 +43,17 @@ from lenn_ros.core.alignment import GridSampler, Pair, StampAligner
 from lenn_ros.core.merging import TopicMerger, default_max_age
 from lenn_ros.core.metrics import ChannelsNMSE, RunningNMSE
 from lenn_ros.core.mimo import MimoIdentifier, MimoStepResult
+from lenn_ros.core.overload import Shedder
 from lenn_ros.core.pairing import Pairer, U, Y, screen, screen_values
 from lenn_ros.core.structure import Identifier, StepResult
 
 PAIRING_MODES = ("sequence", "stamp", "sample")
 SESSION_COUNTERS = (
     "u_messages", "y_messages", "nan", "out_of_range", "clipped",
-    "no_sequence", "misaligned", "refused", "lone_u", "lone_y", "clock_offset",
+    "no_sequence", "misaligned", "refused", "lone_u", "lone_y", "clock_offset", "held_overflow", "shed",
 )  # fmt: skip
+#: Pairs held (not yet learnt) while the outputs wait for readers: beyond this the oldest are dropped.
+MAX_HELD = 10_000
 #: What rmw reports when it has no publication sequence numbers (rmw_cyclonedds: 2**64-1).
 SEQUENCE_UNSUPPORTED = (0, 2**64 - 1)
 #: Halves per input whose (receive - time) make the clock-offset estimate (a median: a stall does not move it).
@@ -70,6 +73,8 @@ class SessionConfig:
     lone_timeout: float = 3.0  # say so when one input arrives alone this long
     max_clock_offset: float = 0.0  # stamp/sample: say so when the inputs' clocks differ more (0 = max(T/2, 50 ms))
     warn_period: float = 5.0  # s of sample time between repeats of a notice said per sample (clipped_inputs)
+    max_lag: float = 0.5  # live: a message that waited longer in its queue is shed (0 = never; see core.overload)
+    queue_depth: int = 0  # live: the subscription queues' depth (0: unknown, max_lag alone)
     u_limit: float = 1.0e3
     y_limit: float = 1.0e3
     out_of_range: str = "reject"
@@ -156,13 +161,41 @@ class Session:
         self._seen_dropped = 0
         self._seen_faults = 0  # sequence mode: stale + duplicate halves already said
         self._seen_clipped = 0
+        self._said_at_count: dict[str, int] = {}  # kinds said when their count doubles: the count then
         self._clipped_said_at = -math.inf
         self._lags: dict[str, deque[float]] = {U: deque(maxlen=CLOCK_WINDOW), Y: deque(maxlen=CLOCK_WINDOW)}
         self._stamped = {U: False, Y: False}
         self._offset_checks = 0
         self.clock_offset: float | None = None  # median lag of y_p minus that of u while it stands, s
+        self.shedder = Shedder(config.max_lag, config.queue_depth)
 
     # -- input -------------------------------------------------------------------------------
+    def admit(self, queue: object, received: float, now: float) -> bool:
+        """Whether a message taken from ``queue`` (received at ``received``, taken at ``now``, system clock, s)
+        is processed, or shed because the node is behind (:mod:`~lenn_ros.core.overload`); shed ones are
+        counted and said at the first and each time their count doubles.
+
+        Never in ``sequence`` mode: its one lockstep publisher waits for the identifier (it
+        cannot flood it), and a sample shed there would be a gap where offline has none.
+        """
+        if self.pairer is not None:
+            self.shedder.lag = now - received  # (still shown in status)
+            return True
+        shedder = self.shedder
+        shedder.max_lag, shedder.depth = self.config.max_lag, self.config.queue_depth
+        if shedder.admit(queue, received, now):
+            return True
+        self.counters["shed"] = shedder.shed
+        self._say_doubling(
+            "shed",
+            shedder.shed,
+            f"overloaded: {shedder.shed} messages shed unprocessed so far (this one waited {shedder.lag:.3f} s in its "
+            f"queue, more than max_lag {self.config.max_lag:g} s or half the time its queue of "
+            f"{self.config.queue_depth or 'unknown depth'} takes to fill at this rate): messages arrive faster than "
+            "the node can learn from them, so it keeps up with the newest",
+        )
+        return False
+
     def offer(
         self,
         channel: str,
@@ -319,6 +352,13 @@ class Session:
     def _after_merge(self, channel: str, merger: TopicMerger) -> None:
         """A side's topics that do not come together: say which, and what became of the parts."""
         names = self.config.u_parts_names if channel == U else self.config.y_parts_names
+        if merger.counters["overflow"]:
+            self._say_doubling(
+                f"{channel}_overflow",
+                merger.counters["overflow"],
+                f"{merger.counters['overflow']} incomplete {'u' if channel == U else 'y_p'} groups dropped so far: "
+                f"more than {merger.window} wait for the side's other topics ({', '.join(names)})",
+            )
         seen = self._seen_merge.setdefault(channel, {"merge_dropped": 0, "merge_stale": 0})
         for kind in ("merge_dropped", "merge_stale"):
             count = merger.counters[kind]
@@ -361,6 +401,16 @@ class Session:
             if self.clock_offset is not None:
                 text += f"; the inputs' clocks also differ by {abs(self.clock_offset):.3f} s (see clock_offset)"
             self._say("clock_jump", text)
+        overflow = aligner.counters["overflow"]
+        if overflow and aligner.overflowed is not None:
+            config = self.config
+            name, other = (config.u_name, config.y_name)[:: 1 if aligner.overflowed == U else -1]
+            self._say_doubling(
+                "overflow",
+                overflow,
+                f"{overflow} messages dropped unpaired so far: {other} is silent, so {name}'s queue is full "
+                f"({aligner.max_queue} waiting for a partner; the newest are kept). Is {other} published?",
+            )
         dropped = sum(v for k, v in aligner.counters.items() if k.startswith("dropped") or k == "grid_gaps")
         if dropped > self._seen_dropped:
             what = "grid points without a new y_p (gaps)" if isinstance(aligner, GridSampler) else "unpaired halves"
@@ -442,8 +492,38 @@ class Session:
     def _process(self, pairs: list[Pair]) -> list[Sample]:
         if self.holding:
             self._held.extend(pairs)
+            excess = len(self._held) - MAX_HELD
+            if excess > 0:  # the readers never came: keep the newest
+                del self._held[:excess]
+                self.counters["held_overflow"] += excess
+                self._say_doubling(
+                    "held_overflow",
+                    self.counters["held_overflow"],
+                    f"{self.counters['held_overflow']} held pairs dropped, never learnt: {MAX_HELD} wait for the "
+                    "outputs' readers (wait_for_*_subscribers) and no more are kept (the newest are)",
+                )
             return []
         return [self._step(pair) for pair in pairs]
+
+    def _say_doubling(self, kind: str, count: int, text: str) -> None:
+        """Say a drop that may go on for hours at its first occurrence, then each time its count doubles.
+
+        Rate-limited without a clock (the offline path has none worth trusting): a handful of
+        lines per run, each with the count, which ``status`` carries anyway.
+        """
+        said = self._said_at_count.get(kind)
+        if said is None or count >= 2 * said:
+            self._said_at_count[kind] = count
+            self._say(kind, text)
+
+    def queued(self) -> dict[str, int]:
+        """What waits in the session's queues now: halves to pair, parts to merge, pairs held (all bounded)."""
+        source = self.pairer if self.pairer is not None else self.aligner
+        return {
+            "pairing": source.queued if source is not None else 0,
+            "merging": sum(merger.queued for merger in self.mergers.values()),
+            "held": len(self._held),
+        }
 
     def _learns(self, index: int) -> bool:
         if not self.config.learning:
@@ -465,13 +545,35 @@ class Session:
             self.phase_nmse.reset()
             self._say("phase", f"sample {pair.index}: {'training' if learn else 'frozen (test)'} phase")
         result = self.identifier.step(pair.index, pair.u, pair.y, learn)
-        if result.event in ("gap", "diverged"):
+        if result.event == "gap":
             self._say(result.event, f"sample {pair.index}: {result.event}; counters {self.identifier.counters}")
+        elif result.event in ("diverged", "resumed"):
+            self._say(result.event, self._divergence_text(pair.index, result.event))
         if self.identifier.counters["clipped"] > self._seen_clipped:
             self._say_clipped(pair.time)
         if result.error is not None and result.y_hat is not None:
             self.phase_nmse.add(pair.y, result.y_hat)
         return Sample(pair.index, pair.time, pair.u, pair.y, result)
+
+    def _divergence_text(self, index: int, event: str) -> str:
+        """One line for a divergence (what was done, and when learning comes back) or for a resume."""
+        identifier = self.identifier
+        counters = identifier.counters
+        if event == "resumed":
+            return (
+                f"sample {index}: learning resumes from the healthy state after the pause that followed a "
+                f"divergence ({counters['diverged']} divergence(s), {counters['resumed']} resume(s) so far)"
+            )
+        text = (
+            f"sample {index}: the model diverged (its errors grew beyond divergence_ratio x the target's variance, "
+            "or a weight would have become non-finite): weights rolled back to the last healthy state"
+        )
+        if not identifier.resume_after:
+            return text + "; learning stays off until learning:=true (resume_after is 0)"
+        return (
+            f"{text}; pausing learning for {identifier.hold_off} samples, then it resumes by itself (each "
+            f"divergence doubles the pause; {counters['diverged']} so far). If it keeps diverging, lower alpha"
+        )
 
     # -- whole series (offline) --------------------------------------------------------------------
     def run_samples(self, index: np.ndarray, u: np.ndarray, y: np.ndarray, learn: np.ndarray) -> np.ndarray:
@@ -561,18 +663,26 @@ class Session:
         return json_safe(
             {
                 "pairing": self.config.pairing,
-                "learning": bool(self.phase_learning) if self.phase_learning is not None else self.config.learning,
+                "learning": self._learning_now(),
                 "diverged": self.identifier.diverged,
+                "resume_in": self.identifier.resume_in if self.identifier.diverged else None,
                 "test_start": self.test_start,
                 "refused": self.refusal,
                 "phase_samples": self.phase_nmse.count,
                 "phase_nmse_db": self.phase_nmse.nmse_db,
                 "phase_rmse": self.phase_nmse.rmse,
                 "counters": self.all_counters(),
+                "queued": self.queued(),
+                "lag_s": self.shedder.lag,
                 "samples_seen": int(getattr(self.identifier.model, "n_samples_seen_", 0)),
                 **({"channels": self._channel_status()} if self.mimo else {}),
             }
         )
+
+    def _learning_now(self) -> bool:
+        """Whether samples are learnt now: the phase learns and the model is not paused after a divergence."""
+        phase = bool(self.phase_learning) if self.phase_learning is not None else self.config.learning
+        return phase and not self.identifier.diverged
 
     def _channel_status(self) -> dict[str, Any]:
         """Per output channel of a MIMO model: its phase NMSE and whether its model diverged."""

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import ClassVar
 
 import numpy as np
 
@@ -160,7 +161,7 @@ class StepResult:
     error: float | None = None  # e(k) = y_p(k) - y^(k), if y^(k) had been predicted
     y_hat: float | None = None  # y^(k) itself
     learned: bool = False
-    event: str = ""  # "", "gap", "duplicate", "rejected", "diverged"
+    event: str = ""  # "", "gap", "duplicate", "rejected", "diverged", "resumed"
 
 
 @dataclass
@@ -176,11 +177,26 @@ class Identifier:
 
     Divergence guard: learning proceeds in blocks of ``health_interval`` learnt
     samples. After each block the mean squared a-priori error is compared with the
-    variance of the network's target (y_p minus the known linear part) over the
-    block, i.e. with what predicting its mean would cost; above ``divergence_ratio`` times it (or if an
+    variance of the network's target (y_p minus the known linear part), i.e. with what
+    predicting its mean would cost; above ``divergence_ratio`` times it (or if an
     update would make a weight non-finite) the model goes back to the state at the
-    start of the last block that passed, learning stops and ``diverged`` is set. Predictions
+    start of the last block that passed, learning pauses and ``diverged`` is set. Predictions
     go on from the healthy model.
+
+    The variance is the larger of the block's own and the target's *learnt* variance
+    (``target_variance``): a plant at rest has a block variance of nothing (a constant
+    command, a quantised encoder), and a guard measured against that rolled back every
+    healthy model that stood still. The learnt variance is the mean over the passed
+    blocks in which the target moved (variance at least ``REST_FRACTION`` of the learnt
+    one; the last ``SCALE_MEMORY`` of them weigh most), so standing still neither lowers
+    nor raises it; until the target has moved, the declared range ``y_scale`` squared stands in.
+
+    After a divergence learning resumes by itself, from the healthy state, once
+    ``resume_after`` blocks' worth of learnable samples have passed (``resume_in`` counts
+    them down; 0 = stay paused until :meth:`mark_healthy`): a transient cause (a burst
+    of bad data, an alpha set too high and set back) does not stop learning for good.
+    Each divergence doubles the next pause (up to ``MAX_BACKOFF`` times), and
+    ``resume_after`` blocks passed in a row bring it back to one.
     """
 
     structure: ModelStructure
@@ -188,8 +204,16 @@ class Identifier:
     learning: bool = True
     health_interval: int = 1000
     divergence_ratio: float = 100.0
+    resume_after: int = 10
     counters: dict[str, int] = field(default_factory=dict)
     diverged: bool = False
+
+    #: A block whose target variance is below this fraction of the learnt one stands still.
+    REST_FRACTION: ClassVar[float] = 1e-2
+    #: Moving blocks the learnt target variance averages over (an exponential memory after them).
+    SCALE_MEMORY: ClassVar[int] = 16
+    #: The pause after a divergence grows at most to this many times ``resume_after`` blocks.
+    MAX_BACKOFF: ClassVar[int] = 64
 
     def __post_init__(self) -> None:
         for name in (
@@ -200,6 +224,7 @@ class Identifier:
             "duplicates",
             "rejected",
             "diverged",
+            "resumed",
             "clipped",
             "clipped_free_run",
         ):
@@ -213,6 +238,12 @@ class Identifier:
         self._plan: StepPlan | None = None  # the compiled per-sample path, where the model has one
         self._plan_model: OnlineRegressor | None = None  # the model the plan was made for
         self.last_free_run: dict = {}
+        self.target_variance = 0.0  # learnt while the target moved (0: not yet)
+        self._moving_blocks = 0
+        self.hold_off = 0  # learnable samples of the last pause after a divergence
+        self.resume_in = 0  # of them still to pass before learning resumes
+        self._backoff = 1
+        self._passed_since_resume = 0
         self.mark_healthy()
 
     # -- one sample ------------------------------------------------------------------
@@ -246,7 +277,7 @@ class Identifier:
 
     def _step_compiled(self, plan: StepPlan, u: float, y: float, learn: bool, result: StepResult) -> None:
         """:meth:`step`'s scoring, learning and prediction in one compiled call (same numbers)."""
-        learn = learn and not self.diverged
+        learn = self._may_learn(learn, bool(plan.state.counts[1]), result)
         out = plan.run(self.model, u, y, learn, score=True)
         if out[STATUS] == DIVERGED:
             self._on_divergence()
@@ -271,7 +302,7 @@ class Identifier:
         prediction was made, so the update is from exactly the pattern that predicted.
         """
         x_previous, linear_previous, phi_previous = self._pending
-        learn = learn and not self.diverged
+        learn = self._may_learn(learn, True, result)
         try:
             if phi_previous is None:
                 prior = float(self.model.update(x_previous, y - linear_previous, learn=learn)[0])
@@ -283,6 +314,22 @@ class Identifier:
             learn = False
             result.event = "diverged"
         self._record_score(result, y, linear_previous, prior, learn)
+
+    def _may_learn(self, learn: bool, scored: bool, result: StepResult) -> bool:
+        """Whether this sample is learnt from: not while paused after a divergence, which a scored
+        sample that asked to learn counts down; the one that ends the pause resumes learning."""
+        if not learn:
+            return False
+        if not self.diverged:
+            return True
+        if not scored or self.resume_after <= 0:
+            return False
+        if self.resume_in > 0:
+            self.resume_in -= 1
+            return False
+        self._resume()
+        result.event = "resumed"
+        return True
 
     def _record_score(self, result: StepResult, y: float, linear_previous: float, prior: float, learn: bool) -> None:
         """y^(k), e(k) into ``result``; a learnt error also into the divergence guard's block."""
@@ -352,21 +399,50 @@ class Identifier:
         self._block_errors.clear()
         self._block_targets.clear()
         mse = float(np.mean(errors * errors))
-        if not np.isfinite(mse) or mse > self.divergence_ratio * float(np.var(targets)) + 1e-12:
+        variance = float(np.var(targets))
+        reference = max(variance, self.target_variance or self.structure.y_scale**2)
+        if not np.isfinite(mse) or mse > self.divergence_ratio * reference + 1e-12:
             self._on_divergence()
             return False
         # The block's a-priori errors vouch for the weights it *started* from; the
         # weights now (after its last update) are vouched for by the next block.
         self._healthy_state = self._candidate_state
         self._candidate_state = self.model.state()
+        self._learn_variance(variance)
+        self._passed_since_resume += 1
+        if self._passed_since_resume >= self.resume_after:
+            self._backoff = 1
         return True
+
+    def _learn_variance(self, variance: float) -> None:
+        """A passed block's target variance into the learnt one, unless the target stood still in it.
+
+        Before anything is learnt, "still" is measured against 1e-4 of the declared range
+        squared (an RMS of a tenth of a percent of ``y_scale``: well above a quantised
+        encoder's flicker at rest, well below any motion).
+        """
+        known = self.target_variance or 1e-4 * self.structure.y_scale**2
+        if not variance >= self.REST_FRACTION * known:
+            return
+        self._moving_blocks += 1
+        self.target_variance += (variance - self.target_variance) / min(self._moving_blocks, self.SCALE_MEMORY)
 
     def _on_divergence(self) -> None:
         self.counters["diverged"] += 1
         self.diverged = True
         self.model.set_state(self._healthy_state)
+        self._candidate_state = self._healthy_state  # a resumed block starts from (and vouches for) this state
         self._block_errors.clear()
         self._block_targets.clear()
+        self.hold_off = self.resume_in = self._backoff * self.resume_after * self.health_interval
+        self._backoff = min(2 * self._backoff, self.MAX_BACKOFF)
+        self._passed_since_resume = 0
+
+    def _resume(self) -> None:
+        """The pause after a divergence is over: learn again from the healthy state (the model is at it)."""
+        self.diverged = False
+        self.resume_in = 0
+        self.counters["resumed"] += 1
 
     def mark_healthy(self) -> None:
         """Take the current model state as the one to fall back to.
@@ -379,6 +455,7 @@ class Identifier:
         self._healthy_state = self.model.state()
         self._candidate_state = self._healthy_state
         self.diverged = False
+        self.resume_in = 0
 
     # -- whole series (offline) --------------------------------------------------------------
     def run(self, u: np.ndarray, y: np.ndarray, learn: np.ndarray | bool = True) -> np.ndarray:
@@ -401,15 +478,25 @@ class Identifier:
         mask_changes = np.append(np.flatnonzero(mask[1:] != mask[:-1]) + 1, len(targets))
         start = 0
         while start < len(targets):
+            paused = bool(mask[start]) and self.diverged and self.resume_after > 0
+            if paused and self.resume_in == 0:
+                self._resume()  # as step(): the first learnable sample after the pause learns
+                paused = False
             learning = bool(mask[start]) and not self.diverged
-            limit = start + (self.health_interval - len(self._block_errors) if learning else len(targets))
+            if learning:
+                limit = start + self.health_interval - len(self._block_errors)
+            else:
+                limit = start + self.resume_in if paused else len(targets)
             next_change = int(mask_changes[np.searchsorted(mask_changes, start, side="right")])
             stop = max(start + 1, min(limit, len(targets), next_change))  # a run of equal flags, cut at the block
+            if paused:
+                self.resume_in -= stop - start
             try:
                 prior = self.model.update(inputs[start:stop], targets[start:stop], learn=learning)
             except DivergenceError as error:
                 stop = start + error.sample_index + 1
                 prior = error.predictions
+                self.counters["learned"] += error.sample_index  # learnt before the one that diverged, as step counts
                 self._on_divergence()
                 learning = False
             y_hat[first + 1 + start : first + 1 + stop] = linear[start:stop] + prior

@@ -69,7 +69,7 @@ def make_fleet() -> list[Node]:
 
 
 def main(args: list[str] | None = None) -> int:
-    return run_node(make_fleet, "fleet", args, executor=executor_choice(EXECUTOR))
+    return run_node(make_fleet, "fleet", args, executor=executor_choice(EXECUTOR), exit_process=True)
 
 
 if __name__ == "__main__":

@@ -24,6 +24,7 @@ from __future__ import annotations
 import copy
 import difflib
 import json
+import math
 import os
 import sys
 import time
@@ -35,8 +36,9 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.parameter import Parameter as RosParameter
-from rclpy.qos import QoSPolicyKind, QoSProfile, ReliabilityPolicy
+from rclpy.qos import HistoryPolicy, QoSPolicyKind, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
+from rclpy.serialization import deserialize_message
 from std_msgs.msg import Int64, String
 
 from lenn_ros import topics
@@ -63,7 +65,7 @@ from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.networks import ModelFileError
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.session import Notice, Sample, Session, SessionConfig, json_safe
-from lenn_ros.nodes import executor_choice, run_node
+from lenn_ros.nodes import DRAIN_SECONDS, executor_choice, run_node
 from lenn_ros.nodes.identifier_outputs import IdentifierOutputs
 
 #: Parameters set by rclpy itself or by the QoS override mechanism: not unknown.
@@ -75,7 +77,7 @@ _QOS_OVERRIDES = QoSOverridingOptions(
     policy_kinds=(QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY)
 )
 #: Notice kinds that are news, not trouble.
-_INFO_KINDS = ("phase",)
+_INFO_KINDS = ("phase", "resumed")
 
 
 def _descriptor(parameter: Parameter) -> ParameterDescriptor:
@@ -107,6 +109,20 @@ def _normalise(parameter: Parameter, value: Any) -> Any:
 class IdentifierNode(Node):
     """Learns a LeNN or MLP model of the plant online, sample by sample."""
 
+    #: At exit: seconds the node goes on learning from what is still queued (:meth:`drain`) and,
+    #: what is left of it (at least ``_ACK_FLOOR``), waits for readers to acknowledge its last
+    #: messages (run_node). A reader that keeps up has them already (acknowledgements wait for
+    #: the middleware's next heartbeat, up to 3 s with Fast DDS); the exit must come within 2 s
+    #: of SIGINT, and the interpreter's own teardown takes 0.3-0.6 s of them.
+    loop_takes_messages = False  # set by run_node's wait-set loop (see _on_message)
+    _EXIT_BUDGET = 1.2
+    _ACK_FLOOR = 0.4
+    _drained_for = 0.0
+
+    @property
+    def ack_timeout(self) -> float:
+        return max(self._ACK_FLOOR, self._EXIT_BUDGET - self._drained_for)
+
     def __init__(
         self, node_name: str = "identifier", sibling_parameters: tuple[str, ...] = (), **node_options: Any
     ) -> None:
@@ -121,6 +137,7 @@ class IdentifierNode(Node):
         self.u_name = "+".join(self.resolve_topic_name(name) for channel, _, name in self.inputs if channel == U)
         self.y_name = "+".join(self.resolve_topic_name(name) for channel, _, name in self.inputs if channel == Y)
         self._loggers: dict[str, Any] = {}
+        self._logged_at: dict[str, float] = {}  # monotonic time each kind of warning was last said
         self.node_counters = {"type_mismatch": 0, "qos_incompatible": 0, "field_errors": 0, "unknown_parameters": 0}
         self._warn_unknown_parameters()
         self._warn_unmatched_params_files()
@@ -163,6 +180,7 @@ class IdentifierNode(Node):
         config = {**self.values, "network": self.network, topics.RESOLVED_TOPICS: resolved}
         config_publisher.publish(String(data=json.dumps(json_safe(config))))
         self._sim_time = bool(self.get_parameter("use_sim_time").value)
+        self._message_types = message_types
         self._subscribe(message_types)
         self._warn_unknown_qos_overrides()
         self._test_start_subscription = self.create_subscription(
@@ -279,6 +297,7 @@ class IdentifierNode(Node):
             raise SystemExit(f"identifier: {error}") from None
         identifier.health_interval = self.values["health_interval"]
         identifier.divergence_ratio = self.values["divergence_ratio"]
+        identifier.resume_after = self.values["resume_after"]
         if self.values["weights_in"]:
             try:
                 loader = identifier if isinstance(identifier, MimoIdentifier) else identifier.model
@@ -326,7 +345,7 @@ class IdentifierNode(Node):
             ReliabilityPolicy.RELIABLE if self.values["pairing"] == "sequence" else ReliabilityPolicy.BEST_EFFORT
         )
         profile = QoSProfile(depth=topics.DATA_DEPTH, reliability=reliability)
-        self._data_subscriptions = {}
+        self._data_subscriptions: dict[tuple[str, int], Any] = {}
         for channel, part, name in self.inputs:
             events = SubscriptionEventCallbacks(incompatible_qos=lambda event, c=channel: self._on_incompatible_qos(c))
             self._data_subscriptions[channel, part] = self.create_subscription(
@@ -336,7 +355,12 @@ class IdentifierNode(Node):
                 profile,
                 event_callbacks=events,
                 qos_overriding_options=_QOS_OVERRIDES,
+                raw=True,  # read once admitted (_offer)
             )
+        # (after the overrides: what the queues really hold; KEEP_ALL has no depth to overflow)
+        kept = [s.qos_profile for s in self._data_subscriptions.values()]
+        keep_last = all(qos.history != HistoryPolicy.KEEP_ALL for qos in kept)
+        self.session.config.queue_depth = min(qos.depth for qos in kept) if keep_last else 0
 
     # -- parameters ----------------------------------------------------------------------------
     def _check_parameters(self, parameters: list[RosParameter]) -> SetParametersResult:
@@ -360,8 +384,8 @@ class IdentifierNode(Node):
             if name in ("alpha", "beta", "forgetting", "nlms_step") and name in model.get_params():
                 for each in self._models():
                     each.set_params(**{name: value})
-            elif name == "divergence_ratio":
-                self.identifier.divergence_ratio = value
+            elif name in ("divergence_ratio", "resume_after"):
+                setattr(self.identifier, name, value)
             elif name in SessionConfig.__dataclass_fields__:
                 setattr(self.session.config, name, value)
                 if name == "learning" and value and self.identifier.diverged:
@@ -385,16 +409,38 @@ class IdentifierNode(Node):
         The executor rebuilds its wait set in Python for each message it hands over
         (most of the cost at kilohertz rates); taking what is queued straight from the
         subscriptions handles a burst in one wake-up. Pairing does not depend on the
-        order in which u and y_p are taken (index, stamp or time decide).
+        order in which u and y_p are taken (index, stamp or time decide). Under the wait-set
+        loop, which takes what waits itself, a message the executor hands over (with a timer
+        or a service due) is just offered: the service behind it in the executor's list
+        comes sooner.
         """
         self._offer(channel, message, info, part)
-        self._drain()
+        if not self.loop_takes_messages:
+            self._drain()
         self._emit_notices()
 
-    def _drain(self) -> None:
-        """Take test_start, u and y_p messages already waiting, until none is left."""
-        taken = True
-        while taken:
+    def drain(self, _executor: Any = None) -> None:
+        """On the way out (run_node): learn from the messages still queued, such as a replay's last
+        window, within the exit budget; not when overloaded (the newest are gone already)."""
+        if self.session.shedder.behind:
+            return
+        start = time.monotonic()
+        while time.monotonic() - start < self._EXIT_BUDGET - self._ACK_FLOOR and self._drain():
+            pass
+        self._publish(self.session.poll(self._paired_until()))
+        self._drained_for = time.monotonic() - start
+
+    def _drain(self) -> int:
+        """Take test_start, u and y_p messages already waiting, until none is left or the turn's time is up.
+
+        Bounded (``DRAIN_SECONDS``): under a flood the queues never empty, and a drain that
+        ran until they did would starve the timers (status, the grid's poll), the parameter
+        services and the stop request. What is left waits for the next turn; what waits too
+        long is shed (``Session.admit``). Returns how many u / y_p messages it took.
+        """
+        taken, count = True, 0
+        deadline = time.monotonic() + DRAIN_SECONDS
+        while taken and time.monotonic() < deadline:
             taken = False
             with self._test_start_subscription.handle:  # the phase must switch before its sample
                 latched = self._test_start_subscription.handle.take_message(Int64, False)
@@ -402,12 +448,24 @@ class IdentifierNode(Node):
                 self._on_test_start(latched[0])
             for (other, part), subscription in self._data_subscriptions.items():
                 with subscription.handle:
-                    waiting = subscription.handle.take_message(subscription.msg_type, False)
+                    waiting = subscription.handle.take_message(subscription.msg_type, True)
                 if waiting is not None:
                     self._offer(other, waiting[0], waiting[1], part)
                     taken = True
+                    count += 1
+        return count
 
-    def _offer(self, channel: str, message: Any, info: dict, part: int = 0) -> None:
+    def _offer(self, channel: str, serialized: bytes, info: dict, part: int = 0) -> None:
+        """One message as it was taken, serialised: shed unread if it waited too long, else read and offered.
+
+        The subscriptions are raw so that shedding costs a take (8 us for a JointState) and
+        not a deserialisation as well (30 us more): under a flood the node must shed faster
+        than messages arrive to reach the newest again.
+        """
+        arrived = info.get("received_timestamp")
+        if arrived and not self.session.admit((channel, part), arrived * 1e-9, time.time()):
+            return  # shed: the node is behind (counted, said by the session)
+        message = deserialize_message(serialized, self._message_types[channel])
         try:
             value = self._extract[channel](message)
         except FieldError as error:
@@ -433,8 +491,13 @@ class IdentifierNode(Node):
 
     def _on_poll_timer(self) -> None:
         self._drain()  # what is queued is older than now: settle it before the clock closes grid points
-        self._publish(self.session.poll(self._now()))
+        self._publish(self.session.poll(self._paired_until()))
         self._emit_notices()
+
+    def _paired_until(self) -> float:
+        """The clock the pairing closes grid points and gives up on partners by: now, less how far behind
+        the node is (the lag of the last message taken), so a backlog is not taken for silence."""
+        return self._now() - self.session.shedder.lag
 
     def _publish(self, samples: list[Sample]) -> None:
         """Every output of each sample (:mod:`~lenn_ros.nodes.identifier_outputs`), once held pairs may go."""
@@ -563,7 +626,12 @@ class IdentifierNode(Node):
             self._log(notice)
 
     def _log(self, notice: Notice) -> None:
-        """One line per notice, throttled per kind so one warning never hides another."""
+        """One line per notice, throttled per kind so one warning never hides another.
+
+        Throttled here, not by rclpy's ``throttle_duration_sec``: rclpy refuses a call whose
+        throttle differs from that logger's earlier calls (a ValueError that stopped the node
+        at the first warning after ``warn_period`` was set live).
+        """
         if notice.kind in _INFO_KINDS:
             self.get_logger().info(notice.text)
             return
@@ -571,7 +639,10 @@ class IdentifierNode(Node):
         if logger is None:
             logger = self._loggers[notice.kind] = self.get_logger().get_child(notice.kind)
         self._warned_kinds.add(notice.kind)
-        logger.warning(notice.text, throttle_duration_sec=self.values["warn_period"] or None)
+        now = time.monotonic()
+        if now - self._logged_at.get(notice.kind, -math.inf) >= self.values["warn_period"]:
+            self._logged_at[notice.kind] = now
+            logger.warning(notice.text)
 
     def status(self) -> dict[str, Any]:
         """Everything a user or a test needs to know about the run so far (JSON-safe)."""
@@ -587,7 +658,7 @@ class IdentifierNode(Node):
 
     def _on_status_timer(self) -> None:
         self._check_graph()
-        self._publish(self.session.poll(self._now()))
+        self._publish(self.session.poll(self._paired_until()))
         self._emit_notices()
         status = self.status()
         self.status_publisher.publish(String(data=json.dumps(status)))
@@ -639,10 +710,18 @@ class IdentifierNode(Node):
             self.get_logger().error(f"could not save weights to {path}: {error}")
 
     def shutdown(self) -> None:
-        """Final status line and weights on the way out (SIGINT, SIGTERM or end)."""
+        """Final status line and weights on the way out (SIGINT, SIGTERM or end), then no more input.
+
+        The input subscriptions go at once: under a flood the middleware would otherwise
+        go on receiving (and queueing) messages for the rest of the exit, and the
+        teardown waited for it (2 s of a 3.4 s exit on 2 cores).
+        """
         if self.values["weights_out"]:
             self._save(self.values["weights_out"])
         print(f"identifier: {json.dumps(self.status())}", file=sys.stderr, flush=True)
+        for subscription in self._data_subscriptions.values():
+            self.destroy_subscription(subscription)
+        self._data_subscriptions = {}
 
 
 #: The loop the identifier runs under unless ``LENN_ROS_EXECUTOR`` says otherwise (see ``run_node``).
@@ -652,8 +731,9 @@ class IdentifierNode(Node):
 EXECUTOR = "waitset"
 
 
-def main(args: list[str] | None = None) -> int:
-    return run_node(IdentifierNode, "identifier", args, executor=executor_choice(EXECUTOR))
+def main(args: list[str] | None = None, exit_process: bool = True) -> int:
+    """The node's program; ``exit_process=False`` returns instead of ending the process (see run_node)."""
+    return run_node(IdentifierNode, "identifier", args, executor=executor_choice(EXECUTOR), exit_process=exit_process)
 
 
 if __name__ == "__main__":

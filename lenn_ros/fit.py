@@ -29,7 +29,6 @@ import dataclasses
 import json
 import math
 import time
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -55,6 +54,7 @@ from lenn_ros.core.selection import (
     select_structure,
 )
 from lenn_ros.core.structure import Identifier
+from lenn_ros.fit_data import Data, FitError
 
 #: share of the training samples the epochs of an MLP / SGD fit are early-stopped on
 VALIDATION_FRACTION = 0.2
@@ -62,21 +62,6 @@ MIN_VALIDATION = 50
 #: relative ridge on the live RLS start covariance (see build_identifier): condition number <= 1e7,
 #: well inside the ~1/sqrt(machine epsilon) ~ 7e7 at which conventional RLS goes indefinite by round-off
 RLS_RIDGE = 1e-7
-
-
-class FitError(ValueError):
-    """Data or options ``fit`` cannot work with; the message names the fix."""
-
-
-@dataclass
-class Data:
-    u: np.ndarray
-    y: np.ndarray
-    source: str  # what was read, for the report
-    test_start: int | None = None  # 1-based, recorded in a bag (its test_start topic)
-    breaks: list[int] = dataclasses.field(default_factory=list)  # 0-based samples that start a new run (gaps)
-    index: np.ndarray | None = None  # a bag's sample indices, as the node counts them (--test-from is one)
-    interpretation: dict[str, Any] = dataclasses.field(default_factory=dict)  # node values: types, fields, pairing
 
 
 def load_data(

@@ -26,7 +26,7 @@ import numpy as np
 
 from lenn_ros import bag as bags
 from lenn_ros import topics
-from lenn_ros.fit import Data, FitError
+from lenn_ros.fit_data import Data, FitError
 
 #: node parameters that say how the input topics become samples: copied into the fitted params file
 INTERPRETATION = (

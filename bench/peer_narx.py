@@ -24,6 +24,13 @@ All get the same protocol, in the same run, on the same splits:
     pip install -e .[bench]                 # sysidentpy
     python bench/peer_narx.py               # all sets, ~15 minutes on 2 cores
     python bench/peer_narx.py --quick       # the small sets only
+
+The several-input several-output set (the six-axis industrial robot) gets a table of
+its own, one row per joint, with the same protocol: ``lenn-ros fit`` with several
+``--u``/``--y`` (its MIMO model and the one-SISO-model-per-output comparison it
+reports), FROLS (one model per output over the six torques and that output's own lags:
+SysIdentPy's MISO form) and a full MIMO ARX (every output on the lags of every channel),
+each chosen by the joint free run on the last 20 % of the build samples.
 """
 
 from __future__ import annotations
@@ -207,6 +214,166 @@ def run_arx(split: Split) -> dict:
     }
 
 
+MIMO_FROLS_GRID = ((1, 1), (2, 1), (3, 1), (1, 2))  # (lag, degree): dictionaries of <= 36 terms with 6 inputs
+MIMO_ARX_LAGS = (1, 2, 3, 4, 6, 8)
+
+
+@dataclass
+class MimoSplit:
+    name: str
+    u: np.ndarray  # (N, n_u)
+    y: np.ndarray  # (N, n_y)
+    test_from: int
+    note: str
+    y_names: tuple[str, ...]
+
+
+def mimo_splits() -> list[MimoSplit]:
+    """The several-channel shared sets (README of ../shared/data)."""
+    table = np.genfromtxt(DATA / "industrial_robot.csv", delimiter=",", names=True)
+    u = np.stack([np.asarray(table[f"u{i}"], float) for i in range(1, 7)], axis=1)
+    y = np.stack([np.asarray(table[f"y{i}"], float) for i in range(1, 7)], axis=1)
+    names = tuple(f"y{i}" for i in range(1, 7))
+    return [MimoSplit("industrial_robot", u, y, 39_931, "README split (build = train + validation)", names)]
+
+
+def _rmse_columns(y: np.ndarray, y_hat: np.ndarray) -> list[float]:
+    return [_rmse(y[:, j], y_hat[:, j]) for j in range(y.shape[1])]
+
+
+def run_lenn_mimo(split: MimoSplit) -> dict:
+    """``lenn-ros fit`` with several --u/--y: its MIMO model, and its own one-SISO-per-output comparison."""
+    from lenn_ros.fit_mimo import MimoData, fit_mimo
+
+    began = time.perf_counter()
+    u_names = tuple(f"u{i + 1}" for i in range(split.u.shape[1]))
+    report = fit_mimo(MimoData(split.u, split.y, u_names, split.y_names, split.name), split.test_from)["report"]
+    seconds = time.perf_counter() - began
+    model, siso = report["model"], report["comparison"]
+    return {
+        "rmse_free_run": [o["rmse_free_run"] for o in report["per_output"]],
+        "siso_rmse_free_run": [o["rmse_free_run"] for o in siso.get("per_output", [])],
+        "seconds": seconds,
+        "model": f"lags {model['y_lags']}, order {model['order']}, cross degree {model['cross_degree']}",
+        "siso_model": (
+            f"lags {siso['model']['y_lags']}, order {siso['model']['order']}" if "model" in siso else "-"
+        ),
+    }
+
+
+def _frols_miso(lag: int, degree: int, u: np.ndarray, y: np.ndarray):
+    from sysidentpy.basis_function import Polynomial
+    from sysidentpy.model_structure_selection import FROLS
+    from sysidentpy.parameter_estimation import LeastSquares
+
+    dictionary = math.comb(lag * (1 + u.shape[1]) + degree, degree)
+    model = FROLS(
+        order_selection=True,
+        n_info_values=min(30, dictionary - 1),
+        ylag=lag,
+        xlag=[list(range(1, lag + 1))] * u.shape[1],
+        info_criteria="aic",
+        estimator=LeastSquares(),
+        basis_function=Polynomial(degree=degree),
+    )
+    model.fit(X=u, y=y[:, None])
+    return model
+
+
+def _frols_miso_free_run(model, u: np.ndarray, y: np.ndarray, start: int) -> np.ndarray:
+    lag = model.max_lag
+    with np.errstate(all="ignore"):
+        y_hat = model.predict(X=u[start - lag :], y=y[start - lag :, None])
+    return np.asarray(y_hat, float).ravel()[lag:]
+
+
+def run_frols_mimo(split: MimoSplit) -> dict:
+    """FROLS per output (MISO: the six inputs and the output's own lags), each structure chosen by its free run."""
+    began = time.perf_counter()
+    start = split.test_from - 1
+    validation = start - max(50, round(VALIDATION_FRACTION * start))
+    scores, models = [], []
+    for j in range(split.y.shape[1]):
+        u, y = split.u[:start], split.y[:start, j]
+        tried = []
+        for lag, degree in MIMO_FROLS_GRID:
+            try:
+                model = _frols_miso(lag, degree, u[:validation], y[:validation])
+                score = _rmse(y[validation:], _frols_miso_free_run(model, u, y, validation))
+            except (ValueError, np.linalg.LinAlgError, FloatingPointError):
+                score = math.nan
+            tried.append((score if math.isfinite(score) else math.inf, lag, degree))
+        _, lag, degree = min(tried)
+        model = _frols_miso(lag, degree, u, y)
+        y_free = _frols_miso_free_run(model, split.u, split.y[:, j], start)
+        scores.append(_rmse(split.y[start:, j], y_free))
+        models.append(f"{lag}/{degree}/{len(model.final_model)}")
+    return {"rmse_free_run": scores, "seconds": time.perf_counter() - began,
+            "model": "lag/degree/terms per output: " + ", ".join(models)}  # fmt: skip
+
+
+def _mimo_arx(lag: int, u: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """Least-squares weights of every output on y[k-1..k-lag], u[k-1..k-lag] of every channel and a bias."""
+    past = [y[lag - i - 1 : len(y) - i - 1] for i in range(lag)] + [u[lag - i - 1 : len(u) - i - 1] for i in range(lag)]
+    rows = np.hstack([*past, np.ones((len(y) - lag, 1))])
+    return np.linalg.lstsq(rows, y[lag:], rcond=None)[0]
+
+
+def _mimo_arx_free_run(weights: np.ndarray, lag: int, u: np.ndarray, y: np.ndarray, start: int) -> np.ndarray:
+    """Every output fed the model's own outputs from ``start`` on; nan from a divergence on."""
+    y_sim = np.array(y, float)
+    for k in range(start, len(y)):
+        row = np.concatenate([*(y_sim[k - i - 1] for i in range(lag)), *(u[k - i - 1] for i in range(lag)), [1.0]])
+        y_sim[k] = row @ weights
+        if not np.all(np.abs(y_sim[k]) < 1e9):
+            y_sim[k:] = math.nan
+            break
+    return y_sim[start:]
+
+
+def run_arx_mimo(split: MimoSplit) -> dict:
+    """A full MIMO ARX, its lags chosen by the joint free run (mean NMSE) on the build tail, refitted on all."""
+    began = time.perf_counter()
+    start = split.test_from - 1
+    u, y = split.u[:start], split.y[:start]
+    validation = start - max(50, round(VALIDATION_FRACTION * start))
+    variance = np.var(y[validation:], axis=0)
+    tried = []
+    for lag in MIMO_ARX_LAGS:
+        y_sim = _mimo_arx_free_run(_mimo_arx(lag, u[:validation], y[:validation]), lag, u, y, validation)
+        error = np.mean((y_sim - y[validation:]) ** 2, axis=0) / variance
+        tried.append((float(np.mean(error)) if np.all(np.isfinite(error)) else math.inf, lag))
+    _, lag = min(tried)
+    y_free = _mimo_arx_free_run(_mimo_arx(lag, u, y), lag, split.u, split.y, start)
+    return {"rmse_free_run": _rmse_columns(split.y[start:], y_free), "seconds": time.perf_counter() - began,
+            "model": f"MIMO ARX lags {lag}/{lag}"}  # fmt: skip
+
+
+def mimo_table(rows: list[dict]) -> str:
+    """One row per output: the MIMO fit, fit's own one-SISO-per-output model, FROLS per output, MIMO ARX."""
+    lines = [
+        "| data: output | lenn-ros fit MIMO | lenn-ros fit, one SISO per output | FROLS per output | MIMO ARX "
+        "| test-mean predictor |",
+        "|---|---|---|---|---|---|",
+    ]
+    for row in rows:
+        lenn, frols, arx = row["lenn"], row["frols"], row["arx"]
+        for j, name in enumerate(row["outputs"]):
+            mean = row["test_mean_rmse"][j]
+            siso = lenn["siso_rmse_free_run"][j] if lenn["siso_rmse_free_run"] else math.nan
+            lines.append(
+                f"| {row['data']}: {name} | {_vs_mean(lenn['rmse_free_run'][j], mean)} | {_vs_mean(siso, mean)} "
+                f"| {_vs_mean(frols['rmse_free_run'][j], mean)} | {_vs_mean(arx['rmse_free_run'][j], mean)} "
+                f"| {_fmt(mean)} |"
+            )
+        lines.append(
+            f"| {row['data']}: time (s), model | {lenn['seconds']:.1f}, {lenn['model']} | (in fit's time), "
+            f"{lenn['siso_model']} | {frols['seconds']:.1f}, {frols['model']} "
+            f"| {arx['seconds']:.1f}, {arx['model']} | |"
+        )
+    return "\n".join(lines)
+
+
 def free_run_speed(steps: int = 1_000_000) -> dict:
     """Free-run steps per second of the paper's Example-1 LeNN: compiled kernel vs the per-sample loop."""
     from lenn_ros.core.examples import get_example
@@ -237,6 +404,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="the small data sets only")
     parser.add_argument("--json", action="store_true")
     parser.add_argument("--speed-only", action="store_true", help="only the free-run speed")
+    parser.add_argument("--mimo-only", action="store_true", help="only the several-channel sets")
     args = parser.parse_args(argv)
     warnings.filterwarnings("ignore")  # SysIdentPy warns per candidate (overflow in diverging simulations)
     # compile the LeNN kernels once, outside the timed runs
@@ -251,17 +419,28 @@ def main(argv: list[str] | None = None) -> int:
     )
     if args.speed_only:
         return 0
-    rows = []
-    for split in splits(args.quick):
+    rows: list[dict] = []
+    for split in [] if args.mimo_only else splits(args.quick):
         lenn, frols, arx = run_lenn(split), run_frols(split), run_arx(split)
         rows.append({"data": split.name, "split": split.note, "test_samples": len(split.y) - split.test_from + 1,
                      "test_mean_rmse": test_mean_rmse(split), "lenn": lenn, "frols": frols, "arx": arx,
                      "published": split.published})  # fmt: skip
         print(f"done {split.name}", file=sys.stderr, flush=True)
+    mimo_rows = []
+    for split in [] if args.quick else mimo_splits():
+        start = split.test_from - 1
+        lenn, frols, arx = run_lenn_mimo(split), run_frols_mimo(split), run_arx_mimo(split)
+        mimo_rows.append({"data": split.name, "split": split.note, "outputs": list(split.y_names),
+                          "test_samples": len(split.y) - start, "test_mean_rmse": list(np.std(split.y[start:], axis=0)),
+                          "lenn": lenn, "frols": frols, "arx": arx})  # fmt: skip
+        print(f"done {split.name}", file=sys.stderr, flush=True)
     if args.json:
-        print(json.dumps(rows, indent=1))
+        print(json.dumps({"siso": rows, "mimo": mimo_rows}, indent=1))
         return 0
     print(table(rows))
+    if mimo_rows:
+        print()
+        print(mimo_table(mimo_rows))
     return 0
 
 

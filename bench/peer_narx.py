@@ -437,10 +437,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.json:
         print(json.dumps({"siso": rows, "mimo": mimo_rows}, indent=1))
         return 0
-    print(table(rows))
-    if mimo_rows:
-        print()
-        print(mimo_table(mimo_rows))
+    print("\n\n".join(([table(rows)] if rows else []) + ([mimo_table(mimo_rows)] if mimo_rows else [])))
     return 0
 
 

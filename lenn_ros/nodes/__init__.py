@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import contextlib
+import gc
 import inspect
 import os
 import signal
@@ -114,6 +115,7 @@ def run_node(
         nodes = list(made) if isinstance(made, list | tuple) else [made]
         for node in nodes:
             loop.add_node(node)
+        _freeze_start_up_objects()
         _spin(nodes, loop, executor, stop)
     except ExternalShutdownException:
         pass
@@ -132,6 +134,21 @@ def run_node(
         loop.shutdown()
         rclpy.try_shutdown()
     return _end(code, exit_process)
+
+
+def _freeze_start_up_objects() -> None:
+    """Keep the garbage collector's full passes off everything start-up built (``gc.freeze``).
+
+    rclpy, numpy, numba and the node leave ~130 000 long-lived objects, and each of the
+    collector's full (generation 2) passes walks all of them: 170-200 ms on this
+    2-core machine at rest, 0.7 s and more under load, during which no service request,
+    timer or SIGINT is answered (a 0.76 s parameter call during a flood, in CI). Frozen
+    objects are never scanned again; what the node allocates afterwards is collected as
+    before. Nothing frozen is freed by a cycle later, which costs nothing here: start-up
+    objects live as long as the process.
+    """
+    gc.collect()
+    gc.freeze()
 
 
 def _end(code: int, exit_process: bool) -> int:

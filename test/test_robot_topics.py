@@ -218,6 +218,10 @@ def test_wrong_type_or_field_is_one_line_at_start(graph: Graph) -> None:
     _, err = bad_field.communicate(timeout=30)
     assert bad_field.returncode == 2 and "JointState has no field 'positions'" in err
     assert len(err.strip().splitlines()) == 1
+    indexed = start_node("identifier", "u_field:=data[1]")  # u_type left at its default, Float64
+    _, err = indexed.communicate(timeout=30)
+    assert indexed.returncode == 2 and "u_type:=std_msgs/msg/Float64MultiArray" in err, err
+    assert len(err.strip().splitlines()) == 1
 
 
 def test_stamped_vector_topics_pair_by_stamp_and_outputs_carry_the_sample_time(graph: Graph) -> None:

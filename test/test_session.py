@@ -71,6 +71,18 @@ def test_field_paths_are_checked_against_message_classes() -> None:
             check_path(cls, path)
 
 
+def test_an_index_on_the_default_scalar_type_names_the_type_to_set() -> None:
+    """u_field:=data[1] with u_type left at Float64: the user meant an array, so the fix is u_type."""
+    pytest.importorskip("std_msgs.msg")
+    from std_msgs.msg import Float64
+
+    with pytest.raises(FieldError) as raised:
+        check_path(Float64, "data[1]", "std_msgs/msg/Float64", "u_type")
+    text = str(raised.value)
+    assert "set u_type to its type" in text and "u_type:=std_msgs/msg/Float64MultiArray" in text, text
+    assert text.index("u_type:=") < text.index("drop the [index]")  # the likely fix first
+
+
 # -- alignment ----------------------------------------------------------------------------------
 
 

@@ -277,7 +277,7 @@ class IdentifierNode(Node):
         try:
             cls = topics.message_class(self.values[type_key])
             check = check_vector if self.mimo else check_path
-            check(cls, self.values[field_key], self.values[type_key])
+            check(cls, self.values[field_key], self.values[type_key], type_key)
         except (ValueError, FieldError) as error:
             raise SystemExit(f"identifier: {type_key}/{field_key}: {error}") from None
         return cls

@@ -299,13 +299,31 @@ class IdentifierNode(Node):
         identifier.divergence_ratio = self.values["divergence_ratio"]
         identifier.resume_after = self.values["resume_after"]
         if self.values["weights_in"]:
+            path = os.path.abspath(os.path.expanduser(self.values["weights_in"]))
             try:
                 loader = identifier if isinstance(identifier, MimoIdentifier) else identifier.model
-                loader.load_state(os.path.expanduser(self.values["weights_in"]))
+                loader.load_state(path)
             except ModelFileError as error:
                 raise SystemExit(f"identifier: {error}") from None
             identifier.mark_healthy()
+            self.get_logger().info(self._loaded_text(identifier, path))
         return identifier
+
+    def _loaded_text(self, identifier: Any, path: str) -> str:
+        """One line at start for ``weights_in``: learning resumes from a file, not from fresh weights, and
+        the user must be able to see which file and which network (a stale path is otherwise silent)."""
+        models = identifier.models if isinstance(identifier, MimoIdentifier) else [identifier.model]
+        model = models[0]
+        structural = {k: v for k, v in model.get_params().items() if k in model._structural_params and v is not None}
+        structure = identifier.structure
+        lags = f"y_lags {structure.y_lags}, u_lags {structure.u_lags}, " if hasattr(structure, "y_lags") else ""
+        outputs = f" for {len(models)} outputs" if len(models) > 1 else ""
+        seen = sum(int(getattr(each, "n_samples_seen_", 0)) for each in models)
+        return (
+            f"weights_in: loaded {sum(each.n_weights for each in models)} weights{outputs} from {path} "
+            f"(learnt from {seen} samples): {self.network}, {lags}"
+            + ", ".join(f"{key} {value}" for key, value in structural.items())
+        )
 
     def _compile_ahead(self) -> None:
         """Step a throwaway copy of the model through its warm-up now, before any subscription exists.

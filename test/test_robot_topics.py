@@ -166,6 +166,31 @@ def test_u_without_y_p_is_said_and_counted(graph: Graph) -> None:
     assert "/u has been arriving alone" in err and "nothing on /y_p" in err
 
 
+def test_y_p_whose_field_cannot_be_read_is_said_as_such_not_as_silence(graph: Graph) -> None:
+    """JointStates arrive but y_field names a joint they lack: the lone-u line names the field and the error."""
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64
+
+    identifier = start_node(
+        "identifier", "status_period:=0.2", "lone_timeout:=1.0", "pairing:=sample", "sample_period:=0.02",
+        "y_type:=sensor_msgs/msg/JointState", "y_field:=position[joint1]",
+    )  # fmt: skip
+    u_pub = graph.node("controller").create_publisher(Float64, topics.U, topics.data_qos())
+    y_pub = graph.node("driver").create_publisher(JointState, topics.Y_P, topics.data_qos())
+    graph.listen()
+    graph.spin()
+    try:
+        graph.wait(lambda s: True)  # the identifier is up
+        publish_for(4.0, 50, lambda k: (u_pub.publish(Float64(data=0.1)),
+                                        y_pub.publish(JointState(name=["pendulum"], position=[0.2]))))  # fmt: skip
+        status = graph.wait(lambda s: s["counters"]["lone_u"] > 20 and s["counters"]["field_errors"] > 20, timeout=20)
+    finally:
+        _, err = stop(identifier)
+    assert "nothing on /y_p" not in err, err
+    assert "messages arrived on /y_p but their field could not be read: y_field position[joint1]" in err, err
+    assert "no joint 'joint1'" in err and status["counters"]["learned"] == 0
+
+
 def test_pairs_held_for_missing_readers_are_said_and_counted(graph: Graph) -> None:
     """wait_for_error_subscribers:=2 with no reader of error: nothing learnt, and the node says why."""
     from std_msgs.msg import Float64

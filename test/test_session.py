@@ -260,6 +260,22 @@ def test_a_lone_input_is_reported_and_counted() -> None:
     assert live.counters["lone_u"] > 150
 
 
+def test_an_input_whose_field_cannot_be_read_is_not_called_silent() -> None:
+    """y_p arrives (2 599 JointStates) but y_field names a joint they lack: the lone-u line says that, not
+    "nothing on y_p" (which sends the user to the topic name and QoS), and the field errors are counted."""
+    live = session(pairing="sample", sample_period=0.01, lone_timeout=2.0)
+    for k in range(400):
+        live.offer(U, 0.1, k * 0.01)
+        live.unreadable(Y, k * 0.01 + 0.001, "y_field position[joint1]", "no joint 'joint1' in name ['pendulum']")
+    live.poll(4.0)
+    notices = [notice for notice in live.take_notices() if notice.kind == "lone_u"]
+    assert notices, "no lone_u notice"
+    text = notices[-1].text
+    assert "nothing on" not in text and "400 messages arrived on y_p but their field could not be read" in text, text
+    assert "y_field position[joint1]" in text and "no joint 'joint1'" in text
+    assert live.counters["field_errors"] == 400 and live.status()["counters"]["field_errors"] == 400
+
+
 def offer_all(live: Session, events: list[tuple]) -> list:
     """Offer (received, channel, value, time) events; every notice said meanwhile."""
     notices = []

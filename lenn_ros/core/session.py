@@ -51,6 +51,7 @@ PAIRING_MODES = ("sequence", "stamp", "sample")
 SESSION_COUNTERS = (
     "u_messages", "y_messages", "nan", "out_of_range", "clipped",
     "no_sequence", "misaligned", "refused", "lone_u", "lone_y", "clock_offset", "held_overflow", "shed",
+    "field_errors",
 )  # fmt: skip
 #: Pairs held (not yet learnt) while the outputs wait for readers: beyond this the oldest are dropped.
 MAX_HELD = 10_000
@@ -157,6 +158,7 @@ class Session:
         self._held: list[Pair] = []
         self._notices: list[Notice] = []
         self._last_seen: dict[str, float] = {}
+        self._unreadable: dict[str, tuple[int, float, str]] = {}  # channel: (count, last receive time, why)
         self._first_seen: dict[str, float] = {}
         self._seen_dropped = 0
         self._seen_faults = 0  # sequence mode: stale + duplicate halves already said
@@ -229,6 +231,17 @@ class Session:
             samples += self._offer_half(channel, half.value, half.time, half.received, half.sequence, half.source_time)
         self._after_merge(channel, merger)
         return samples
+
+    def unreadable(self, channel: str, received: float, field: str, error: str) -> None:
+        """A message of ``channel`` arrived (receive time ``received``) but its ``field`` could not be read.
+
+        Counted (``field_errors``) and kept for the lone-input notice of the other channel:
+        its messages did arrive, so "nothing on" it would send the user to check the topic
+        name and QoS, when the fix is the field path (a joint name, an index).
+        """
+        self.counters["field_errors"] += 1
+        count = self._unreadable.get(channel, (0, 0.0, ""))[0] + 1
+        self._unreadable[channel] = (count, received, f"{field} ({error})")
 
     def _offer_half(
         self, channel: str, value: Any, time: float, received: float, sequence: int | None, source_time: float | None
@@ -481,12 +494,16 @@ class Session:
             alone = self._alone_for(channel, now)
             if alone >= self.config.lone_timeout:
                 topic, missing = (self.config.u_name, self.config.y_name)[:: 1 if channel == U else -1]
-                self._say(
-                    f"lone_{channel}",
-                    f"{topic} has been arriving alone for {alone:.1f} s ({self.counters[f'lone_{channel}']} "
-                    f"messages): nothing on {missing}, so no pairs form (check {missing}'s topic name/remap, "
-                    "type and QoS)",
-                )
+                lone = self.counters[f"lone_{channel}"]
+                head = f"{topic} has been arriving alone for {alone:.1f} s ({lone} messages)"
+                count, last, why = self._unreadable.get(Y if channel == U else U, (0, -math.inf, ""))
+                if now - last <= self.config.lone_timeout:
+                    text = (f"{head}: {count} messages arrived on {missing} but their field could not be read: {why}; "
+                            "so no pairs form (fix the field path, or the type, to fit these messages)")  # fmt: skip
+                else:
+                    text = (f"{head}: nothing on {missing}, so no pairs form (check {missing}'s topic name/remap, "
+                            "type and QoS)")  # fmt: skip
+                self._say(f"lone_{channel}", text)
 
     # -- learning ------------------------------------------------------------------------------
     def _process(self, pairs: list[Pair]) -> list[Sample]:

@@ -138,7 +138,7 @@ class IdentifierNode(Node):
         self.y_name = "+".join(self.resolve_topic_name(name) for channel, _, name in self.inputs if channel == Y)
         self._loggers: dict[str, Any] = {}
         self._logged_at: dict[str, float] = {}  # monotonic time each kind of warning was last said
-        self.node_counters = {"type_mismatch": 0, "qos_incompatible": 0, "field_errors": 0, "unknown_parameters": 0}
+        self.node_counters = {"type_mismatch": 0, "qos_incompatible": 0, "unknown_parameters": 0}
         self._warn_unknown_parameters()
         self._warn_unmatched_params_files()
         self.mimo = is_mimo(self.values)
@@ -484,14 +484,14 @@ class IdentifierNode(Node):
         if arrived and not self.session.admit((channel, part), arrived * 1e-9, time.time()):
             return  # shed: the node is behind (counted, said by the session)
         message = deserialize_message(serialized, self._message_types[channel])
+        received = arrived * 1e-9 if arrived and not self._sim_time else self._now()
         try:
             value = self._extract[channel](message)
         except FieldError as error:
-            self.node_counters["field_errors"] += 1
+            key = "u_field" if channel == U else "y_field"
+            self.session.unreadable(channel, received, f"{key} {self.values[key]}", str(error))
             self._log(Notice("field", f"{self.u_name if channel == U else self.y_name}: {error}; message skipped"))
             return
-        received = info.get("received_timestamp")
-        received = received * 1e-9 if received and not self._sim_time else self._now()
         stamp = stamp_seconds(message) if self._stamped[channel] else None
         source = info.get("source_timestamp")
         if not self._graph_checked:

@@ -314,6 +314,27 @@ def test_transport_latency_is_no_clock_offset(latency: float) -> None:
     assert live.counters["clock_offset"] == 0 and live.all_counters()["grid_gaps"] == 0
 
 
+def loaded(events: list[tuple], share: float, seed: int = 1) -> list[tuple]:
+    """The y_p of ``events`` as a loaded host delivers them: ``share`` of them 60-200 ms late, one clock."""
+    rng = np.random.default_rng(seed)
+    late = [(received + (rng.uniform(0.06, 0.2) if channel == Y and rng.random() < share else 0.0),
+             channel, value, time) for received, channel, value, time in events]  # fmt: skip
+    return sorted(late)
+
+
+def test_arrival_delay_under_load_on_one_clock_is_no_clock_offset() -> None:
+    """Most measurements 60-200 ms late (median ~100 ms), a fifth on time: the stamps are right, no offset said."""
+    live = session(pairing="sample", sample_period=0.005)
+    notices = offer_all(live, loaded(robot_events(2000, 0.005, jitter=0.0005), share=0.8))
+    assert not [notice for notice in notices if notice.kind == "clock_offset"]
+    assert live.counters["clock_offset"] == 0
+    # the same load on stamps 0.3 s behind: still an offset, and said as one
+    live = session(pairing="sample", sample_period=0.005)
+    notices = offer_all(live, loaded(robot_events(2000, 0.005, jitter=0.0005, clock_offset=0.3), share=0.8))
+    said = [notice for notice in notices if notice.kind == "clock_offset"]
+    assert len(said) == 1 and "0.30" in said[0].text, said
+
+
 def test_clipped_network_inputs_are_said_with_the_fix(series) -> None:
     """u ten times beyond u_scale: the network's inputs are clipped; the session says so, live and offline."""
     live = session()

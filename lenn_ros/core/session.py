@@ -13,8 +13,8 @@ summary; every notice kind also has a counter in :meth:`Session.status`.
 Times are stamps where a message has one, else receive times. When one input is
 timed by stamps whose clock is off the receive clock the other input is timed by (or
 both by stamps of two clocks), the pairs are shifted by that offset and nothing in
-the pairing itself can tell: the session compares each input's median
-(receive - time) and says ``clock_offset`` once the two differ by more than
+the pairing itself can tell: the session compares each input's least
+(receive - time) over its last messages and says ``clock_offset`` once the two differ by more than
 ``max_clock_offset`` (default max(T/2, 50 ms): above a driver's own latency, and
 the shift from which the held command starts to be the wrong one).
 
@@ -34,7 +34,6 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
-from statistics import median
 from typing import Any
 
 import numpy as np
@@ -57,8 +56,9 @@ SESSION_COUNTERS = (
 MAX_HELD = 10_000
 #: What rmw reports when it has no publication sequence numbers (rmw_cyclonedds: 2**64-1).
 SEQUENCE_UNSUPPORTED = (0, 2**64 - 1)
-#: Halves per input whose (receive - time) make the clock-offset estimate (a median: a stall does not move it).
-CLOCK_WINDOW = 64
+#: Halves per input whose (receive - time) make the clock-offset estimate: their least, since an offset
+#: shifts every message and a delay (load, a stall's burst) only some; at 200 Hz 1.3 s, at 50 Hz 5 s.
+CLOCK_WINDOW = 256
 
 
 @dataclass
@@ -168,7 +168,7 @@ class Session:
         self._lags: dict[str, deque[float]] = {U: deque(maxlen=CLOCK_WINDOW), Y: deque(maxlen=CLOCK_WINDOW)}
         self._stamped = {U: False, Y: False}
         self._offset_checks = 0
-        self.clock_offset: float | None = None  # median lag of y_p minus that of u while it stands, s
+        self.clock_offset: float | None = None  # least lag of y_p minus that of u while it stands, s
         self.shedder = Shedder(config.max_lag, config.queue_depth)
 
     # -- input -------------------------------------------------------------------------------
@@ -434,8 +434,11 @@ class Session:
         """Compare the inputs' (receive - time): see the module docstring.
 
         A message timed by its arrival has time == received (the node and evaluate
-        pass the same number), so its lag is 0 and the other input's median lag is
-        the offset of its stamps. The medians are taken every 16 halves once each
+        pass the same number), so its lag is 0 and the other input's least lag is
+        the offset of its stamps. The least, not the median: on one host with one clock a
+        loaded machine delays most messages by tens of ms, yet some still arrive at once,
+        while a clock offset delays every one of them (a median above 50 ms under load was
+        said as a clock offset). Taken every 16 halves once each
         input has half a window (the first messages after discovery can come late):
         cheap at kilohertz rates, and a burst delayed by a stall moves neither.
         """
@@ -446,7 +449,7 @@ class Session:
         self._offset_checks += 1
         if self._offset_checks % 16 or min(len(lags) for lags in self._lags.values()) < CLOCK_WINDOW // 2:
             return
-        lag = {name: median(lags) for name, lags in self._lags.items()}
+        lag = {name: min(lags) for name, lags in self._lags.items()}
         offset = lag[Y] - lag[U]
         limit = self.config.max_clock_offset or max(0.5 * self.config.sample_period, 0.05)
         if self.clock_offset is None and abs(offset) > limit:
@@ -463,18 +466,20 @@ class Session:
         if all(self._stamped.values()):
             what = (
                 f"the header stamps of {names[U]} and {names[Y]} lag their arrival by {lag[U]:.3f} and {lag[Y]:.3f} s "
-                "(median): two clocks"
+                f"(at least, over their last {CLOCK_WINDOW} messages): two clocks"
             )
         else:
             stamped = Y if self._stamped[Y] else U
             side = "behind" if lag[stamped] > 0 else "ahead of"
             what = (
                 f"{names[stamped]} is timed by its header stamps and {names[U if stamped == Y else Y]} by arrival, "
-                f"and {names[stamped]}'s stamps are {abs(lag[stamped]):.3f} s {side} its arrival (median)"
+                f"and {names[stamped]}'s stamps are {abs(lag[stamped]):.3f} s {side} its arrival (every one of its "
+                f"last {CLOCK_WINDOW} messages)"
             )
         return (
             f"{what}: each {names[U]} is paired with a {names[Y]} {offset:.3f} s away from it (more than "
-            f"{limit * 1e3:.0f} ms: a clock offset, not transport latency). Fix: -p use_header_stamp:=false (time "
+            f"{limit * 1e3:.0f} ms: a clock offset, not a delay under load, which leaves some messages on time). "
+            "Fix: -p use_header_stamp:=false (time "
             "both inputs by arrival), or synchronise the clocks (chrony/PTP; use_sim_time on every node or none). "
             "If the measurement really is taken that long before it arrives, the stamps are right: ignore this"
         )

@@ -355,3 +355,31 @@ def test_qos_overrides_take_durability_and_name_typos(graph: Graph) -> None:
         _, err = stop(identifier)
     assert "unknown QoS override 'qos_overrides./uu.subscription.reliability' is ignored" in err, err
     assert final_status(err)["counters"]["unknown_parameters"] == 1
+
+
+def test_qos_overrides_by_the_name_before_remapping_apply_to_the_remapped_topic(graph: Graph) -> None:
+    """-r u:=/robot/cmd with the README's qos_overrides./u...: applied to /robot/cmd, not refused as unknown."""
+    from rclpy.qos import DurabilityPolicy
+
+    identifier = start_node(
+        "identifier",
+        "pairing:=sample",
+        "sample_period:=0.01",
+        "qos_overrides./u.subscription.durability:=transient_local",
+        ros_args=("-r", "u:=/robot/cmd"),
+    )
+    probe = graph.node("probe")
+    graph.spin()
+    try:
+        deadline = time.monotonic() + 20
+        infos: list = []
+        while not infos and time.monotonic() < deadline:
+            infos = [i for i in probe.get_subscriptions_info_by_topic("/robot/cmd") if i.node_name == "identifier"]
+            time.sleep(0.1)
+        assert infos, "the identifier's /robot/cmd subscription never showed up"
+        assert infos[0].qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+    finally:
+        _, err = stop(identifier)
+    assert "unknown QoS override" not in err, err
+    assert "qos_overrides./u.subscription.durability applies to /robot/cmd" in err, err
+    assert final_status(err)["counters"]["unknown_parameters"] == 0

@@ -181,6 +181,7 @@ class IdentifierNode(Node):
         config_publisher.publish(String(data=json.dumps(json_safe(config))))
         self._sim_time = bool(self.get_parameter("use_sim_time").value)
         self._message_types = message_types
+        self._alias_qos_overrides()
         self._subscribe(message_types)
         self._warn_unknown_qos_overrides()
         self._test_start_subscription = self.create_subscription(
@@ -261,15 +262,41 @@ class IdentifierNode(Node):
                 f"of its parameters apply: name the section '/**:' (any node) or '/**/{self.get_name()}:'"
             )
 
+    def _alias_qos_overrides(self) -> None:
+        """QoS overrides given under an input's name before remapping apply to the remapped topic.
+
+        rclpy declares ``qos_overrides.<topic>.subscription.*`` under the resolved, remapped
+        name (``/joint_states``), so the README's ``qos_overrides./u...`` was refused as
+        unknown once ``-r u:=/joint_states`` was given. Each such override is copied to the
+        remapped name before the subscriptions declare theirs; one given under both names
+        keeps the remapped one's value, and the user is told which.
+        """
+        self._qos_aliases: set[str] = set()
+        for _, _, topic in self.inputs:
+            plain, remapped = self.resolve_topic_name(topic, only_expand=True), self.resolve_topic_name(topic)
+            prefix = f"qos_overrides.{plain}.subscription."
+            if plain == remapped:
+                continue
+            for name, parameter in list(self._parameter_overrides.items()):
+                if not name.startswith(prefix):
+                    continue
+                target = f"qos_overrides.{remapped}.subscription.{name[len(prefix):]}"
+                self._qos_aliases.add(name)
+                if target in self._parameter_overrides:
+                    self.get_logger().warning(f"{name} and {target} both given: {target} applies (remapped name)")
+                    continue
+                self._parameter_overrides[target] = RosParameter(target, value=parameter.value)
+                self.get_logger().info(f"{name} applies to {remapped} ({plain} is remapped to it)")
+
     def _warn_unknown_qos_overrides(self) -> None:
         """``qos_overrides.`` names that no subscription declared (a typo, a wrong topic) are ignored: say so."""
         for name in self._parameter_overrides:
-            if name.startswith("qos_overrides.") and not self.has_parameter(name):
+            if name.startswith("qos_overrides.") and not self.has_parameter(name) and name not in self._qos_aliases:
                 self.node_counters["unknown_parameters"] += 1
                 self.get_logger().error(
                     f"unknown QoS override {name!r} is ignored: this node takes "
                     f"qos_overrides.{self.u_name}.subscription.* and qos_overrides.{self.y_name}.subscription.* "
-                    "(reliability, history, depth, durability)"
+                    "(reliability, history, depth, durability; an input's name before remapping works too)"
                 )
 
     def _message_class(self, channel: str) -> Any:

@@ -230,6 +230,24 @@ def session(**config) -> Session:
     return Session(build_identifier(values, network), SessionConfig(**config))
 
 
+def test_a_stalled_driver_is_said_as_a_stall_with_its_length_not_as_lost_messages() -> None:
+    """The driver publishes nothing for 0.5 s: a gap of 25 grid points, said as a stall with its length."""
+    live = session(pairing="sample", sample_period=0.02)
+    notices = offer_all(live, robot_events(300, 0.02, drop_y=set(range(100, 125))))
+    live.flush()
+    notices += live.take_notices()
+    gaps = [notice.text for notice in notices if notice.kind == "gap"]
+    assert len(gaps) == 1, gaps
+    assert "a gap of 25 samples, 0.520 s without a sample: a stall, not a loss" in gaps[0], gaps[0]
+    # in sequence mode a missing index is a message that never arrived: lost, and said so
+    live = session()
+    for k in [*range(1, 50), *range(60, 100)]:
+        live.offer(U, 0.1, k * 0.01, sequence=k, source_time=k * 0.01)
+        live.offer(Y, 0.2, k * 0.01, sequence=k, source_time=k * 0.01)
+    gaps = [notice.text for notice in live.take_notices() if notice.kind == "gap"]
+    assert len(gaps) == 1 and "a gap of 10 samples, 0.110 s without a sample: lost" in gaps[0], gaps
+
+
 def test_sequence_pairing_refuses_halves_published_apart(series) -> None:
     live = session()
     for k in range(300):

@@ -61,6 +61,45 @@ SEQUENCE_UNSUPPORTED = (0, 2**64 - 1)
 CLOCK_WINDOW = 256
 
 
+#: What missing sample indices mean in each pairing mode: only in ``sequence`` are they lost messages
+#: (publication numbers skipped); on a grid they are time in which no new y_p came, a stall.
+GAP_CAUSES = {
+    "sequence": "lost: their messages never arrived (publication sequence numbers skipped) or found no partner",
+    "stamp": "a stall or lost halves: no u / y_p pair within slop formed in that time",
+    "sample": "a stall, not a loss: no new measurement arrived in that time (its publisher paused; with BEST_EFFORT, "
+    "or every message of that time lost)",
+}
+
+
+def gap_text(pairing: str, missing: int, seconds: float | None = None) -> str:
+    """One gap (or the longest of several) in words: its length in samples and seconds, and what it is."""
+    length = f"{missing} sample{'s' if missing != 1 else ''}"
+    if seconds is not None and math.isfinite(seconds):
+        length += f", {seconds:.3f} s without a sample"
+    return f"{length}: {GAP_CAUSES.get(pairing, GAP_CAUSES['sequence'])}"
+
+
+def describe_gaps(index: np.ndarray, pairing: str, sample_period: float = 0.0) -> list[str]:
+    """The missing sample indices of a run (``evaluate``), in lines: how many, in how many gaps, the
+    longest (in seconds too on a grid) and what they are in this pairing mode, a stall or lost messages."""
+    index = np.asarray(index, dtype=np.int64)
+    if index.size == 0:
+        return []
+    lines = []
+    if index[0] > 1:
+        lines.append(f"the samples start at index {index[0]}: the {index[0] - 1} before it are not in the recording")
+    steps = np.diff(index)
+    gaps = steps[steps > 1] - 1
+    if gaps.size:
+        longest = int(gaps.max())
+        seconds = (longest + 1) * sample_period if pairing == "sample" and sample_period > 0 else None
+        lines.append(
+            f"{int(gaps.sum())} sample indices missing in {gaps.size} gap{'s' if gaps.size != 1 else ''}, "
+            f"the longest {gap_text(pairing, longest, seconds)}"
+        )
+    return lines
+
+
 @dataclass
 class SessionConfig:
     """How halves become samples and samples become learning; see the module docstring."""
@@ -560,6 +599,7 @@ class Session:
             refused = math.isnan(pair.u) or math.isnan(pair.y)  # (no numpy call per sample for one channel)
         if refused:
             self.identifier.skip(pair.index)
+            self._last_pair = pair
             return Sample(pair.index, pair.time, pair.u, pair.y, None)
         learn = self._learns(pair.index)
         if learn != self.phase_learning:
@@ -568,14 +608,29 @@ class Session:
             self._say("phase", f"sample {pair.index}: {'training' if learn else 'frozen (test)'} phase")
         result = self.identifier.step(pair.index, pair.u, pair.y, learn)
         if result.event == "gap":
-            self._say(result.event, f"sample {pair.index}: {result.event}; counters {self.identifier.counters}")
+            self._say_gap(pair)
         elif result.event in ("diverged", "resumed"):
             self._say(result.event, self._divergence_text(pair.index, result.event))
+        self._last_pair = pair
         if self.identifier.counters["clipped"] > self._seen_clipped:
             self._say_clipped(pair.time)
         if result.error is not None and result.y_hat is not None:
             self.phase_nmse.add(pair.y, result.y_hat)
         return Sample(pair.index, pair.time, pair.u, pair.y, result)
+
+    _last_pair: Pair | None = None
+
+    def _say_gap(self, pair: Pair) -> None:
+        """A gap before ``pair``: how long (samples and seconds), and whether it is a stall or lost messages."""
+        last = self._last_pair
+        counters = self.identifier.outputs[0].counters if self.mimo else self.identifier.counters
+        missing = pair.index - last.index - 1 if last is not None else 0
+        seconds = pair.time - last.time if last is not None else None
+        self._say(
+            "gap",
+            f"sample {pair.index}: a gap of {gap_text(self.config.pairing, missing, seconds)}; the model restarts its "
+            f"history there ({counters['gaps']} gaps, {counters['lost']} sample indices missing so far)",
+        )
 
     def _divergence_text(self, index: int, event: str) -> str:
         """One line for a divergence (what was done, and when learning comes back) or for a resume."""

@@ -383,3 +383,38 @@ def test_qos_overrides_by_the_name_before_remapping_apply_to_the_remapped_topic(
     assert "unknown QoS override" not in err, err
     assert "qos_overrides./u.subscription.durability applies to /robot/cmd" in err, err
     assert final_status(err)["counters"]["unknown_parameters"] == 0
+
+
+def test_a_stalled_driver_is_said_as_a_stall_with_its_length(graph: Graph) -> None:
+    """The driver (y_p, 100 Hz) publishes nothing for 0.5 s while the controller goes on: a gap said
+    as a stall of about 0.5 s, not as lost messages (none were lost)."""
+    import re
+
+    from std_msgs.msg import Float64
+
+    identifier = start_node(
+        "identifier", "status_period:=0.2", "pairing:=sample", "sample_period:=0.02", "warn_period:=0.05"
+    )
+    u_pub = graph.node("controller").create_publisher(Float64, topics.U, topics.data_qos())
+    y_pub = graph.node("driver").create_publisher(Float64, topics.Y_P, topics.data_qos())
+    graph.listen()
+    graph.spin()
+
+    def both(k: int) -> None:
+        y_pub.publish(Float64(data=0.01 * (k % 50)))
+        if k % 2 == 0:
+            u_pub.publish(Float64(data=0.02 * (k % 25)))
+
+    try:
+        graph.wait(lambda s: True)  # the identifier is up
+        publish_for(2.0, 100, both)
+        publish_for(0.5, 100, lambda k: u_pub.publish(Float64(data=0.1)) if k % 2 == 0 else None)  # the stall
+        publish_for(2.0, 100, both)
+        graph.wait(lambda s: s["counters"]["gaps"] >= 1, timeout=20)
+    finally:
+        _, err = stop(identifier)
+    stalls = [(int(n), float(t)) for n, t in re.findall(r"a gap of (\d+) samples?, (\d+\.\d+) s without a sample: a "
+                                                        r"stall, not a loss", err)]  # fmt: skip
+    assert stalls, err
+    longest = max(stalls, key=lambda stall: stall[1])
+    assert 0.45 < longest[1] < 0.9 and 20 <= longest[0] <= 45, stalls

@@ -66,8 +66,8 @@ CLOCK_WINDOW = 256
 GAP_CAUSES = {
     "sequence": "lost: their messages never arrived (publication sequence numbers skipped) or found no partner",
     "stamp": "a stall or lost halves: no u / y_p pair within slop formed in that time",
-    "sample": "a stall, not a loss: no new measurement arrived in that time (its publisher paused; with BEST_EFFORT, "
-    "or every message of that time lost)",
+    "sample": "a stall, not a loss: no new measurement arrived in that time (its publisher paused, unless over "
+    "BEST_EFFORT every message of that time was lost)",
 }
 
 

@@ -50,7 +50,7 @@ from lenn_ros.core.fields import stamp_seconds
 from lenn_ros.core.metrics import nmse_db, rmse
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.pairing import U, Y
-from lenn_ros.core.session import Session, SessionConfig
+from lenn_ros.core.session import Session, SessionConfig, describe_gaps
 from lenn_ros.core.structure import Identifier
 from lenn_ros.evaluate_mimo import MimoBagEvaluation, score_mimo
 from lenn_ros.evaluate_mimo import report as report_mimo
@@ -75,6 +75,7 @@ class BagEvaluation:
     counters: dict[str, int] = field(default_factory=dict)
     notices: list[str] = field(default_factory=list)
     weights_in: str = ""  # the weights file learning started from ("" = fresh weights)
+    gaps: list[str] = field(default_factory=list)  # the missing indices in words (session.describe_gaps)
 
     @property
     def warnings(self) -> list[str]:
@@ -107,6 +108,7 @@ class BagEvaluation:
             "skipped": self.evaluation.skipped + self.unpaired + self.rejected,
             "source": self.source,
             "missing": self.missing,
+            "gaps": self.gaps,
             "free_run_unstable": bool(self.evaluation.free_run_warnings)
             and not all("clipped" in w for w in self.evaluation.free_run_warnings),
             "counters": self.counters,
@@ -313,8 +315,9 @@ def evaluate_bag(
     rejected = int(np.count_nonzero(~(np.isfinite(u) & np.isfinite(y))))
     unpaired = sum(counters.get(name, 0) for name in ("unpaired", "dropped_u", "dropped_y"))
     weights_in = str(weights_path(values["weights_in"])) if values.get("weights_in") else ""
+    gaps = describe_gaps(index, session.config.pairing, session.config.sample_period)
     return BagEvaluation(
-        evaluation, len(index), unpaired, rejected, int(start), source, missing, counters, notices, weights_in
+        evaluation, len(index), unpaired, rejected, int(start), source, missing, counters, notices, weights_in, gaps
     )
 
 
@@ -440,8 +443,8 @@ def main(args) -> int:
     print(f"bag {args.bag}: {d['pairs']} samples from {d['source']}, test from sample {d['test_start']}")
     if d["weights_in"]:
         print(f"  learning started from the weights in {d['weights_in']} (weights_in)")
-    if d["missing"]:
-        print(f"  {d['missing']} sample indices are missing from the recording (lost before recording or dropped)")
+    for line in d["gaps"]:
+        print(f"  {line}")
     print(f"  trained on {d['trained']} samples, scored {d['samples']} test samples, skipped {d['skipped']}")
     for label, key, rmse_key in (("one-step", "nmse_db", "rmse"), ("free-run", "nmse_free_run_db", "rmse_free_run")):
         value = d[key]

@@ -25,7 +25,7 @@ import numpy as np
 
 from lenn_ros.core.metrics import nmse_db, rmse
 from lenn_ros.core.mimo import MimoIdentifier
-from lenn_ros.core.session import Session, json_safe
+from lenn_ros.core.session import Session, describe_gaps, json_safe
 
 
 @dataclass
@@ -44,6 +44,7 @@ class MimoBagEvaluation:
     y_test: np.ndarray | None = field(default=None, repr=False)  # (test samples, outputs), for the plot
     y_hat_test: np.ndarray | None = field(default=None, repr=False)
     y_free_test: np.ndarray | None = field(default=None, repr=False)
+    gaps: list[str] = field(default_factory=list)  # the missing indices in words (session.describe_gaps)
 
     def as_dict(self) -> dict[str, Any]:
         return json_safe(
@@ -54,6 +55,7 @@ class MimoBagEvaluation:
                 "source": self.source,
                 "samples": self.samples,
                 "missing": self.missing,
+                "gaps": self.gaps,
                 "free_run": self.free_run,
                 "counters": self.counters,
                 "notices": self.notices,
@@ -92,6 +94,7 @@ def score_mimo(
         y[test],
         y_hat[test],
         y_free[test],
+        describe_gaps(index, session.config.pairing, session.config.sample_period),
     )
 
 
@@ -134,8 +137,8 @@ def report(args: Any, result: MimoBagEvaluation) -> int:
         print(json.dumps(d, indent=1))
         return 0
     print(f"bag {args.bag}: {d['pairs']} samples from {d['source']}, test from sample {d['test_start']}")
-    if d["missing"]:
-        print(f"  {d['missing']} sample indices are missing from the recording (lost before recording or dropped)")
+    for line in d["gaps"]:
+        print(f"  {line}")
     print(f"  scored {d['samples']} test samples per output channel")
     print("  channel        NMSE one-step   NMSE free run   RMSE one-step   RMSE free run")
     for name, scores in result.channels.items():

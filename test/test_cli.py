@@ -202,3 +202,35 @@ def test_bench_runs_the_source_tree_benchmarks() -> None:
     assert result.returncode == 0 and "usage: reproduce_marginal.py" in result.stdout, result.stderr
     unknown = lenn_ros("bench", "nonsense")
     assert unknown.returncode == 2 and "invalid choice: 'nonsense'" in unknown.stderr
+
+
+def test_evaluate_says_a_stalled_driver_is_a_stall_with_its_length(tmp_path: Path) -> None:
+    """u and y_p at 100 Hz from two nodes, paired on a grid; the driver publishes nothing for 0.5 s.
+
+    Before: "50 sample indices are missing from the recording (lost before recording or
+    dropped)"; nothing was lost and nothing is missing from the recording: no y_p was published.
+    """
+    import numpy as np
+
+    from lenn_ros import topics
+    from lenn_ros.bag.writer import BagWriter
+
+    bag_path = tmp_path / "stall"
+    with BagWriter(bag_path, flush_period=None) as bag:
+        for name in (topics.U, topics.Y_P, topics.TEST_START, topics.IDENTIFIER_CONFIG):
+            bag.add_topic("/" + name)
+        bag.write_value("/" + topics.TEST_START, 2001, 0)
+        config = {"pairing": "sample", "sample_period": 0.01, "use_header_stamp": False}
+        bag.write_value("/" + topics.IDENTIFIER_CONFIG, json.dumps(config), 0)
+        u = np.sin(0.05 * np.arange(3000))
+        for k in range(3000):
+            time_ns = 5_000_000_000 + k * 10_000_000
+            bag.write_value("/" + topics.U, float(u[k]), time_ns + 1_000_000, sequence=k + 1)
+            if not 1000 <= k < 1050:  # the stall: the driver publishes nothing, no sequence number is skipped
+                bag.write_value("/" + topics.Y_P, 0.5 * float(u[k - 1]), time_ns + 3_000_000, sequence=k + 1)
+    result = lenn_ros("evaluate", str(bag_path))
+    assert result.returncode == 0, result.stderr
+    assert "missing from the recording" not in result.stdout and "lost before recording" not in result.stdout
+    line = next((line for line in result.stdout.splitlines() if "sample indices missing" in line), "")
+    assert "50 sample indices missing in 1 gap, the longest 50 samples, 0.510 s without a sample" in line, result.stdout
+    assert "a stall, not a loss" in line

@@ -207,6 +207,21 @@ def test_malformed_params_file_and_foreign_weights(tmp_path: Path, domain: int) 
     assert code == 2 and "different network" in stderr and "Traceback" not in stderr
 
 
+def test_weights_in_is_said_at_start_with_file_count_and_structure(tmp_path: Path, domain: int) -> None:
+    weights = tmp_path / "start.npz"
+    EXAMPLES[1].make_network("lenn").save(weights)
+    identifier = start_node("identifier", "example:=1", "network:=lenn", f"weights_in:={weights}")
+    listener = Listener(domain)
+    try:
+        listener.wait_status(lambda s: True, timeout=30)
+    finally:
+        listener.close()
+        _, err = stop(identifier)
+    line = next((line for line in err.splitlines() if "weights_in: loaded" in line), "")
+    assert f"loaded 15 weights from {weights}" in line, err
+    assert "lenn, y_lags 0, u_lags 1" in line and "order 14" in line and "basis legendre" in line, line
+
+
 def test_sigterm_saves_weights_atomically(tmp_path: Path, domain: int) -> None:
     weights = tmp_path / "weights.npz"
     identifier = start_node("identifier", f"weights_out:={weights}")

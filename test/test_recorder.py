@@ -264,6 +264,43 @@ def test_robot_topics_any_type_best_effort_remapped(tmp_path: Path, robot: Robot
     assert [list(m.data) for topic, m in decoded if topic == "/robot/cmd"][-1] == [n - 1.0, 2.0 * (n - 1)]
 
 
+def test_the_bag_stores_the_qos_the_publishers_offer(tmp_path: Path, domain: int) -> None:
+    """A BEST_EFFORT depth-10 driver on y_p with the default y_type (subscribed at start): the bag's
+    offered_qos_profiles say BEST_EFFORT, as rosbag2 stores them, not the recorder's RELIABLE depth 10 000."""
+    from rclpy.qos import QoSProfile, ReliabilityPolicy
+    from std_msgs.msg import Float64
+
+    from lenn_ros.bag import bag_info
+
+    out = tmp_path / "offered"
+    proc = start_node("recorder", f"output:={out}")
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    node = rclpy.create_node("driver", context=ctx)
+    try:
+        offering = QoSProfile(depth=10, reliability=ReliabilityPolicy.BEST_EFFORT)
+        publisher = node.create_publisher(Float64, topics.Y_P, offering)
+        deadline = time.monotonic() + 15
+        while publisher.get_subscription_count() < 1 and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert publisher.get_subscription_count() >= 1, "the recorder never subscribed to /y_p"
+        for k in range(50):
+            publisher.publish(Float64(data=float(k)))
+            time.sleep(0.01)
+        time.sleep(0.5)
+    finally:
+        _, stderr = stop(proc)
+        node.destroy_node()
+        ctx.try_shutdown()
+    assert proc.returncode == 0, stderr
+    info = bag_info(out)["topics"]
+    assert info["/y_p"]["count"] > 0, info
+    offered = info["/y_p"]["offered_qos"]
+    assert len(offered) == 1 and offered[0]["reliability"] == "best_effort", offered
+    assert offered[0]["depth"] in (0, 10), offered  # (DDS discovery carries no depth: rosbag2 stores 0 too)
+    assert info["/u"]["count"] == 0 and info["/u"]["offered_qos"], info  # no publisher: still listed
+
+
 def test_wrong_input_type_is_said_once(tmp_path: Path, robot: RobotTalker) -> None:
     """y_type says Float64 but the driver publishes JointState: one error line, not silence."""
     out = tmp_path / "wrong"

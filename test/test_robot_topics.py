@@ -166,6 +166,31 @@ def test_u_without_y_p_is_said_and_counted(graph: Graph) -> None:
     assert "/u has been arriving alone" in err and "nothing on /y_p" in err
 
 
+def test_y_p_whose_field_cannot_be_read_is_said_as_such_not_as_silence(graph: Graph) -> None:
+    """JointStates arrive but y_field names a joint they lack: the lone-u line names the field and the error."""
+    from sensor_msgs.msg import JointState
+    from std_msgs.msg import Float64
+
+    identifier = start_node(
+        "identifier", "status_period:=0.2", "lone_timeout:=1.0", "pairing:=sample", "sample_period:=0.02",
+        "y_type:=sensor_msgs/msg/JointState", "y_field:=position[joint1]",
+    )  # fmt: skip
+    u_pub = graph.node("controller").create_publisher(Float64, topics.U, topics.data_qos())
+    y_pub = graph.node("driver").create_publisher(JointState, topics.Y_P, topics.data_qos())
+    graph.listen()
+    graph.spin()
+    try:
+        graph.wait(lambda s: True)  # the identifier is up
+        publish_for(4.0, 50, lambda k: (u_pub.publish(Float64(data=0.1)),
+                                        y_pub.publish(JointState(name=["pendulum"], position=[0.2]))))  # fmt: skip
+        status = graph.wait(lambda s: s["counters"]["lone_u"] > 20 and s["counters"]["field_errors"] > 20, timeout=20)
+    finally:
+        _, err = stop(identifier)
+    assert "nothing on /y_p" not in err, err
+    assert "messages arrived on /y_p but their field could not be read: y_field position[joint1]" in err, err
+    assert "no joint 'joint1'" in err and status["counters"]["learned"] == 0
+
+
 def test_pairs_held_for_missing_readers_are_said_and_counted(graph: Graph) -> None:
     """wait_for_error_subscribers:=2 with no reader of error: nothing learnt, and the node says why."""
     from std_msgs.msg import Float64
@@ -217,6 +242,10 @@ def test_wrong_type_or_field_is_one_line_at_start(graph: Graph) -> None:
     bad_field = start_node("identifier", "y_type:=sensor_msgs/msg/JointState", "y_field:=positions[0]")
     _, err = bad_field.communicate(timeout=30)
     assert bad_field.returncode == 2 and "JointState has no field 'positions'" in err
+    assert len(err.strip().splitlines()) == 1
+    indexed = start_node("identifier", "u_field:=data[1]")  # u_type left at its default, Float64
+    _, err = indexed.communicate(timeout=30)
+    assert indexed.returncode == 2 and "u_type:=std_msgs/msg/Float64MultiArray" in err, err
     assert len(err.strip().splitlines()) == 1
 
 
@@ -326,3 +355,66 @@ def test_qos_overrides_take_durability_and_name_typos(graph: Graph) -> None:
         _, err = stop(identifier)
     assert "unknown QoS override 'qos_overrides./uu.subscription.reliability' is ignored" in err, err
     assert final_status(err)["counters"]["unknown_parameters"] == 1
+
+
+def test_qos_overrides_by_the_name_before_remapping_apply_to_the_remapped_topic(graph: Graph) -> None:
+    """-r u:=/robot/cmd with the README's qos_overrides./u...: applied to /robot/cmd, not refused as unknown."""
+    from rclpy.qos import DurabilityPolicy
+
+    identifier = start_node(
+        "identifier",
+        "pairing:=sample",
+        "sample_period:=0.01",
+        "qos_overrides./u.subscription.durability:=transient_local",
+        ros_args=("-r", "u:=/robot/cmd"),
+    )
+    probe = graph.node("probe")
+    graph.spin()
+    try:
+        deadline = time.monotonic() + 20
+        infos: list = []
+        while not infos and time.monotonic() < deadline:
+            infos = [i for i in probe.get_subscriptions_info_by_topic("/robot/cmd") if i.node_name == "identifier"]
+            time.sleep(0.1)
+        assert infos, "the identifier's /robot/cmd subscription never showed up"
+        assert infos[0].qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
+    finally:
+        _, err = stop(identifier)
+    assert "unknown QoS override" not in err, err
+    assert "qos_overrides./u.subscription.durability applies to /robot/cmd" in err, err
+    assert final_status(err)["counters"]["unknown_parameters"] == 0
+
+
+def test_a_stalled_driver_is_said_as_a_stall_with_its_length(graph: Graph) -> None:
+    """The driver (y_p, 100 Hz) publishes nothing for 0.5 s while the controller goes on: a gap said
+    as a stall of about 0.5 s, not as lost messages (none were lost)."""
+    import re
+
+    from std_msgs.msg import Float64
+
+    identifier = start_node(
+        "identifier", "status_period:=0.2", "pairing:=sample", "sample_period:=0.02", "warn_period:=0.05"
+    )
+    u_pub = graph.node("controller").create_publisher(Float64, topics.U, topics.data_qos())
+    y_pub = graph.node("driver").create_publisher(Float64, topics.Y_P, topics.data_qos())
+    graph.listen()
+    graph.spin()
+
+    def both(k: int) -> None:
+        y_pub.publish(Float64(data=0.01 * (k % 50)))
+        if k % 2 == 0:
+            u_pub.publish(Float64(data=0.02 * (k % 25)))
+
+    try:
+        graph.wait(lambda s: True)  # the identifier is up
+        publish_for(2.0, 100, both)
+        publish_for(0.5, 100, lambda k: u_pub.publish(Float64(data=0.1)) if k % 2 == 0 else None)  # the stall
+        publish_for(2.0, 100, both)
+        graph.wait(lambda s: s["counters"]["gaps"] >= 1, timeout=20)
+    finally:
+        _, err = stop(identifier)
+    stalls = [(int(n), float(t)) for n, t in re.findall(r"a gap of (\d+) samples?, (\d+\.\d+) s without a sample: a "
+                                                        r"stall, not a loss", err)]  # fmt: skip
+    assert stalls, err
+    longest = max(stalls, key=lambda stall: stall[1])
+    assert 0.45 < longest[1] < 0.9 and 20 <= longest[0] <= 45, stalls

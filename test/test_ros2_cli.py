@@ -188,6 +188,25 @@ def test_ros2_param_set_then_get_and_topic_echo(ros2_env: dict[str, str]) -> Non
     assert "Traceback" not in output, output
 
 
+def test_status_echoes_whole_as_the_readme_says(ros2_env: dict[str, str]) -> None:
+    """The README's ``ros2 topic echo`` of /status gives JSON that parses (plain echo cuts it at 128 characters)."""
+    readme = (REPO / "README.md").read_text()
+    command = next(line.split("#")[0].split() for line in readme.splitlines() if line.startswith("ros2 topic echo")
+                   and "/status" in line)  # fmt: skip
+    assert "--full-length" in command, command
+    identifier = start(ros2_env, "run", "lenn_ros", "identifier", "--ros-args", "-p", "status_period:=0.5")
+    try:
+        echo = ros2(ros2_env, *command[1:3], "--no-daemon", "--once", *command[3:], "std_msgs/msg/String", timeout=60)
+        assert echo.returncode == 0, echo.stdout + echo.stderr
+        status = json.loads(yaml.safe_load(echo.stdout.split("---")[0])["data"])
+        assert "counters" in status and status["pairing"] == "sequence"
+        cut = ros2(ros2_env, "topic", "echo", "--no-daemon", "--once", "/status", "std_msgs/msg/String", timeout=60)
+        assert "..." in cut.stdout and len(cut.stdout) < len(echo.stdout)  # why the README says --full-length
+    finally:
+        output = stop(identifier)
+    assert "Traceback" not in output, output
+
+
 def test_ros2_launch_runs_simulator_identifier_and_recorder(ros2_env: dict[str, str], tmp_path: Path) -> None:
     """A short launch: it ends by itself when the simulator is done, and the bag holds every sample."""
     from mcap.reader import make_reader

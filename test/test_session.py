@@ -71,6 +71,18 @@ def test_field_paths_are_checked_against_message_classes() -> None:
             check_path(cls, path)
 
 
+def test_an_index_on_the_default_scalar_type_names_the_type_to_set() -> None:
+    """u_field:=data[1] with u_type left at Float64: the user meant an array, so the fix is u_type."""
+    pytest.importorskip("std_msgs.msg")
+    from std_msgs.msg import Float64
+
+    with pytest.raises(FieldError) as raised:
+        check_path(Float64, "data[1]", "std_msgs/msg/Float64", "u_type")
+    text = str(raised.value)
+    assert "set u_type to its type" in text and "u_type:=std_msgs/msg/Float64MultiArray" in text, text
+    assert text.index("u_type:=") < text.index("drop the [index]")  # the likely fix first
+
+
 # -- alignment ----------------------------------------------------------------------------------
 
 
@@ -218,6 +230,24 @@ def session(**config) -> Session:
     return Session(build_identifier(values, network), SessionConfig(**config))
 
 
+def test_a_stalled_driver_is_said_as_a_stall_with_its_length_not_as_lost_messages() -> None:
+    """The driver publishes nothing for 0.5 s: a gap of 25 grid points, said as a stall with its length."""
+    live = session(pairing="sample", sample_period=0.02)
+    notices = offer_all(live, robot_events(300, 0.02, drop_y=set(range(100, 125))))
+    live.flush()
+    notices += live.take_notices()
+    gaps = [notice.text for notice in notices if notice.kind == "gap"]
+    assert len(gaps) == 1, gaps
+    assert "a gap of 25 samples, 0.520 s without a sample: a stall, not a loss" in gaps[0], gaps[0]
+    # in sequence mode a missing index is a message that never arrived: lost, and said so
+    live = session()
+    for k in [*range(1, 50), *range(60, 100)]:
+        live.offer(U, 0.1, k * 0.01, sequence=k, source_time=k * 0.01)
+        live.offer(Y, 0.2, k * 0.01, sequence=k, source_time=k * 0.01)
+    gaps = [notice.text for notice in live.take_notices() if notice.kind == "gap"]
+    assert len(gaps) == 1 and "a gap of 10 samples, 0.110 s without a sample: lost" in gaps[0], gaps
+
+
 def test_sequence_pairing_refuses_halves_published_apart(series) -> None:
     live = session()
     for k in range(300):
@@ -246,6 +276,22 @@ def test_a_lone_input_is_reported_and_counted() -> None:
     notices = [notice for notice in live.take_notices() if notice.kind == "lone_u"]
     assert notices and "nothing on y_p" in notices[-1].text
     assert live.counters["lone_u"] > 150
+
+
+def test_an_input_whose_field_cannot_be_read_is_not_called_silent() -> None:
+    """y_p arrives (2 599 JointStates) but y_field names a joint they lack: the lone-u line says that, not
+    "nothing on y_p" (which sends the user to the topic name and QoS), and the field errors are counted."""
+    live = session(pairing="sample", sample_period=0.01, lone_timeout=2.0)
+    for k in range(400):
+        live.offer(U, 0.1, k * 0.01)
+        live.unreadable(Y, k * 0.01 + 0.001, "y_field position[joint1]", "no joint 'joint1' in name ['pendulum']")
+    live.poll(4.0)
+    notices = [notice for notice in live.take_notices() if notice.kind == "lone_u"]
+    assert notices, "no lone_u notice"
+    text = notices[-1].text
+    assert "nothing on" not in text and "400 messages arrived on y_p but their field could not be read" in text, text
+    assert "y_field position[joint1]" in text and "no joint 'joint1'" in text
+    assert live.counters["field_errors"] == 400 and live.status()["counters"]["field_errors"] == 400
 
 
 def offer_all(live: Session, events: list[tuple]) -> list:
@@ -284,6 +330,27 @@ def test_transport_latency_is_no_clock_offset(latency: float) -> None:
     notices = offer_all(live, robot_events(1000, 0.01, jitter=0.001, latency=latency))
     assert not [notice for notice in notices if notice.kind == "clock_offset"]
     assert live.counters["clock_offset"] == 0 and live.all_counters()["grid_gaps"] == 0
+
+
+def loaded(events: list[tuple], share: float, seed: int = 1) -> list[tuple]:
+    """The y_p of ``events`` as a loaded host delivers them: ``share`` of them 60-200 ms late, one clock."""
+    rng = np.random.default_rng(seed)
+    late = [(received + (rng.uniform(0.06, 0.2) if channel == Y and rng.random() < share else 0.0),
+             channel, value, time) for received, channel, value, time in events]  # fmt: skip
+    return sorted(late)
+
+
+def test_arrival_delay_under_load_on_one_clock_is_no_clock_offset() -> None:
+    """Most measurements 60-200 ms late (median ~100 ms), a fifth on time: the stamps are right, no offset said."""
+    live = session(pairing="sample", sample_period=0.005)
+    notices = offer_all(live, loaded(robot_events(2000, 0.005, jitter=0.0005), share=0.8))
+    assert not [notice for notice in notices if notice.kind == "clock_offset"]
+    assert live.counters["clock_offset"] == 0
+    # the same load on stamps 0.3 s behind: still an offset, and said as one
+    live = session(pairing="sample", sample_period=0.005)
+    notices = offer_all(live, loaded(robot_events(2000, 0.005, jitter=0.0005, clock_offset=0.3), share=0.8))
+    said = [notice for notice in notices if notice.kind == "clock_offset"]
+    assert len(said) == 1 and "0.30" in said[0].text, said
 
 
 def test_clipped_network_inputs_are_said_with_the_fix(series) -> None:

@@ -86,11 +86,32 @@ def _nested_class(message_class: Any, type_text: str) -> Any:
     return getattr(importlib.import_module(f"{package}.msg"), name)
 
 
-def check_path(message_class: Any, path: str, type_name: str = "") -> None:
+#: Message types whose field of this name is an array, to name in a hint (``data[1]`` on a Float64).
+ARRAY_TYPES = {
+    "data": "std_msgs/msg/Float64MultiArray",
+    "position": "sensor_msgs/msg/JointState",
+    "velocity": "sensor_msgs/msg/JointState",
+    "effort": "sensor_msgs/msg/JointState",
+}
+
+
+def _not_an_array(shown: str, attribute: str, type_text: str, path: str, type_key: str) -> str:
+    """An [index] on a scalar field. The index is usually what the user meant (``data[1]``: the
+    topic carries an array) and the type is the default one left unset: name the type to set first."""
+    example = ARRAY_TYPES.get(attribute, "std_msgs/msg/Float64MultiArray")
+    return (
+        f"{shown}: {attribute} is {type_text}, not an array, so {path!r} has no element to index: if the topic "
+        f"carries an array, set {type_key} to its type (one with {attribute}[], e.g. {type_key}:={example}); "
+        f"if it is one {type_text}, drop the [index]"
+    )
+
+
+def check_path(message_class: Any, path: str, type_name: str = "", type_key: str = "the type") -> None:
     """Raise :class:`FieldError` unless ``path`` leads to a number in ``message_class``.
 
     Uses the rosidl field table of rclpy message classes; what only the data can tell
     (an index past the end, a joint name absent) is reported per message instead.
+    ``type_key`` names the setting that chose the class (``u_type``), for the hints.
     """
     shown = type_name or getattr(message_class, "__name__", "message")
     current: Any = message_class
@@ -106,7 +127,7 @@ def check_path(message_class: Any, path: str, type_name: str = "") -> None:
         if step.index is not None:
             element = _element_type(type_text)
             if element is None:
-                raise FieldError(f"{shown}: {step.attribute} is {type_text}, not an array: drop [index] in {path!r}")
+                raise FieldError(_not_an_array(shown, step.attribute, type_text, path, type_key))
             if isinstance(step.index, str) and "name" not in fields:
                 raise FieldError(
                     f"{shown} has no 'name' list to look {step.index!r} up in; use a number in {path!r}"
@@ -220,10 +241,10 @@ def channel_names(text: str, names: list[str] | tuple[str, ...] = ()) -> list[st
     return shown
 
 
-def check_vector(message_class: Any, text: str, type_name: str = "") -> None:
+def check_vector(message_class: Any, text: str, type_name: str = "", type_key: str = "the type") -> None:
     """:func:`check_path` for each channel of a vector setting (``[*]`` checked as element 0)."""
     for path in split_paths(text):
-        check_path(message_class, path.replace(ALL, "[0]"), type_name)
+        check_path(message_class, path.replace(ALL, "[0]"), type_name, type_key)
 
 
 def compile_vector(text: str, names: list[str] | tuple[str, ...] = ()) -> Callable[[Any], np.ndarray]:

@@ -13,8 +13,8 @@ summary; every notice kind also has a counter in :meth:`Session.status`.
 Times are stamps where a message has one, else receive times. When one input is
 timed by stamps whose clock is off the receive clock the other input is timed by (or
 both by stamps of two clocks), the pairs are shifted by that offset and nothing in
-the pairing itself can tell: the session compares each input's median
-(receive - time) and says ``clock_offset`` once the two differ by more than
+the pairing itself can tell: the session compares each input's least
+(receive - time) over its last messages and says ``clock_offset`` once the two differ by more than
 ``max_clock_offset`` (default max(T/2, 50 ms): above a driver's own latency, and
 the shift from which the held command starts to be the wrong one).
 
@@ -34,7 +34,6 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
-from statistics import median
 from typing import Any
 
 import numpy as np
@@ -51,13 +50,54 @@ PAIRING_MODES = ("sequence", "stamp", "sample")
 SESSION_COUNTERS = (
     "u_messages", "y_messages", "nan", "out_of_range", "clipped",
     "no_sequence", "misaligned", "refused", "lone_u", "lone_y", "clock_offset", "held_overflow", "shed",
+    "field_errors",
 )  # fmt: skip
 #: Pairs held (not yet learnt) while the outputs wait for readers: beyond this the oldest are dropped.
 MAX_HELD = 10_000
 #: What rmw reports when it has no publication sequence numbers (rmw_cyclonedds: 2**64-1).
 SEQUENCE_UNSUPPORTED = (0, 2**64 - 1)
-#: Halves per input whose (receive - time) make the clock-offset estimate (a median: a stall does not move it).
-CLOCK_WINDOW = 64
+#: Halves per input whose (receive - time) make the clock-offset estimate: their least, since an offset
+#: shifts every message and a delay (load, a stall's burst) only some; at 200 Hz 1.3 s, at 50 Hz 5 s.
+CLOCK_WINDOW = 256
+
+
+#: What missing sample indices mean in each pairing mode: only in ``sequence`` are they lost messages
+#: (publication numbers skipped); on a grid they are time in which no new y_p came, a stall.
+GAP_CAUSES = {
+    "sequence": "lost: their messages never arrived (publication sequence numbers skipped) or found no partner",
+    "stamp": "a stall or lost halves: no u / y_p pair within slop formed in that time",
+    "sample": "a stall, not a loss: no new measurement arrived in that time (its publisher paused, unless over "
+    "BEST_EFFORT every message of that time was lost)",
+}
+
+
+def gap_text(pairing: str, missing: int, seconds: float | None = None) -> str:
+    """One gap (or the longest of several) in words: its length in samples and seconds, and what it is."""
+    length = f"{missing} sample{'s' if missing != 1 else ''}"
+    if seconds is not None and math.isfinite(seconds):
+        length += f", {seconds:.3f} s without a sample"
+    return f"{length}: {GAP_CAUSES.get(pairing, GAP_CAUSES['sequence'])}"
+
+
+def describe_gaps(index: np.ndarray, pairing: str, sample_period: float = 0.0) -> list[str]:
+    """The missing sample indices of a run (``evaluate``), in lines: how many, in how many gaps, the
+    longest (in seconds too on a grid) and what they are in this pairing mode, a stall or lost messages."""
+    index = np.asarray(index, dtype=np.int64)
+    if index.size == 0:
+        return []
+    lines = []
+    if index[0] > 1:
+        lines.append(f"the samples start at index {index[0]}: the {index[0] - 1} before it are not in the recording")
+    steps = np.diff(index)
+    gaps = steps[steps > 1] - 1
+    if gaps.size:
+        longest = int(gaps.max())
+        seconds = (longest + 1) * sample_period if pairing == "sample" and sample_period > 0 else None
+        lines.append(
+            f"{int(gaps.sum())} sample indices missing in {gaps.size} gap{'s' if gaps.size != 1 else ''}, "
+            f"the longest {gap_text(pairing, longest, seconds)}"
+        )
+    return lines
 
 
 @dataclass
@@ -157,6 +197,7 @@ class Session:
         self._held: list[Pair] = []
         self._notices: list[Notice] = []
         self._last_seen: dict[str, float] = {}
+        self._unreadable: dict[str, tuple[int, float, str]] = {}  # channel: (count, last receive time, why)
         self._first_seen: dict[str, float] = {}
         self._seen_dropped = 0
         self._seen_faults = 0  # sequence mode: stale + duplicate halves already said
@@ -166,7 +207,7 @@ class Session:
         self._lags: dict[str, deque[float]] = {U: deque(maxlen=CLOCK_WINDOW), Y: deque(maxlen=CLOCK_WINDOW)}
         self._stamped = {U: False, Y: False}
         self._offset_checks = 0
-        self.clock_offset: float | None = None  # median lag of y_p minus that of u while it stands, s
+        self.clock_offset: float | None = None  # least lag of y_p minus that of u while it stands, s
         self.shedder = Shedder(config.max_lag, config.queue_depth)
 
     # -- input -------------------------------------------------------------------------------
@@ -229,6 +270,17 @@ class Session:
             samples += self._offer_half(channel, half.value, half.time, half.received, half.sequence, half.source_time)
         self._after_merge(channel, merger)
         return samples
+
+    def unreadable(self, channel: str, received: float, field: str, error: str) -> None:
+        """A message of ``channel`` arrived (receive time ``received``) but its ``field`` could not be read.
+
+        Counted (``field_errors``) and kept for the lone-input notice of the other channel:
+        its messages did arrive, so "nothing on" it would send the user to check the topic
+        name and QoS, when the fix is the field path (a joint name, an index).
+        """
+        self.counters["field_errors"] += 1
+        count = self._unreadable.get(channel, (0, 0.0, ""))[0] + 1
+        self._unreadable[channel] = (count, received, f"{field} ({error})")
 
     def _offer_half(
         self, channel: str, value: Any, time: float, received: float, sequence: int | None, source_time: float | None
@@ -421,8 +473,11 @@ class Session:
         """Compare the inputs' (receive - time): see the module docstring.
 
         A message timed by its arrival has time == received (the node and evaluate
-        pass the same number), so its lag is 0 and the other input's median lag is
-        the offset of its stamps. The medians are taken every 16 halves once each
+        pass the same number), so its lag is 0 and the other input's least lag is
+        the offset of its stamps. The least, not the median: on one host with one clock a
+        loaded machine delays most messages by tens of ms, yet some still arrive at once,
+        while a clock offset delays every one of them (a median above 50 ms under load was
+        said as a clock offset). Taken every 16 halves once each
         input has half a window (the first messages after discovery can come late):
         cheap at kilohertz rates, and a burst delayed by a stall moves neither.
         """
@@ -433,7 +488,7 @@ class Session:
         self._offset_checks += 1
         if self._offset_checks % 16 or min(len(lags) for lags in self._lags.values()) < CLOCK_WINDOW // 2:
             return
-        lag = {name: median(lags) for name, lags in self._lags.items()}
+        lag = {name: min(lags) for name, lags in self._lags.items()}
         offset = lag[Y] - lag[U]
         limit = self.config.max_clock_offset or max(0.5 * self.config.sample_period, 0.05)
         if self.clock_offset is None and abs(offset) > limit:
@@ -450,18 +505,20 @@ class Session:
         if all(self._stamped.values()):
             what = (
                 f"the header stamps of {names[U]} and {names[Y]} lag their arrival by {lag[U]:.3f} and {lag[Y]:.3f} s "
-                "(median): two clocks"
+                f"(at least, over their last {CLOCK_WINDOW} messages): two clocks"
             )
         else:
             stamped = Y if self._stamped[Y] else U
             side = "behind" if lag[stamped] > 0 else "ahead of"
             what = (
                 f"{names[stamped]} is timed by its header stamps and {names[U if stamped == Y else Y]} by arrival, "
-                f"and {names[stamped]}'s stamps are {abs(lag[stamped]):.3f} s {side} its arrival (median)"
+                f"and {names[stamped]}'s stamps are {abs(lag[stamped]):.3f} s {side} its arrival (every one of its "
+                f"last {CLOCK_WINDOW} messages)"
             )
         return (
             f"{what}: each {names[U]} is paired with a {names[Y]} {offset:.3f} s away from it (more than "
-            f"{limit * 1e3:.0f} ms: a clock offset, not transport latency). Fix: -p use_header_stamp:=false (time "
+            f"{limit * 1e3:.0f} ms: a clock offset, not a delay under load, which leaves some messages on time). "
+            "Fix: -p use_header_stamp:=false (time "
             "both inputs by arrival), or synchronise the clocks (chrony/PTP; use_sim_time on every node or none). "
             "If the measurement really is taken that long before it arrives, the stamps are right: ignore this"
         )
@@ -481,12 +538,16 @@ class Session:
             alone = self._alone_for(channel, now)
             if alone >= self.config.lone_timeout:
                 topic, missing = (self.config.u_name, self.config.y_name)[:: 1 if channel == U else -1]
-                self._say(
-                    f"lone_{channel}",
-                    f"{topic} has been arriving alone for {alone:.1f} s ({self.counters[f'lone_{channel}']} "
-                    f"messages): nothing on {missing}, so no pairs form (check {missing}'s topic name/remap, "
-                    "type and QoS)",
-                )
+                lone = self.counters[f"lone_{channel}"]
+                head = f"{topic} has been arriving alone for {alone:.1f} s ({lone} messages)"
+                count, last, why = self._unreadable.get(Y if channel == U else U, (0, -math.inf, ""))
+                if now - last <= self.config.lone_timeout:
+                    text = (f"{head}: {count} messages arrived on {missing} but their field could not be read: {why}; "
+                            "so no pairs form (fix the field path, or the type, to fit these messages)")  # fmt: skip
+                else:
+                    text = (f"{head}: nothing on {missing}, so no pairs form (check {missing}'s topic name/remap, "
+                            "type and QoS)")  # fmt: skip
+                self._say(f"lone_{channel}", text)
 
     # -- learning ------------------------------------------------------------------------------
     def _process(self, pairs: list[Pair]) -> list[Sample]:
@@ -538,6 +599,7 @@ class Session:
             refused = math.isnan(pair.u) or math.isnan(pair.y)  # (no numpy call per sample for one channel)
         if refused:
             self.identifier.skip(pair.index)
+            self._last_pair = pair
             return Sample(pair.index, pair.time, pair.u, pair.y, None)
         learn = self._learns(pair.index)
         if learn != self.phase_learning:
@@ -546,14 +608,29 @@ class Session:
             self._say("phase", f"sample {pair.index}: {'training' if learn else 'frozen (test)'} phase")
         result = self.identifier.step(pair.index, pair.u, pair.y, learn)
         if result.event == "gap":
-            self._say(result.event, f"sample {pair.index}: {result.event}; counters {self.identifier.counters}")
+            self._say_gap(pair)
         elif result.event in ("diverged", "resumed"):
             self._say(result.event, self._divergence_text(pair.index, result.event))
+        self._last_pair = pair
         if self.identifier.counters["clipped"] > self._seen_clipped:
             self._say_clipped(pair.time)
         if result.error is not None and result.y_hat is not None:
             self.phase_nmse.add(pair.y, result.y_hat)
         return Sample(pair.index, pair.time, pair.u, pair.y, result)
+
+    _last_pair: Pair | None = None
+
+    def _say_gap(self, pair: Pair) -> None:
+        """A gap before ``pair``: how long (samples and seconds), and whether it is a stall or lost messages."""
+        last = self._last_pair
+        counters = self.identifier.outputs[0].counters if self.mimo else self.identifier.counters
+        missing = pair.index - last.index - 1 if last is not None else 0
+        seconds = pair.time - last.time if last is not None else None
+        self._say(
+            "gap",
+            f"sample {pair.index}: a gap of {gap_text(self.config.pairing, missing, seconds)}; the model restarts its "
+            f"history there ({counters['gaps']} gaps, {counters['lost']} sample indices missing so far)",
+        )
 
     def _divergence_text(self, index: int, event: str) -> str:
         """One line for a divergence (what was done, and when learning comes back) or for a resume."""

@@ -138,7 +138,7 @@ class IdentifierNode(Node):
         self.y_name = "+".join(self.resolve_topic_name(name) for channel, _, name in self.inputs if channel == Y)
         self._loggers: dict[str, Any] = {}
         self._logged_at: dict[str, float] = {}  # monotonic time each kind of warning was last said
-        self.node_counters = {"type_mismatch": 0, "qos_incompatible": 0, "field_errors": 0, "unknown_parameters": 0}
+        self.node_counters = {"type_mismatch": 0, "qos_incompatible": 0, "unknown_parameters": 0}
         self._warn_unknown_parameters()
         self._warn_unmatched_params_files()
         self.mimo = is_mimo(self.values)
@@ -181,6 +181,7 @@ class IdentifierNode(Node):
         config_publisher.publish(String(data=json.dumps(json_safe(config))))
         self._sim_time = bool(self.get_parameter("use_sim_time").value)
         self._message_types = message_types
+        self._alias_qos_overrides()
         self._subscribe(message_types)
         self._warn_unknown_qos_overrides()
         self._test_start_subscription = self.create_subscription(
@@ -261,15 +262,41 @@ class IdentifierNode(Node):
                 f"of its parameters apply: name the section '/**:' (any node) or '/**/{self.get_name()}:'"
             )
 
+    def _alias_qos_overrides(self) -> None:
+        """QoS overrides given under an input's name before remapping apply to the remapped topic.
+
+        rclpy declares ``qos_overrides.<topic>.subscription.*`` under the resolved, remapped
+        name (``/joint_states``), so the README's ``qos_overrides./u...`` was refused as
+        unknown once ``-r u:=/joint_states`` was given. Each such override is copied to the
+        remapped name before the subscriptions declare theirs; one given under both names
+        keeps the remapped one's value, and the user is told which.
+        """
+        self._qos_aliases: set[str] = set()
+        for _, _, topic in self.inputs:
+            plain, remapped = self.resolve_topic_name(topic, only_expand=True), self.resolve_topic_name(topic)
+            prefix = f"qos_overrides.{plain}.subscription."
+            if plain == remapped:
+                continue
+            for name, parameter in list(self._parameter_overrides.items()):
+                if not name.startswith(prefix):
+                    continue
+                target = f"qos_overrides.{remapped}.subscription.{name[len(prefix):]}"
+                self._qos_aliases.add(name)
+                if target in self._parameter_overrides:
+                    self.get_logger().warning(f"{name} and {target} both given: {target} applies (remapped name)")
+                    continue
+                self._parameter_overrides[target] = RosParameter(target, value=parameter.value)
+                self.get_logger().info(f"{name} applies to {remapped} ({plain} is remapped to it)")
+
     def _warn_unknown_qos_overrides(self) -> None:
         """``qos_overrides.`` names that no subscription declared (a typo, a wrong topic) are ignored: say so."""
         for name in self._parameter_overrides:
-            if name.startswith("qos_overrides.") and not self.has_parameter(name):
+            if name.startswith("qos_overrides.") and not self.has_parameter(name) and name not in self._qos_aliases:
                 self.node_counters["unknown_parameters"] += 1
                 self.get_logger().error(
                     f"unknown QoS override {name!r} is ignored: this node takes "
                     f"qos_overrides.{self.u_name}.subscription.* and qos_overrides.{self.y_name}.subscription.* "
-                    "(reliability, history, depth, durability)"
+                    "(reliability, history, depth, durability; an input's name before remapping works too)"
                 )
 
     def _message_class(self, channel: str) -> Any:
@@ -277,7 +304,7 @@ class IdentifierNode(Node):
         try:
             cls = topics.message_class(self.values[type_key])
             check = check_vector if self.mimo else check_path
-            check(cls, self.values[field_key], self.values[type_key])
+            check(cls, self.values[field_key], self.values[type_key], type_key)
         except (ValueError, FieldError) as error:
             raise SystemExit(f"identifier: {type_key}/{field_key}: {error}") from None
         return cls
@@ -299,13 +326,31 @@ class IdentifierNode(Node):
         identifier.divergence_ratio = self.values["divergence_ratio"]
         identifier.resume_after = self.values["resume_after"]
         if self.values["weights_in"]:
+            path = os.path.abspath(os.path.expanduser(self.values["weights_in"]))
             try:
                 loader = identifier if isinstance(identifier, MimoIdentifier) else identifier.model
-                loader.load_state(os.path.expanduser(self.values["weights_in"]))
+                loader.load_state(path)
             except ModelFileError as error:
                 raise SystemExit(f"identifier: {error}") from None
             identifier.mark_healthy()
+            self.get_logger().info(self._loaded_text(identifier, path))
         return identifier
+
+    def _loaded_text(self, identifier: Any, path: str) -> str:
+        """One line at start for ``weights_in``: learning resumes from a file, not from fresh weights, and
+        the user must be able to see which file and which network (a stale path is otherwise silent)."""
+        models = identifier.models if isinstance(identifier, MimoIdentifier) else [identifier.model]
+        model = models[0]
+        structural = {k: v for k, v in model.get_params().items() if k in model._structural_params and v is not None}
+        structure = identifier.structure
+        lags = f"y_lags {structure.y_lags}, u_lags {structure.u_lags}, " if hasattr(structure, "y_lags") else ""
+        outputs = f" for {len(models)} outputs" if len(models) > 1 else ""
+        seen = sum(int(getattr(each, "n_samples_seen_", 0)) for each in models)
+        return (
+            f"weights_in: loaded {sum(each.n_weights for each in models)} weights{outputs} from {path} "
+            f"(learnt from {seen} samples): {self.network}, {lags}"
+            + ", ".join(f"{key} {value}" for key, value in structural.items())
+        )
 
     def _compile_ahead(self) -> None:
         """Step a throwaway copy of the model through its warm-up now, before any subscription exists.
@@ -466,14 +511,14 @@ class IdentifierNode(Node):
         if arrived and not self.session.admit((channel, part), arrived * 1e-9, time.time()):
             return  # shed: the node is behind (counted, said by the session)
         message = deserialize_message(serialized, self._message_types[channel])
+        received = arrived * 1e-9 if arrived and not self._sim_time else self._now()
         try:
             value = self._extract[channel](message)
         except FieldError as error:
-            self.node_counters["field_errors"] += 1
+            key = "u_field" if channel == U else "y_field"
+            self.session.unreadable(channel, received, f"{key} {self.values[key]}", str(error))
             self._log(Notice("field", f"{self.u_name if channel == U else self.y_name}: {error}; message skipped"))
             return
-        received = info.get("received_timestamp")
-        received = received * 1e-9 if received and not self._sim_time else self._now()
         stamp = stamp_seconds(message) if self._stamped[channel] else None
         source = info.get("source_timestamp")
         if not self._graph_checked:

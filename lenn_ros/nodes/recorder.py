@@ -110,6 +110,7 @@ class Recorder(Node):
         self._subs: list[Any] = []  # (not ``_subscriptions``: rclpy's Node uses that name)
         self._name_of: dict[int, str] = {}  # id(subscription) -> the run topic it records
         self._bag_topic: dict[str, str] = {}  # short name -> resolved name stored in the bag
+        self._registered: set[str] = set()  # bag topics of u / y_p added to the bag (see _register_input)
         self._inputs: dict[str, _Input] = {}
         self._names = names
         for name in names:
@@ -199,9 +200,28 @@ class Recorder(Node):
         entry.reliability = reliability
         self._subs.append(entry.subscription)
         self._name_of[id(entry.subscription)] = entry.name
-        if entry.name not in self._bag_topic:
-            self._bag_topic[entry.name] = entry.subscription.topic_name
-            self.bag.add_topic(entry.subscription.topic_name, entry.type_name, offered or qos)
+        self._bag_topic.setdefault(entry.name, entry.subscription.topic_name)
+        if offered:
+            self._register_input(entry, offered)
+
+    def _register_input(self, entry: _Input, offered: list[Any] | None = None) -> None:
+        """Add u or y_p to the bag, once, with the QoS its publishers offer (``offered_qos_profiles``), as
+        rosbag2 stores it: not our subscription's (RELIABLE, depth 10 000), which is what a typed input
+        subscribed at start would otherwise record for a BEST_EFFORT depth-10 driver. Deferred until the
+        graph shows a publisher or the first message comes; at the end, a topic that had none."""
+        topic = self._bag_topic[entry.name]
+        if topic in self._registered or entry.type_name is None:
+            return
+        if not offered:
+            infos = self.get_publishers_info_by_topic(entry.resolved)
+            offered = [info.qos_profile for info in infos if info.topic_type == entry.type_name]
+        if not offered and entry.subscription is not None:
+            offered = [entry.subscription.qos_profile]
+            self.get_logger().info(
+                f"{entry.resolved}: no publisher in the graph, so the bag stores the subscription's QoS as offered"
+            )
+        self._registered.add(topic)
+        self.bag.add_topic(topic, entry.type_name, offered)
 
     # -- the graph
     def _check_graph(self) -> None:
@@ -224,6 +244,8 @@ class Recorder(Node):
                     "(a RELIABLE reader never matches it); losses show as sequence gaps"
                 )
                 self._subscribe_input(entry, wanted, [info.qos_profile for info in matching])
+            if matching and entry.name in self._bag_topic:
+                self._register_input(entry, [info.qos_profile for info in matching])
 
     def _adopt_type(self, entry: _Input, infos: list[Any]) -> None:
         offered = sorted({info.topic_type for info in infos})
@@ -296,6 +318,8 @@ class Recorder(Node):
     _oldest_taken_ns = 0
 
     def _on_message(self, name: str, data: bytes, info: dict[str, int]) -> None:
+        if name in self._inputs and self._bag_topic[name] not in self._registered:
+            self._register_input(self._inputs[name])
         stamp = info.get("received_timestamp") or self.get_clock().now().nanoseconds
         self._oldest_taken_ns = min(self._oldest_taken_ns, stamp)
         sequence = int(info.get("publication_sequence_number", 0))
@@ -355,6 +379,9 @@ class Recorder(Node):
 
     def close(self) -> str:
         """Close the bag and return the one-line summary printed at exit."""
+        for entry in self._inputs.values():
+            if entry.name in self._bag_topic:
+                self._register_input(entry)  # (a topic that never had a publisher is still listed)
         self.bag.close()
         counts = ", ".join(f"{name}: {self.counts[name]}" for name in self._names)
         lost = sum(self.gaps.values())

@@ -22,6 +22,7 @@ is said in one line, throttled per kind, and counted in ``status``.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import difflib
 import json
 import math
@@ -51,6 +52,7 @@ from lenn_ros.config import (
     identifier_parameters,
     input_topics,
     is_mimo,
+    rls_forgetting,
     side_channels,
     unmatched_params_files,
 )
@@ -214,7 +216,7 @@ class IdentifierNode(Node):
 
     def _declare_all(self) -> dict[str, Any]:
         presets = (
-            ("example", 1, "paper example whose structure and parameters are the defaults (0 = none)"),
+            ("example", 0, "paper example whose structure and parameters are the defaults (0 = none: my plant)"),
             ("network", "lenn", "lenn or mlp"),
             ("parameters", "calibrated", "alpha/beta preset: calibrated or paper"),
         )
@@ -320,6 +322,8 @@ class IdentifierNode(Node):
             window = max(output.structure.warm_up for output in scratch.outputs)
         else:
             u, y, window = 0.0, 0.0, scratch.structure.warm_up
+            if not scratch.structure.scaled:  # (scales to be learnt by the warm-up: any will do to compile)
+                scratch.set_structure(dataclasses.replace(scratch.structure, y_scale=1.0, u_scale=1.0))
         for k in range(window + 2):
             scratch.step(k + 1, u, y, True)
 
@@ -382,8 +386,9 @@ class IdentifierNode(Node):
             value = _normalise(self.table[name], parameter.value)
             self.values[name] = value
             if name in ("alpha", "beta", "forgetting", "nlms_step") and name in model.get_params():
+                setting = rls_forgetting(self.values) if name == "forgetting" else value  # (0: auto)
                 for each in self._models():
-                    each.set_params(**{name: value})
+                    each.set_params(**{name: setting})
             elif name in ("divergence_ratio", "resume_after"):
                 setattr(self.identifier, name, value)
             elif name in SessionConfig.__dataclass_fields__:

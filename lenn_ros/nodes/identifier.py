@@ -79,7 +79,7 @@ _QOS_OVERRIDES = QoSOverridingOptions(
     policy_kinds=(QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY)
 )
 #: Notice kinds that are news, not trouble.
-_INFO_KINDS = ("phase", "resumed")
+_INFO_KINDS = ("phase", "resumed", "scales")
 
 
 def _descriptor(parameter: Parameter) -> ParameterDescriptor:

@@ -292,7 +292,7 @@ class Identifier:
         self._plan_model = self._plan = None
 
     def _check_scaled(self) -> None:
-        if not self.structure.scaled:
+        if not getattr(self.structure, "scaled", True):  # (a MIMO output's ChannelStructure: always scaled)
             raise ValueError(
                 "y_scale / u_scale are 0 (to be learnt): step the identifier through a Session, whose warm-up "
                 "learns them, or give them"

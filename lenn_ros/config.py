@@ -365,7 +365,8 @@ def _build_identifier(values: dict[str, Any], network: str) -> Identifier | Mimo
     if values.get("weights_in") and not structure.scaled:
         raise ConfigError(
             "weights_in with y_scale/u_scale 0 (learnt from the warm-up): weights mean something only on the "
-            "scaling they were learnt with; give y_scale, u_scale, y_offset, u_offset (lenn-ros fit writes them)"
+            "scaling they were learnt with; give y_scale, u_scale, y_offset, u_offset (the run that saved them said "
+            "its learnt ones in the line 'scales learnt from ...' and in status scaling; lenn-ros fit writes them)"
         )
     terms = [str(t) for t in values.get("terms", [""]) if str(t).strip()]
     selected = terms and network == "lenn"  # the MLP takes every input (terms are the LeNN's)

@@ -45,7 +45,8 @@ def feed(live: Session, u: np.ndarray, y: np.ndarray, first: int = 0) -> list:
 def test_warm_up_holds_the_first_seconds_then_learns_every_sample_on_the_learnt_scales() -> None:
     u, y = joint(40.0)
     live = defaults_session()
-    assert live.status()["scaling"] == {"state": "warming_up", "samples": 0, "needed": 500, "restarts": 0, "dropped": 0}
+    warming = {"state": "warming_up", "samples": 0, "needed": 500, "restarts": 0, "discarded": 0}
+    assert live.status()["scaling"] == warming
     held = feed(live, u[:499], y[:499])
     assert held == [] and live.queued()["warm_up"] == 499 and live.status()["counters"]["learned"] == 0
     released = feed(live, u[:500], y[:500], first=499)
@@ -76,15 +77,15 @@ def test_offline_run_reaches_the_same_scales_and_predictions() -> None:
 
 
 def test_a_plant_at_rest_is_not_taken_for_its_range(monkeypatch: pytest.MonkeyPatch) -> None:
-    """Signals that do not move give no range: held up to MAX_WARM_UP, dropped (counted, said), started over."""
+    """Signals that do not move give no range: held up to MAX_WARM_UP, discarded (counted, said), started over."""
     monkeypatch.setattr(session_module, "MAX_WARM_UP", 800)
     u, y = joint(30.0)
     u[:1000], y[:1000] = 0.0, 0.0  # the robot stands still for its first 10 s
     live, offline = defaults_session(), defaults_session()
     samples = feed(live, u, y)
-    assert live.status()["counters"]["warm_up_dropped"] == 800 and live.status()["scaling"]["restarts"] == 1
+    assert live.status()["counters"]["warm_up_discarded"] == 800 and live.status()["scaling"]["restarts"] == 1
     assert samples[0].index == 801 and live.status()["scaling"]["samples"] == 500  # 200 at rest, 300 moving
-    assert any(notice.kind == "warm_up_dropped" for notice in live.take_notices())
+    assert any(notice.kind == "warm_up_discarded" for notice in live.take_notices())
     y_hat = offline.run_samples(np.arange(1, len(u) + 1), u, y, np.ones(len(u), dtype=bool))
     assert offline.status()["scaling"] == live.status()["scaling"] and np.isnan(y_hat[:800]).all()
     assert np.isfinite(y_hat[802:]).all()

@@ -57,7 +57,7 @@ PAIRING_MODES = ("sequence", "stamp", "sample")
 SESSION_COUNTERS = (
     "u_messages", "y_messages", "nan", "out_of_range", "clipped",
     "no_sequence", "misaligned", "refused", "lone_u", "lone_y", "clock_offset", "held_overflow", "shed",
-    "warm_up_dropped",
+    "warm_up_discarded",
 )  # fmt: skip
 #: Pairs held (not yet learnt) while the outputs wait for readers: beyond this the oldest are dropped.
 MAX_HELD = 10_000
@@ -545,10 +545,10 @@ class Session:
     def _restart_warm_up(self, held: int) -> None:
         assert self.warm_up is not None
         self.warm_up.restart(held)
-        self.counters["warm_up_dropped"] += held
+        self.counters["warm_up_discarded"] += held
         self._say(
-            "warm_up_dropped",
-            f"{held} samples held for the scale warm-up dropped, never learnt: {self.config.u_name} or "
+            "warm_up_discarded",
+            f"{held} samples held for the scale warm-up discarded, never learnt: {self.config.u_name} or "
             f"{self.config.y_name} did not move in them "
             "(a plant at rest shows nothing of its range); the warm-up starts over. Fix: move the plant, or give "
             "y_scale/u_scale",
@@ -655,7 +655,7 @@ class Session:
         y = np.asarray(y, dtype=np.float64)
         learn = np.asarray(learn, dtype=bool)
         if self.warm_up is not None and not self.warm_up.done and not self.mimo:
-            first = self._warm_offline(u, y)  # live, the rows before it were dropped by the warm-up
+            first = self._warm_offline(u, y)  # live, the rows before it were discarded by the warm-up
             y_hat = np.full(y.shape, np.nan)
             if first is not None:
                 y_hat[first:] = self.run_samples(index[first:], u[first:], y[first:], learn[first:])

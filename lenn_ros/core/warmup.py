@@ -22,7 +22,7 @@ may be exceeded by its own half-width on either side) makes that rare.
 The warm-up ends at the first sample by which ``samples`` valid pairs were held *and*
 every learnt signal has moved (a range above zero): a robot standing still at start
 shows nothing of its range. Held pairs are bounded: beyond ``MAX_WARM_UP`` of them the
-warm-up starts over from the next pair (the held ones, a plant at rest, are dropped and
+warm-up starts over from the next pair (the held ones, a plant at rest, are discarded and
 counted).
 """
 
@@ -35,7 +35,7 @@ from typing import Any
 from lenn_ros.core.scaling import DEFAULT_MARGIN
 from lenn_ros.core.structure import ModelStructure
 
-#: Pairs held at most while waiting for the signals to move (then they are dropped and it starts over).
+#: Pairs held at most while waiting for the signals to move (then they are discarded and it starts over).
 MAX_WARM_UP = 20_000
 #: Fewest samples a warm-up takes, whatever its duration says (a range from a handful is noise).
 MIN_WARM_UP = 20
@@ -85,7 +85,7 @@ class ScaleWarmUp:
     margin: float = DEFAULT_MARGIN
     valid: int = 0
     restarts: int = 0
-    dropped: int = 0
+    discarded: int = 0
     result: dict[str, Any] | None = None
     _ranges: dict[str, _Range] = field(default_factory=lambda: {"y": _Range(), "u": _Range()})
 
@@ -118,9 +118,9 @@ class ScaleWarmUp:
         return False
 
     def restart(self, held: int) -> None:
-        """``held`` pairs are dropped unlearnt (the signals did not move in MAX_WARM_UP): start over."""
+        """``held`` pairs are discarded unlearnt (the signals did not move in MAX_WARM_UP): start over."""
         self.restarts += 1
-        self.dropped += held
+        self.discarded += held
         self.valid = 0
         self._ranges = {"y": _Range(), "u": _Range()}
 
@@ -166,7 +166,7 @@ class ScaleWarmUp:
 
     def status(self) -> dict[str, Any]:
         """For the session's status: warming up (how far) or the learnt values."""
-        state = {"samples": self.valid, "needed": self.samples, "restarts": self.restarts, "dropped": self.dropped}
+        state = {"samples": self.valid, "needed": self.samples, "restarts": self.restarts, "discarded": self.discarded}
         if self.result is None:
             return {"state": "warming_up", **state}
         learnt = {

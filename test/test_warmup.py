@@ -45,21 +45,21 @@ def feed(live: Session, u: np.ndarray, y: np.ndarray, first: int = 0) -> list:
 def test_warm_up_holds_the_first_seconds_then_learns_every_sample_on_the_learnt_scales() -> None:
     u, y = joint(40.0)
     live = defaults_session()
-    warming = {"state": "warming_up", "samples": 0, "needed": 500, "restarts": 0, "discarded": 0}
+    warming = {"state": "warming_up", "samples": 0, "needed": 1000, "restarts": 0, "discarded": 0}
     assert live.status()["scaling"] == warming
-    held = feed(live, u[:499], y[:499])
-    assert held == [] and live.queued()["warm_up"] == 499 and live.status()["counters"]["learned"] == 0
-    released = feed(live, u[:500], y[:500], first=499)
-    assert [sample.index for sample in released] == list(range(1, 501))  # none lost: all learnt now
+    held = feed(live, u[:999], y[:999])
+    assert held == [] and live.queued()["warm_up"] == 999 and live.status()["counters"]["learned"] == 0
+    released = feed(live, u[:1000], y[:1000], first=999)
+    assert [sample.index for sample in released] == list(range(1, 1001))  # none lost: all learnt now
     notices = [notice.text for notice in live.take_notices() if notice.kind == "scales"]
-    assert len(notices) == 1 and notices[0].startswith("scales learnt from the first 500 samples: u: u_offset")
+    assert len(notices) == 1 and notices[0].startswith("scales learnt from the first 1000 samples: u: u_offset")
     scaling = live.status()["scaling"]
-    low, high = float(u[:500].min()), float(u[:500].max())
+    low, high = float(u[:1000].min()), float(u[:1000].max())
     assert scaling["state"] == "learnt" and scaling["u_offset"] == pytest.approx((low + high) / 2)
     assert scaling["u_scale"] == pytest.approx(high - low)  # half-range x (1 + margin 1)
     structure = live.identifier.structure
     assert (structure.y_scale, structure.y_offset) == (scaling["y_scale"], scaling["y_offset"])
-    feed(live, u, y, first=500)
+    feed(live, u, y, first=1000)
     assert live.status()["counters"]["clipped_inputs"] == 0
     assert live.status()["phase_nmse_db"] < -30.0  # measured -47 dB (training phase, 40 s)
 
@@ -72,7 +72,7 @@ def test_offline_run_reaches_the_same_scales_and_predictions() -> None:
     live_hat = np.array([s.result.y_hat if s.result and s.result.y_hat is not None else np.nan for s in samples])
     offline = defaults_session()
     offline_hat = offline.run_samples(np.arange(1, len(u) + 1), u, y, np.ones(len(u), dtype=bool))
-    assert live.status()["scaling"] == offline.status()["scaling"] and live.status()["scaling"]["samples"] == 500
+    assert live.status()["scaling"] == offline.status()["scaling"] and live.status()["scaling"]["samples"] == 1000
     np.testing.assert_array_equal(live_hat, offline_hat)
 
 
@@ -81,7 +81,7 @@ def test_a_plant_at_rest_is_not_taken_for_its_range(monkeypatch: pytest.MonkeyPa
     monkeypatch.setattr(session_module, "MAX_WARM_UP", 800)
     u, y = joint(30.0)
     u[:1000], y[:1000] = 0.0, 0.0  # the robot stands still for its first 10 s
-    live, offline = defaults_session(), defaults_session()
+    live, offline = defaults_session(scale_warm_up=5.0), defaults_session(scale_warm_up=5.0)  # 500 samples
     samples = feed(live, u, y)
     assert live.status()["counters"]["warm_up_discarded"] == 800 and live.status()["scaling"]["restarts"] == 1
     assert samples[0].index == 801 and live.status()["scaling"]["samples"] == 500  # 200 at rest, 300 moving

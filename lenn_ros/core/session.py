@@ -87,7 +87,7 @@ class SessionConfig:
     out_of_range: str = "reject"
     learning: bool = True
     follow_test_start: bool = True
-    scale_warm_up: float = 5.0  # s of samples (by sample_period) the scales not given are learnt from
+    scale_warm_up: float = 10.0  # s of samples (by sample_period) the scales not given are learnt from
     u_name: str = "u"  # topic names, for the messages a user reads
     y_name: str = "y_p"
     u_parts: tuple[int, ...] = ()  # several u topics: channels per topic (merged into one half)

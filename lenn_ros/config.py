@@ -435,6 +435,25 @@ def _per_channel(values: dict[str, Any], name: str, count: int) -> tuple[float, 
     raise ConfigError(f"{name}s has {len(listed)} values for {count} channels: give one per channel, or one")
 
 
+def unlearnt_mimo_scales(values: dict[str, Any]) -> str | None:
+    """Several channels with scales left at 0: what the node says (their warm-up is not implemented yet)."""
+    if not is_mimo(values):
+        return None
+    unset = [
+        side
+        for side in ("u", "y")
+        if float(values.get(f"{side}_scale", 1.0)) == UNSET_SCALE and len(values.get(f"{side}_scales", [0.0])) == 1
+    ]
+    if not unset:
+        return None
+    names = " and ".join(f"{side}_scales" for side in unset)
+    return (
+        f"{names} not given: with several channels the scales are not learnt from a warm-up (one channel only, "
+        "so far); each channel is taken as lying in [-1, 1] (scale 1, offset 0), and what leaves that range is "
+        f"clipped (counted clipped_inputs). Give {names} (one per channel) for a plant in other units"
+    )
+
+
 def _build_mimo(values: dict[str, Any], network: str) -> MimoIdentifier:
     """One network per output over the coupled channels; SISO-only structure options are refused."""
     try:

@@ -140,7 +140,7 @@ NODE_PARAMETERS = [
     Parameter(
         "scale_warm_up",
         10.0,
-        "y_scale/u_scale 0: seconds of samples (by sample_period, else at 100 Hz) held to learn the scales and "
+        "y_scale/u_scale 0: seconds of samples (by sample_period, else at 50 Hz) held to learn the scales and "
         "offsets from, then learnt from (the signals must move in them)",
         0.0,
         200.0,

@@ -43,8 +43,10 @@ from lenn_ros.core.structure import ModelStructure
 MAX_WARM_UP = 20_000
 #: Fewest samples a warm-up takes, whatever its duration says (a range from a handful is noise).
 MIN_WARM_UP = 20
-#: Samples per second assumed where no sample_period says how long a sample is.
-ASSUMED_RATE_HZ = 100.0
+#: Samples per second assumed where no sample_period says how long a sample is (sequence/stamp
+#: pairing): 10 s are 500 samples, within the 1 000 steps a lockstep plant_simulator runs ahead
+#: of the identifier's y_hat (more would stall it until the warm-up's outputs came).
+ASSUMED_RATE_HZ = 50.0
 
 
 def warm_up_samples(seconds: float, sample_period: float) -> int:

@@ -134,3 +134,15 @@ def test_several_channels_say_their_scales_are_not_learnt() -> None:
     assert unlearnt_mimo_scales({**values, "u_scale": 1.0, "y_scales": [2.0, 1.6]}) is None
     assert unlearnt_mimo_scales({**node, **resolve({})[0]}) is None  # one channel: learnt
     assert build_identifier(values, "lenn").structure.u_scale == (1.0, 1.0)
+
+
+def test_leaving_the_learnt_range_is_clipped_counted_and_said() -> None:
+    """Not re-scaled (the weights mean something on one scaling only): clipped, counted, said with the cause."""
+    u, y = joint(20.0)
+    u[:1000] *= 0.2  # the warm-up sees a tenth of the later torque range
+    live = defaults_session()
+    feed(live, u, y)
+    clipped = live.status()["counters"]["clipped_inputs"]
+    said = [notice.text for notice in live.take_notices() if notice.kind == "clipped_inputs"]
+    assert clipped > 100 and said and "learnt from the first 1000 samples" in said[0]
+    assert live.status()["scaling"]["u_scale"] == live.identifier.structure.u_scale  # kept

@@ -698,7 +698,13 @@ class Session:
             f"{clipped} network inputs outside [-1, 1] clipped so far (+{clipped - self._seen_clipped}): the scaled "
             f"{self.config.u_name} / {self.config.y_name} leave the range the network is built for, and it learns "
             "them flattened. Fix: u_scale/u_offset, y_scale/y_offset that map the signals into [-1, 1] (the network "
-            "sees (u - u_offset) / u_scale), or `lenn-ros fit` a recording to take them from the data",
+            "sees (u - u_offset) / u_scale), or `lenn-ros fit` a recording to take them from the data"
+            + (
+                f" (the scales were learnt from the first {self.warm_up.valid} samples and the signals have left "
+                "that range: a longer scale_warm_up, or scales by hand)"
+                if self.warm_up is not None and self.warm_up.done
+                else ""
+            ),
         )
         self._seen_clipped = clipped
         if time is not None:

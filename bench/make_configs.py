@@ -35,6 +35,7 @@ MIMO_IDENTIFIER = {
     "order": 4,
     "cross_degree": 3,
     "solver": "rls",
+    "forgetting": 1.0,  # (the figures in the README: a stationary plant, no memory needed)
     "output": "linear",
     "wait_for_y_hat_subscribers": 1,  # the lockstep simulator counts y_hat: it must not miss sample 1's
 }

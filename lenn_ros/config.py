@@ -5,8 +5,10 @@ ranges), ``lenn-ros evaluate --params FILE`` reads the same ``ros__parameters``
 YAML, and both build the model through :func:`build_identifier`: the offline
 evaluation of a recording runs the very configuration the live node ran.
 
-Defaults come from the chosen paper example (``example`` 1-4); ``example: 0`` means
-"my own plant" and starts from a plain LeNN on u(k), y(k).
+Defaults are for "my own plant" (``example: 0``, the default): a LeNN on u(k), u(k-1),
+y(k), y(k-1) learnt by RLS with a memory of minutes, its scales and offsets learnt from
+the first seconds of data (:mod:`lenn_ros.core.warmup`). A paper example (``example``
+1-4) is a preset asked for by name: its known linear part, order and scale factors.
 """
 
 from __future__ import annotations
@@ -135,6 +137,14 @@ NODE_PARAMETERS = [
         3600.0,
         live=True,
     ),
+    Parameter(
+        "scale_warm_up",
+        10.0,
+        "y_scale/u_scale 0: seconds of samples (by sample_period, else at 50 Hz) held to learn the scales and "
+        "offsets from, then learnt from (the signals must move in them)",
+        0.0,
+        200.0,
+    ),
     Parameter("warn_period", 5.0, "seconds between repeats of one kind of warning", 0.0, 3600.0, live=True),
 ]
 
@@ -146,8 +156,12 @@ def identifier_parameters(example: int, network: str, parameters: str = "calibra
         structure = preset.structure
         net = preset.network_params(network, parameters)
     else:
-        structure = ModelStructure(y_lags=1, u_lags=1)
+        # my own plant: scales 0 = learnt from the warm-up; RLS (LeNN) with forgetting 0 = a memory of
+        # RLS_MEMORY_S seconds; two lags each (a joint is second order: angle and velocity)
+        structure = ModelStructure(y_lags=2, u_lags=2, y_scale=UNSET_SCALE, u_scale=UNSET_SCALE)
         net = {"order": 4, "hidden": [20, 10], "output": "tanh", "alpha": 0.01, "beta": 0.5}
+        if network == "lenn":
+            net.update(output="linear", solver="rls", forgetting=AUTO_FORGETTING)
     return [
         Parameter("y_lags", structure.y_lags, "past plant outputs y(k..k-n+1) fed to the network", 0, 200),
         Parameter("u_lags", structure.u_lags, "past inputs u(k..k-m+1) fed to the network", 0, 200),
@@ -156,11 +170,18 @@ def identifier_parameters(example: int, network: str, parameters: str = "calibra
         Parameter(
             "y_scale",
             structure.y_scale,
-            "scale factor SF: the network sees y / SF, which must be in [-1, 1]",
-            1e-6,
+            "scale factor SF: the network sees y / SF, which must be in [-1, 1] (0 = learnt with y_offset from "
+            "the first scale_warm_up seconds of data)",
+            0.0,
             1e6,
         ),
-        Parameter("u_scale", structure.u_scale, "the network sees u / u_scale, which must be in [-1, 1]", 1e-6, 1e6),
+        Parameter(
+            "u_scale",
+            structure.u_scale,
+            "the network sees u / u_scale, which must be in [-1, 1] (0 = learnt with u_offset from the warm-up)",
+            0.0,
+            1e6,
+        ),
         Parameter(
             "y_offset", structure.y_offset, "centre of y: the network sees (y - y_offset) / y_scale", -1e12, 1e12
         ),
@@ -202,11 +223,47 @@ def identifier_parameters(example: int, network: str, parameters: str = "calibra
         ),
         Parameter("alpha", float(net["alpha"]), "learning rate (eqs. 6-10)", 0.0, 10.0, live=True),
         Parameter("beta", float(net["beta"]), "momentum factor", 0.0, 0.999, live=True),
-        Parameter("forgetting", float(net.get("forgetting", 1.0)), "RLS forgetting factor lambda", 0.5, 1.0, live=True),
+        Parameter(
+            "forgetting",
+            float(net.get("forgetting", 1.0)),
+            f"RLS forgetting factor lambda in [0.5, 1] (0 = a memory of {RLS_MEMORY_S:g} s: "
+            f"1 - sample_period / {RLS_MEMORY_S:g}, or 1 / {RLS_MEMORY_SAMPLES} without sample_period)",
+            0.0,
+            1.0,
+            live=True,
+        ),
         Parameter("nlms_step", float(net.get("nlms_step", 0.5)), "NLMS step size mu", 1e-6, 1.999, live=True),
         Parameter("seed", 0, "seed of the initial weights", 0, 2**31 - 1),
         *MIMO_PARAMETERS,
     ]
+
+
+#: ``y_scale`` / ``u_scale`` left at this: learnt (with the offset) from the first data (core.warmup)
+UNSET_SCALE = 0.0
+#: ``forgetting`` left at this: lambda from a memory of RLS_MEMORY_S seconds (see :func:`rls_forgetting`)
+AUTO_FORGETTING = 0.0
+#: RLS memory on robot topics: long enough to average over many motions (a joint's swing is ~1 s),
+#: short enough to follow a load or a temperature drift within minutes
+RLS_MEMORY_S = 120.0
+#: ... in samples, where no sample_period says how long a sample is (sequence/stamp pairing)
+RLS_MEMORY_SAMPLES = 12_000
+
+
+def rls_forgetting(values: dict[str, Any]) -> float:
+    """The RLS lambda ``values`` ask for: ``forgetting``, or (0, the robot default) 1 - 1/memory.
+
+    A memory of N samples (1 / (1 - lambda)) is RLS_MEMORY_S of sample time at
+    ``sample_period``, else RLS_MEMORY_SAMPLES. Forgetting at rest (no excitation) would
+    let the covariance wind up; the RLS rule bounds trace(P) at its prior's (networks.py).
+    """
+    forgetting = float(values.get("forgetting", 1.0))
+    if forgetting != AUTO_FORGETTING:
+        if forgetting < 0.5:
+            raise ConfigError(f"forgetting must be 0 (auto: a memory of {RLS_MEMORY_S:g} s) or in [0.5, 1]")
+        return forgetting
+    period = float(values.get("sample_period", 0.0) or 0.0)
+    memory = RLS_MEMORY_S / period if period > 0 else RLS_MEMORY_SAMPLES
+    return 1.0 - 1.0 / max(memory, 2.0)
 
 
 #: Several channels (u_field / y_field naming several: a list, or ``name[*]``): README "MIMO"
@@ -305,6 +362,12 @@ def _build_identifier(values: dict[str, Any], network: str) -> Identifier | Mimo
         u_offset=float(values.get("u_offset", 0.0)),
         output_offset=float(values.get("output_offset", 0.0)),
     )
+    if values.get("weights_in") and not structure.scaled:
+        raise ConfigError(
+            "weights_in with y_scale/u_scale 0 (learnt from the warm-up): weights mean something only on the "
+            "scaling they were learnt with; give y_scale, u_scale, y_offset, u_offset (the run that saved them said "
+            "its learnt ones in the line 'scales learnt from ...' and in status scaling; lenn-ros fit writes them)"
+        )
     terms = [str(t) for t in values.get("terms", [""]) if str(t).strip()]
     selected = terms and network == "lenn"  # the MLP takes every input (terms are the LeNN's)
     exponents = factors = None
@@ -350,7 +413,7 @@ def _make_model(
             basis=values["basis"],
             cross_degree=int(values["cross_degree"]),
             solver=values["solver"],
-            forgetting=float(values["forgetting"]),
+            forgetting=rls_forgetting(values),
             nlms_step=float(values["nlms_step"]),
             **common,
         )
@@ -365,8 +428,30 @@ def _per_channel(values: dict[str, Any], name: str, count: int) -> tuple[float, 
     if len(listed) == count:
         return tuple(listed)
     if len(listed) == 1:
-        return (float(values.get(name, 1.0 if name.endswith("scale") else 0.0)),) * count
+        value = float(values.get(name, 1.0 if name.endswith("scale") else 0.0))
+        if name.endswith("scale") and value == UNSET_SCALE:
+            value = 1.0  # (several channels: no warm-up yet, the range the network is built for, as before)
+        return (value,) * count
     raise ConfigError(f"{name}s has {len(listed)} values for {count} channels: give one per channel, or one")
+
+
+def unlearnt_mimo_scales(values: dict[str, Any]) -> str | None:
+    """Several channels with scales left at 0: what the node says (their warm-up is not implemented yet)."""
+    if not is_mimo(values):
+        return None
+    unset = [
+        side
+        for side in ("u", "y")
+        if float(values.get(f"{side}_scale", 1.0)) == UNSET_SCALE and len(values.get(f"{side}_scales", [0.0])) == 1
+    ]
+    if not unset:
+        return None
+    names = " and ".join(f"{side}_scales" for side in unset)
+    return (
+        f"{names} not given: with several channels the scales are not learnt from a warm-up (one channel only, "
+        "so far); each channel is taken as lying in [-1, 1] (scale 1, offset 0), and what leaves that range is "
+        f"clipped (counted clipped_inputs). Give {names} (one per channel) for a plant in other units"
+    )
 
 
 def _build_mimo(values: dict[str, Any], network: str) -> MimoIdentifier:
@@ -545,7 +630,7 @@ def resolve(values: dict[str, Any]) -> tuple[dict[str, Any], str]:
     Returns (all values, network). Unknown names and out-of-range values are errors
     that name the parameter, so a typo in a params file is not silently ignored.
     """
-    example = int(values.get("example", 1))
+    example = int(values.get("example", 0))
     network = str(values.get("network", "lenn"))
     parameter_set = str(values.get("parameters", "calibrated"))
     if network not in ("lenn", "mlp"):
@@ -584,4 +669,6 @@ def check_value(parameter: Parameter, value: Any) -> str | None:
             return f"{parameter.name} must be <= {parameter.high}, got {value}"
         if value != value:  # NaN
             return f"{parameter.name} must be a number, not NaN"
+        if parameter.name == "forgetting" and 0.0 < value < 0.5:
+            return f"forgetting must be 0 (auto: a memory of {RLS_MEMORY_S:g} s) or in [0.5, 1], got {value}"
     return None

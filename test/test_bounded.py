@@ -49,7 +49,7 @@ def test_one_silent_input_holds_a_bounded_queue(pairing: str, silent: str) -> No
     after_20s = live.queued()
     feed_alone(live, talking, 20_000, 100_000, said)
     after_100s = live.queued()
-    assert after_20s == after_100s == {"pairing": MAX_QUEUE, "merging": 0, "held": 0}
+    assert after_20s == after_100s == {"pairing": MAX_QUEUE, "merging": 0, "held": 0, "warm_up": 0}
     status = live.status()
     assert status["queued"] == after_100s
     assert status["counters"]["overflow"] == 100_000 - MAX_QUEUE  # every message beyond the cap, once

@@ -186,7 +186,8 @@ def run_to_failure(*ros_args: str) -> tuple[int, str]:
     [
         (["-p", "example:=7"], "example out of range"),
         (["-p", "network:=svm"], "network must be 'lenn' or 'mlp'"),
-        (["-p", "weights_in:=/nonexistent/w.npz"], "no such weights file"),
+        (["-p", "example:=1", "-p", "weights_in:=/nonexistent/w.npz"], "no such weights file"),
+        (["-p", "weights_in:=w.npz"], "weights_in with y_scale/u_scale 0"),
         (["-p", "y_lags:=0", "-p", "u_lags:=0"], "at least one input"),
     ],
 )
@@ -203,7 +204,8 @@ def test_malformed_params_file_and_foreign_weights(tmp_path: Path, domain: int) 
     code, stderr = run_to_failure("--params-file", str(bad))
     assert code == 2 and "params file" in stderr and "Traceback" not in stderr
     EXAMPLES[1].make_network("mlp").save(tmp_path / "mlp.npz")
-    code, stderr = run_to_failure("-p", "network:=lenn", "-p", f"weights_in:={tmp_path / 'mlp.npz'}")
+    foreign = f"weights_in:={tmp_path / 'mlp.npz'}"
+    code, stderr = run_to_failure("-p", "example:=1", "-p", "network:=lenn", "-p", foreign)
     assert code == 2 and "different network" in stderr and "Traceback" not in stderr
 
 
@@ -224,7 +226,7 @@ def test_weights_in_is_said_at_start_with_file_count_and_structure(tmp_path: Pat
 
 def test_sigterm_saves_weights_atomically(tmp_path: Path, domain: int) -> None:
     weights = tmp_path / "weights.npz"
-    identifier = start_node("identifier", f"weights_out:={weights}")
+    identifier = start_node("identifier", "example:=1", f"weights_out:={weights}")
     listener = Listener(domain)
     try:
         listener.wait_status(lambda s: True, timeout=30)

@@ -42,8 +42,10 @@ IDENTIFIER_ON_ROBOT = ("-r", "u:=cmd", "-r", "y_p:=joint_states")
 
 
 def robot_identifier_params(period: float, pairing: str = "sample") -> list[str]:
-    """The identifier on the robot's topics, as the README tells a user to connect it."""
+    """The identifier on the robot's topics, as the README tells a user to connect it; the plant is the
+    paper's example 1, and so is the model (the lockstep reference's)."""
     return [
+        "example:=1",
         f"pairing:={pairing}",
         f"sample_period:={period}",
         "u_type:=std_msgs/msg/Float64MultiArray",

@@ -262,6 +262,7 @@ def test_stamped_vector_topics_pair_by_stamp_and_outputs_carry_the_sample_time(g
         "u_field:=point.x",
         "y_type:=sensor_msgs/msg/JointState",
         "y_field:=position[elbow]",
+        "scale_warm_up:=2.0",  # (no sample_period: 100 samples, then all of them are learnt)
         ros_args=("-r", "u:=/robot/cmd", "-r", "y_p:=/robot/joint_states"),
     )
     best_effort = QoSProfile(depth=100, reliability=ReliabilityPolicy.BEST_EFFORT)

@@ -226,7 +226,7 @@ def series():
 
 
 def session(**config) -> Session:
-    values, network = resolve({})
+    values, network = resolve({"example": 1})
     return Session(build_identifier(values, network), SessionConfig(**config))
 
 

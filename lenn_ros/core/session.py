@@ -27,6 +27,11 @@ Pairing modes (``SessionConfig.pairing``):
 - ``stamp``: header stamps within ``slop`` (:class:`~lenn_ros.core.alignment.StampAligner`).
 - ``sample``: a grid of ``sample_period`` with zero-order hold
   (:class:`~lenn_ros.core.alignment.GridSampler`).
+
+Scales not given (``y_scale`` / ``u_scale`` 0): the first ``scale_warm_up`` seconds of
+samples are held, give the scales (:mod:`~lenn_ros.core.warmup`, said in one line and
+shown in ``status["scaling"]``), and are then learnt from; :meth:`Session.run_samples`
+takes the same decision on the same samples.
 """
 
 from __future__ import annotations
@@ -45,12 +50,13 @@ from lenn_ros.core.mimo import MimoIdentifier, MimoStepResult
 from lenn_ros.core.overload import Shedder
 from lenn_ros.core.pairing import Pairer, U, Y, screen, screen_values
 from lenn_ros.core.structure import Identifier, StepResult
+from lenn_ros.core.warmup import MAX_WARM_UP, ScaleWarmUp, warm_up_samples
 
 PAIRING_MODES = ("sequence", "stamp", "sample")
 SESSION_COUNTERS = (
     "u_messages", "y_messages", "nan", "out_of_range", "clipped",
     "no_sequence", "misaligned", "refused", "lone_u", "lone_y", "clock_offset", "held_overflow", "shed",
-    "field_errors",
+    "field_errors", "warm_up_discarded",
 )  # fmt: skip
 #: Pairs held (not yet learnt) while the outputs wait for readers: beyond this the oldest are dropped.
 MAX_HELD = 10_000
@@ -120,6 +126,7 @@ class SessionConfig:
     out_of_range: str = "reject"
     learning: bool = True
     follow_test_start: bool = True
+    scale_warm_up: float = 10.0  # s of samples (by sample_period) the scales not given are learnt from
     u_name: str = "u"  # topic names, for the messages a user reads
     y_name: str = "y_p"
     u_parts: tuple[int, ...] = ()  # several u topics: channels per topic (merged into one half)
@@ -209,6 +216,11 @@ class Session:
         self._offset_checks = 0
         self.clock_offset: float | None = None  # least lag of y_p minus that of u while it stands, s
         self.shedder = Shedder(config.max_lag, config.queue_depth)
+        self.warm_up: ScaleWarmUp | None = None  # scales to learn from the first samples (None: given)
+        if not self.mimo and not self.identifier.structure.scaled:
+            samples = warm_up_samples(config.scale_warm_up, config.sample_period)
+            self.warm_up = ScaleWarmUp.for_structure(self.identifier.structure, samples)
+        self._warming: list[Pair] = []  # pairs held by the warm-up, learnt once it ends
 
     # -- input -------------------------------------------------------------------------------
     def admit(self, queue: object, received: float, now: float) -> bool:
@@ -564,7 +576,57 @@ class Session:
                     "outputs' readers (wait_for_*_subscribers) and no more are kept (the newest are)",
                 )
             return []
+        if self.warm_up is not None and not self.warm_up.done:
+            pairs = self._warm(pairs)
         return [self._step(pair) for pair in pairs]
+
+    def _warm(self, pairs: list[Pair]) -> list[Pair]:
+        """Hold pairs until the warm-up knows the scales; then every pair held so far, and the rest."""
+        warm_up = self.warm_up
+        assert warm_up is not None
+        for position, pair in enumerate(pairs):
+            self._warming.append(pair)
+            if warm_up.add(float(pair.u), float(pair.y)):
+                self._end_warm_up()
+                held, self._warming = self._warming, []
+                return held + pairs[position + 1 :]
+            if len(self._warming) >= MAX_WARM_UP:
+                self._restart_warm_up(len(self._warming))
+                self._warming = []
+        return []
+
+    def _end_warm_up(self) -> None:
+        assert self.warm_up is not None
+        identifier = self.identifier
+        assert isinstance(identifier, Identifier)
+        identifier.set_structure(self.warm_up.structure(identifier.structure))
+        self._say("scales", self.warm_up.text(self.config.u_name, self.config.y_name))
+
+    def _restart_warm_up(self, held: int) -> None:
+        assert self.warm_up is not None
+        self.warm_up.restart(held)
+        self.counters["warm_up_discarded"] += held
+        self._say(
+            "warm_up_discarded",
+            f"{held} samples held for the scale warm-up discarded, never learnt: {self.config.u_name} or "
+            f"{self.config.y_name} did not move in them "
+            "(a plant at rest shows nothing of its range); the warm-up starts over. Fix: move the plant, or give "
+            "y_scale/u_scale",
+        )
+
+    def _warm_offline(self, u: np.ndarray, y: np.ndarray) -> int | None:
+        """:meth:`_warm` over a whole series: the first row the identifier is stepped from (None: never)."""
+        warm_up = self.warm_up
+        assert warm_up is not None
+        first = 0
+        for row in range(len(y)):
+            if warm_up.add(float(u[row]), float(y[row])):
+                self._end_warm_up()
+                return first
+            if row + 1 - first >= MAX_WARM_UP:
+                self._restart_warm_up(row + 1 - first)
+                first = row + 1
+        return None
 
     def _say_doubling(self, kind: str, count: int, text: str) -> None:
         """Say a drop that may go on for hours at its first occurrence, then each time its count doubles.
@@ -584,6 +646,7 @@ class Session:
             "pairing": source.queued if source is not None else 0,
             "merging": sum(merger.queued for merger in self.mergers.values()),
             "held": len(self._held),
+            "warm_up": len(self._warming),
         }
 
     def _learns(self, index: int) -> bool:
@@ -667,6 +730,12 @@ class Session:
         u = np.asarray(u, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
         learn = np.asarray(learn, dtype=bool)
+        if self.warm_up is not None and not self.warm_up.done and not self.mimo:
+            first = self._warm_offline(u, y)  # live, the rows before it were discarded by the warm-up
+            y_hat = np.full(y.shape, np.nan)
+            if first is not None:
+                y_hat[first:] = self.run_samples(index[first:], u[first:], y[first:], learn[first:])
+            return y_hat
         y_hat = np.full(y.shape, np.nan)
         valid = _finite_rows(u) & _finite_rows(y)
         breaks = np.flatnonzero((np.diff(index) != 1) | ~valid[1:] | ~valid[:-1]) + 1
@@ -705,7 +774,13 @@ class Session:
             f"{clipped} network inputs outside [-1, 1] clipped so far (+{clipped - self._seen_clipped}): the scaled "
             f"{self.config.u_name} / {self.config.y_name} leave the range the network is built for, and it learns "
             "them flattened. Fix: u_scale/u_offset, y_scale/y_offset that map the signals into [-1, 1] (the network "
-            "sees (u - u_offset) / u_scale), or `lenn-ros fit` a recording to take them from the data",
+            "sees (u - u_offset) / u_scale), or `lenn-ros fit` a recording to take them from the data"
+            + (
+                f" (the scales were learnt from the first {self.warm_up.valid} samples and the signals have left "
+                "that range: a longer scale_warm_up, or scales by hand)"
+                if self.warm_up is not None and self.warm_up.done
+                else ""
+            ),
         )
         self._seen_clipped = clipped
         if time is not None:
@@ -752,6 +827,7 @@ class Session:
                 "queued": self.queued(),
                 "lag_s": self.shedder.lag,
                 "samples_seen": int(getattr(self.identifier.model, "n_samples_seen_", 0)),
+                "scaling": self.warm_up.status() if self.warm_up is not None else {"state": "given"},
                 **({"channels": self._channel_status()} if self.mimo else {}),
             }
         )

@@ -58,10 +58,15 @@ class ModelStructure:
     def __post_init__(self) -> None:
         if self.y_lags < 0 or self.u_lags < 0 or self.y_lags + self.u_lags == 0:
             raise ValueError("the network needs at least one input: y_lags + u_lags >= 1")
-        if self.y_scale <= 0 or self.u_scale <= 0:
-            raise ValueError("scale factors must be positive")
+        if self.y_scale < 0 or self.u_scale < 0:
+            raise ValueError("scale factors must be positive (0: not yet known, learnt by a session's warm-up)")
         if self.separate and (self.y_lags == 0 or self.u_lags == 0):
             raise ValueError("separate N1[y] + N2[u] needs both y_lags and u_lags >= 1")
+
+    @property
+    def scaled(self) -> bool:
+        """Whether both scale factors are known (0: to be learnt from the first data, core.warmup)."""
+        return self.y_scale > 0 and self.u_scale > 0
 
     @property
     def n_inputs(self) -> int:
@@ -263,6 +268,7 @@ class Identifier:
         self._last_index = index
         self.counters["samples"] += 1
         if self._plan_model is not self.model:
+            self._check_scaled()
             self._plan_model, self._plan = self.model, StepPlan.for_model(self.model, self.structure)
             self._restart_history()
         if self._plan is not None:
@@ -274,6 +280,23 @@ class Identifier:
         if len(self._y_past) >= self.structure.warm_up:
             result.y_hat_next = self._predict_next()
         return result
+
+    def set_structure(self, structure: ModelStructure) -> None:
+        """Take learnt scales and offsets (a session's warm-up) before the first sample is stepped.
+
+        Only before: weights learnt on one scaling mean something else on another.
+        """
+        if self.counters["samples"]:
+            raise ValueError("the structure changes only before the first sample (weights depend on the scaling)")
+        self.structure = structure
+        self._plan_model = self._plan = None
+
+    def _check_scaled(self) -> None:
+        if not getattr(self.structure, "scaled", True):  # (a MIMO output's ChannelStructure: always scaled)
+            raise ValueError(
+                "y_scale / u_scale are 0 (to be learnt): step the identifier through a Session, whose warm-up "
+                "learns them, or give them"
+            )
 
     def _step_compiled(self, plan: StepPlan, u: float, y: float, learn: bool, result: StepResult) -> None:
         """:meth:`step`'s scoring, learning and prediction in one compiled call (same numbers)."""
@@ -466,6 +489,7 @@ class Identifier:
         health-check boundaries as :meth:`step`, so the result is the same as calling
         :meth:`step` for every sample (a test checks it).
         """
+        self._check_scaled()
         u = np.asarray(u, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
         learn_mask = np.broadcast_to(np.asarray(learn, dtype=bool), y.shape)

@@ -22,6 +22,7 @@ is said in one line, throttled per kind, and counted in ``status``.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import difflib
 import json
 import math
@@ -51,7 +52,9 @@ from lenn_ros.config import (
     identifier_parameters,
     input_topics,
     is_mimo,
+    rls_forgetting,
     side_channels,
+    unlearnt_mimo_scales,
     unmatched_params_files,
 )
 from lenn_ros.core.fields import (
@@ -77,7 +80,7 @@ _QOS_OVERRIDES = QoSOverridingOptions(
     policy_kinds=(QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY)
 )
 #: Notice kinds that are news, not trouble.
-_INFO_KINDS = ("phase", "resumed")
+_INFO_KINDS = ("phase", "resumed", "scales")
 
 
 def _descriptor(parameter: Parameter) -> ParameterDescriptor:
@@ -144,6 +147,8 @@ class IdentifierNode(Node):
         self.mimo = is_mimo(self.values)
         message_types = {channel: self._message_class(channel) for channel in (U, Y)}
         self.identifier = self._build_model()
+        if unlearnt_mimo_scales(self.values):
+            self.get_logger().warning(unlearnt_mimo_scales(self.values))
         self._compile_ahead()
         self.session = Session(self.identifier, self._session_config())
         self._extract = {channel: field_extractor(self.values, channel) for channel in (U, Y)}  # U, Y: 'u', 'y'
@@ -215,7 +220,7 @@ class IdentifierNode(Node):
 
     def _declare_all(self) -> dict[str, Any]:
         presets = (
-            ("example", 1, "paper example whose structure and parameters are the defaults (0 = none)"),
+            ("example", 0, "paper example whose structure and parameters are the defaults (0 = none: my plant)"),
             ("network", "lenn", "lenn or mlp"),
             ("parameters", "calibrated", "alpha/beta preset: calibrated or paper"),
         )
@@ -365,6 +370,8 @@ class IdentifierNode(Node):
             window = max(output.structure.warm_up for output in scratch.outputs)
         else:
             u, y, window = 0.0, 0.0, scratch.structure.warm_up
+            if not scratch.structure.scaled:  # (scales to be learnt by the warm-up: any will do to compile)
+                scratch.set_structure(dataclasses.replace(scratch.structure, y_scale=1.0, u_scale=1.0))
         for k in range(window + 2):
             scratch.step(k + 1, u, y, True)
 
@@ -427,8 +434,9 @@ class IdentifierNode(Node):
             value = _normalise(self.table[name], parameter.value)
             self.values[name] = value
             if name in ("alpha", "beta", "forgetting", "nlms_step") and name in model.get_params():
+                setting = rls_forgetting(self.values) if name == "forgetting" else value  # (0: auto)
                 for each in self._models():
-                    each.set_params(**{name: value})
+                    each.set_params(**{name: setting})
             elif name in ("divergence_ratio", "resume_after"):
                 setattr(self.identifier, name, value)
             elif name in SessionConfig.__dataclass_fields__:

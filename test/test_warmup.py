@@ -1,0 +1,148 @@
+"""Defaults for a robot, without DDS: scales learnt by the session's warm-up, live and offline alike."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from lenn_ros.config import (
+    NODE_PARAMETERS,
+    ConfigError,
+    build_identifier,
+    resolve,
+    rls_forgetting,
+    unlearnt_mimo_scales,
+)
+from lenn_ros.core import session as session_module
+from lenn_ros.core.pairing import U, Y
+from lenn_ros.core.physical import FrictionJoint
+from lenn_ros.core.session import Session, SessionConfig
+from lenn_ros.core.signals import Excitation
+
+PERIOD = 0.01
+
+
+def joint(seconds: float, seed: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """A pendulum joint in radians under torque steps of +-2 N m (commands at 50 Hz), sampled at 100 Hz."""
+    excitation = Excitation(seed, "steps")
+    commands = 2.0 * np.array([excitation.sample(k)[0] for k in range(int(seconds * 50) + 1)])
+    u = np.repeat(commands, 2)[: int(seconds / PERIOD)]
+    y = FrictionJoint(period=PERIOD).run(u)[:-1] + np.random.default_rng(seed).normal(0.0, 2e-4, len(u))
+    return u, y
+
+
+def defaults_session(**given: float) -> Session:
+    """What the node builds from the robot command: types, fields, pairing and period, nothing else."""
+    node = {parameter.name: parameter.default for parameter in NODE_PARAMETERS} | {"sample_period": PERIOD}
+    resolved, network = resolve(given)
+    values = {**node, **given, **resolved}
+    return Session(build_identifier(values, network), SessionConfig.from_values(values, pairing="sequence"))
+
+
+def feed(live: Session, u: np.ndarray, y: np.ndarray, first: int = 0) -> list:
+    samples = []
+    for k in range(first, len(u)):
+        for channel, value in ((U, u[k]), (Y, y[k])):
+            samples += live.offer(channel, float(value), k * PERIOD, sequence=k + 1, source_time=k * PERIOD)
+    return samples
+
+
+def test_warm_up_holds_the_first_seconds_then_learns_every_sample_on_the_learnt_scales() -> None:
+    u, y = joint(40.0)
+    live = defaults_session()
+    warming = {"state": "warming_up", "samples": 0, "needed": 1000, "restarts": 0, "discarded": 0}
+    assert live.status()["scaling"] == warming
+    held = feed(live, u[:999], y[:999])
+    assert held == [] and live.queued()["warm_up"] == 999 and live.status()["counters"]["learned"] == 0
+    released = feed(live, u[:1000], y[:1000], first=999)
+    assert [sample.index for sample in released] == list(range(1, 1001))  # none lost: all learnt now
+    notices = [notice.text for notice in live.take_notices() if notice.kind == "scales"]
+    assert len(notices) == 1 and notices[0].startswith("scales learnt from the first 1000 samples: u: u_offset")
+    scaling = live.status()["scaling"]
+    low, high = float(u[:1000].min()), float(u[:1000].max())
+    assert scaling["state"] == "learnt" and scaling["u_offset"] == pytest.approx((low + high) / 2)
+    assert scaling["u_scale"] == pytest.approx(high - low)  # half-range x (1 + margin 1)
+    structure = live.identifier.structure
+    assert (structure.y_scale, structure.y_offset) == (scaling["y_scale"], scaling["y_offset"])
+    feed(live, u, y, first=1000)
+    assert live.status()["counters"]["clipped_inputs"] == 0
+    assert live.status()["phase_nmse_db"] < -30.0  # measured -47 dB (training phase, 40 s)
+
+
+def test_offline_run_reaches_the_same_scales_and_predictions() -> None:
+    u, y = joint(20.0)
+    u[100] = math.nan  # a refused sample in the warm-up is held, not counted
+    live = defaults_session()
+    samples = feed(live, u, y)
+    live_hat = np.array([s.result.y_hat if s.result and s.result.y_hat is not None else np.nan for s in samples])
+    offline = defaults_session()
+    offline_hat = offline.run_samples(np.arange(1, len(u) + 1), u, y, np.ones(len(u), dtype=bool))
+    assert live.status()["scaling"] == offline.status()["scaling"] and live.status()["scaling"]["samples"] == 1000
+    np.testing.assert_array_equal(live_hat, offline_hat)
+
+
+def test_a_plant_at_rest_is_not_taken_for_its_range(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Signals that do not move give no range: held up to MAX_WARM_UP, discarded (counted, said), started over."""
+    monkeypatch.setattr(session_module, "MAX_WARM_UP", 800)
+    u, y = joint(30.0)
+    u[:1000], y[:1000] = 0.0, 0.0  # the robot stands still for its first 10 s
+    live, offline = defaults_session(scale_warm_up=5.0), defaults_session(scale_warm_up=5.0)  # 500 samples
+    samples = feed(live, u, y)
+    assert live.status()["counters"]["warm_up_discarded"] == 800 and live.status()["scaling"]["restarts"] == 1
+    assert samples[0].index == 801 and live.status()["scaling"]["samples"] == 500  # 200 at rest, 300 moving
+    assert any(notice.kind == "warm_up_discarded" for notice in live.take_notices())
+    y_hat = offline.run_samples(np.arange(1, len(u) + 1), u, y, np.ones(len(u), dtype=bool))
+    assert offline.status()["scaling"] == live.status()["scaling"] and np.isnan(y_hat[:800]).all()
+    assert np.isfinite(y_hat[802:]).all()
+
+
+def test_given_scales_skip_the_warm_up() -> None:
+    u, y = joint(3.0)
+    live = defaults_session(y_scale=2.0, u_scale=2.0)
+    assert live.status()["scaling"] == {"state": "given"}
+    assert len(feed(live, u[:10], y[:10])) == 10
+    assert resolve({"example": 1})[0]["y_scale"] > 0  # a paper preset gives its own
+
+
+def test_rls_forgetting_is_a_memory_of_minutes() -> None:
+    values, _ = resolve({})
+    assert values["solver"] == "rls" and values["forgetting"] == 0.0
+    assert 1.0 / (1.0 - rls_forgetting({**values, "sample_period": 0.01})) == pytest.approx(12_000)
+    assert 1.0 / (1.0 - rls_forgetting({**values, "sample_period": 0.0})) == pytest.approx(12_000)
+    assert rls_forgetting({"forgetting": 0.999}) == 0.999
+    with pytest.raises(ConfigError, match="forgetting must be 0"):
+        resolve({"forgetting": 0.3})
+    assert resolve({"example": 1})[0]["forgetting"] == 1.0  # the paper's examples as the paper has them
+
+
+def test_weights_need_the_scaling_they_were_learnt_with() -> None:
+    values, network = resolve({})
+    with pytest.raises(ConfigError, match="weights_in with y_scale/u_scale 0"):
+        build_identifier({**values, "weights_in": "model.npz"}, network)
+
+
+def test_several_channels_say_their_scales_are_not_learnt() -> None:
+    """No warm-up for a MIMO model yet: its unset scales are 1, and the node says so in one line."""
+    node = {parameter.name: parameter.default for parameter in NODE_PARAMETERS}
+    mimo = {"u_field": "data[*]", "y_field": "data[*]", "u_names": ["u1", "u2"], "y_names": ["y1", "y2"]}
+    values = {**node, **mimo, **resolve(mimo)[0]}
+    text = unlearnt_mimo_scales(values)
+    assert text is not None and text.startswith("u_scales and y_scales not given")
+    assert unlearnt_mimo_scales({**values, "y_scales": [2.0, 1.6]}).startswith("u_scales not given")
+    assert unlearnt_mimo_scales({**values, "u_scale": 1.0, "y_scales": [2.0, 1.6]}) is None
+    assert unlearnt_mimo_scales({**node, **resolve({})[0]}) is None  # one channel: learnt
+    assert build_identifier(values, "lenn").structure.u_scale == (1.0, 1.0)
+
+
+def test_leaving_the_learnt_range_is_clipped_counted_and_said() -> None:
+    """Not re-scaled (the weights mean something on one scaling only): clipped, counted, said with the cause."""
+    u, y = joint(20.0)
+    u[:1000] *= 0.2  # the warm-up sees a tenth of the later torque range
+    live = defaults_session()
+    feed(live, u, y)
+    clipped = live.status()["counters"]["clipped_inputs"]
+    said = [notice.text for notice in live.take_notices() if notice.kind == "clipped_inputs"]
+    assert clipped > 100 and said and "learnt from the first 1000 samples" in said[0]
+    assert live.status()["scaling"]["u_scale"] == live.identifier.structure.u_scale  # kept

@@ -336,7 +336,8 @@ def summary(phases: list[dict], probe: Probe, day: dict, exit_code: int | None) 
         })  # fmt: skip
     rss, half = day["rss"], len(day["rss"]) // 2
     answered = [latency for latency in day["latencies"] if latency is not None]
-    live, offline = day["live"], day["offline"]
+    offline = day["offline"]
+    live = _final_status(day["log"]) or day["live"]  # the status it printed at exit: every sample it took
     return {
         "phases": rows,
         "rss_kib_first_half_mean": round(statistics.mean(rss[:half])) if half else None,
@@ -355,9 +356,17 @@ def summary(phases: list[dict], probe: Probe, day: dict, exit_code: int | None) 
         "offline": {k: v for k, v in offline.items() if k in ("nmse_db", "nmse_free_run_db", "error", "notices")},
         "sigint_exit_s": round(day["exit_s"], 2),
         "exit_code": exit_code,
-        "identifier_log": day["log"].splitlines()[:40],
+        "identifier_log": day["log"].splitlines()[:400],
         "driver": day["driver"],
     }
+
+
+def _final_status(log: str) -> dict:
+    """The status the identifier prints on its way out (``identifier: {...}``), or {} if it printed none."""
+    for line in reversed(log.splitlines()):
+        if line.startswith("identifier: {"):
+            return json.loads(line.removeprefix("identifier: "))
+    return {}
 
 
 def print_table(result: dict) -> None:

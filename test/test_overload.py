@@ -1,6 +1,6 @@
 """Issue 18, item 3: a flood of JointState does not starve the identifier's services or its exit.
 
-The real identifier (README robot settings, ``pairing:=sample``) and a publisher
+The real identifier (README robot settings, ``pairing:=sample``) and a publisher at 10 kHz
 process sending JointState as fast as it can (``bench/overload.py --publisher``: its
 own process, so that the calls made from here are not slowed by its work). Figures
 (latency p50/max at 2x and 10x capacity, recovery) are the benchmark's
@@ -28,6 +28,11 @@ ROBOT = (
 )  # fmt: skip
 
 
+#: the flood: ten times the 1 kHz the node is set up for, several times what it can learn from
+#: (1.5-6 k JointState/s on this machine, bench/overload.py), so it must shed
+FLOOD_HZ = 10_000.0
+
+
 def test_parameter_calls_are_answered_and_sigint_ends_the_node_during_a_flood(domain: int) -> None:
     from rosutil import REPO, Listener, ParameterClient, start_node
 
@@ -35,7 +40,7 @@ def test_parameter_calls_are_answered_and_sigint_ends_the_node_during_a_flood(do
     listener = Listener(domain)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO), os.environ.get("PYTHONPATH", "")])}
     flood = subprocess.Popen(
-        [sys.executable, str(REPO / "bench" / "overload.py"), "--publisher", json.dumps([[60.0, 0.0]])],
+        [sys.executable, str(REPO / "bench" / "overload.py"), "--publisher", json.dumps([[60.0, FLOOD_HZ]])],
         env=env, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True,
     )  # fmt: skip
     try:
@@ -47,7 +52,8 @@ def test_parameter_calls_are_answered_and_sigint_ends_the_node_during_a_flood(do
                 sent = time.monotonic()
                 assert parameters.set("warn_period", value).successful
                 latencies.append(time.monotonic() - sent)
-            assert max(latencies) < 0.5, latencies
+            print(f"parameter calls during the flood: {[round(1e3 * t, 1) for t in latencies]} ms")
+            assert max(latencies) < 0.25, latencies
         status = listener.wait_status(lambda s: s["counters"]["shed"] > 2000, timeout=30)
         assert status["counters"]["y_messages"] > 0  # it still takes the newest and learns from them
         assert identifier.poll() is None  # (setting warn_period live once stopped it at its next warning)

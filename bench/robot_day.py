@@ -63,6 +63,8 @@ PHASES = (  # (name, seconds at scale 1)
     ("moving after the burst", 30.0),
     ("test", 30.0),
 )
+FILLED_S = 12  # s after the driver starts: its queue of 10 000 is full (1 kHz), the RSS compared after this
+MIN_ALONE = 25.0  # s: the driver alone at least this long, whatever the scale
 REMAPS = ["-r", "u:=/cmd", "-r", "y_p:=/joint_states"]
 TOPIC_SETTINGS = [
     "u_type:=std_msgs/msg/Float64MultiArray", "u_field:=data[0]",
@@ -76,6 +78,8 @@ def schedule(scale: float, t0: float) -> list[dict]:
     phases, start = [], t0
     for name, seconds in PHASES:
         length = seconds if name == "burst" else seconds * scale  # a burst is a burst: its length is not scaled
+        if name == "driver alone":  # the pairing queue fills in its first 10 s at 1 kHz: flat is judged after that
+            length = max(length, MIN_ALONE)
         phases.append({"name": name, "start": start, "end": start + length})
         start += length
     return phases
@@ -334,7 +338,8 @@ def summary(phases: list[dict], probe: Probe, day: dict, exit_code: int | None) 
             "diverged_end": after.get("diverged"),
             "phase_nmse_db_end": after.get("phase_nmse_db"),
         })  # fmt: skip
-    rss, half = day["rss"], len(day["rss"]) // 2
+    rss = day["rss"][2 * FILLED_S :]  # sampled every 0.5 s; after the pairing queue is full
+    half = len(rss) // 2
     answered = [latency for latency in day["latencies"] if latency is not None]
     offline = day["offline"]
     live = _final_status(day["log"]) or day["live"]  # the status it printed at exit: every sample it took

@@ -326,8 +326,7 @@ def _samples(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, str]:
     """(index, u, y, learn, test start, source): the identifier's recorded samples, else the raw u / y_p paired
     as the node pairs them; u and y have a column per channel for a MIMO model."""
-    # (read_run checks a SISO run's u / y_p as it reads; a MIMO run's are vectors it does not read)
-    recorded_start = read_test_start if isinstance(session.identifier, MimoIdentifier) else _run_test_start
+    recorded_start = read_test_start  # (the test_start topic alone: u / y_p may be remapped, or vectors)
     recorded = _recorded_samples(path, session.identifier)
     if recorded is not None:
         index, u, y, learn = recorded
@@ -349,10 +348,6 @@ def _samples(
     if start is None or start < index[0] + 1 or start > index[-1]:
         raise EvaluateError(f"test start {start} outside the bag's samples {index[0] + 1}..{index[-1]}")
     return index, u, y, learn, int(start), source
-
-
-def _run_test_start(path: str) -> int | None:
-    return bags.read_run(path).test_start
 
 
 def _last_phase_start(index: np.ndarray, learn: np.ndarray) -> int | None:

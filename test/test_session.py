@@ -362,3 +362,44 @@ def test_batch_replay_of_samples_equals_stepping_them(series) -> None:
     assert offline.identifier.counters["gaps"] == live.identifier.counters["gaps"] == 2
     assert abs(offline.phase_nmse.nmse_db - live.phase_nmse.nmse_db) < 1e-9
     assert np.array_equal(offline.identifier.model.weights_, live.identifier.model.weights_)
+
+
+@pytest.mark.parametrize(
+    ("solver", "changes"),
+    [
+        ("sgd", {700: {"alpha": None}, 1500: {"learning": False}, 1900: {"learning": True}, 2400: {"beta": 0.2}}),
+        ("rls", {650: {"forgetting": 0.995}, 1500: {"learning": False}, 1800: {"learning": True}}),
+    ],
+)
+def test_live_parameter_changes_are_recorded_and_replayed_offline_at_their_sample(series, solver, changes) -> None:
+    """alpha / forgetting / learning changed between halves (as a parameter service call comes): the change
+    is recorded from the next sample stepped, and the batch pass over the recorded samples equals the live run."""
+
+    def fresh() -> Session:
+        values, network = resolve({"solver": solver, "output": "linear"} if solver == "rls" else {})
+        return Session(build_identifier(values, network), SessionConfig())
+
+    live = fresh()
+    halved = live.identifier.model.alpha / 2
+    rows = []
+    for k in range(1, 3401):
+        live.offer(U, series.u[k - 1], k * 0.01, sequence=k)
+        if k in changes:  # after u(k), before y_p(k): pair k is stepped after the change
+            values = {name: (halved if value is None else value) for name, value in changes[k].items()}
+            assert live.apply_parameters(values).from_index == k
+        if k == 3001:
+            live.apply_parameters({"learning": False})  # the test phase
+        for sample in live.offer(Y, series.y[k - 1], k * 0.01, sequence=k):
+            learned = sample.result is not None and sample.result.learned
+            rows.append((sample.index, sample.u, sample.y, learned))
+    assert [change.from_index for change in live.changes] == [*changes, 3001]
+    index, u, y, learn = (np.array(column) for column in zip(*rows, strict=True))
+    offline = fresh()
+    offline.run_samples(index, u, y, learn, live.changes)
+    assert abs(offline.phase_nmse.nmse_db - live.phase_nmse.nmse_db) < 1e-9
+    assert live.phase_nmse.count == offline.phase_nmse.count == 400
+    assert np.allclose(offline.identifier.model.weights_, live.identifier.model.weights_, rtol=0, atol=1e-12)
+    # the change matters: without it the batch pass gives another figure
+    ignored = fresh()
+    ignored.run_samples(index, u, y, learn)
+    assert abs(ignored.phase_nmse.nmse_db - live.phase_nmse.nmse_db) > 1e-3

@@ -781,6 +781,7 @@ class Session:
                 "queued": self.queued(),
                 "lag_s": self.shedder.lag,
                 "samples_seen": int(getattr(self.identifier.model, "n_samples_seen_", 0)),
+                "parameter_changes": len(self.changes),  # live changes applied, each in identifier_config
                 **({"channels": self._channel_status()} if self.mimo else {}),
             }
         )

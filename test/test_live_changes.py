@@ -80,13 +80,9 @@ def test_live_changes_are_recorded_and_evaluate_equals_live(
     applied = [note for note in offline.notices if note.startswith("parameter change")]
     assert len(applied) == 3 and all("applied offline at that sample" in note for note in applied), offline.notices
     assert "Traceback" not in rec_err
-    # the changes matter: evaluate without them (as before they were recorded) misses the live figure
-    import lenn_ros.evaluate
-
-    monkeypatch.setattr(lenn_ros.evaluate, "recorded_changes", lambda path: [])
-    unchanged = evaluate_bag(str(bag)).evaluation.nmse_db
-    print(f"{solver}: evaluate without the changes {unchanged:.6f} dB")
-    assert abs(unchanged - live["phase_nmse_db"]) > 1e-3
+    if solver == "sgd":
+        check_replay_sets_the_changes(tmp_path, values, bag, live, changes)
+    check_the_changes_matter(monkeypatch, bag, live, solver)
 
 
 def _alpha(params: Path) -> float:
@@ -95,3 +91,36 @@ def _alpha(params: Path) -> float:
 
     identifier, _ = identifier_from_params(str(params))
     return float(identifier.model.alpha)
+
+
+def check_replay_sets_the_changes(tmp_path: Path, values: dict, bag: Path, live: dict, changes: list) -> None:
+    """``replay`` of the bag into a fresh identifier sets each change before the same sample as live."""
+    values = {**values, "wait_for_y_hat_subscribers": 1}  # the replay alone
+    params = tmp_path / "replayed.yaml"
+    params.write_text(json.dumps({"identifier": {"ros__parameters": values}}))
+    identifier = start_node("identifier", params_file=params)
+    replay = start_node("replay", f"bag:={bag}", "rate:=0.0", "wait_for_subscribers:=1")
+    try:
+        _, replay_err = replay.communicate(timeout=120)
+        assert replay.returncode == 0, replay_err
+    finally:
+        _, id_err = stop(identifier)
+    again = final_status(id_err)
+    for change in changes:
+        assert f"in effect from sample {change.from_index} (recorded)" in id_err, id_err[-3000:]
+    assert again["parameter_changes"] == len(changes) and again["phase_samples"] == TEST
+    # The figure itself: equal to the live one in 3 of 4 runs (also when this bag was replayed again by
+    # hand), 0.023 dB off in one with every change at its recorded sample; not understood yet (replay
+    # equal to live had no test before), so it is printed, with the counters, and not asserted.
+    gap = abs(again["phase_nmse_db"] - live["phase_nmse_db"])
+    print(f"replayed: {again['phase_nmse_db']:.6f} dB ({gap:.2e} dB from live); counters {again['counters']}")
+
+
+def check_the_changes_matter(monkeypatch: pytest.MonkeyPatch, bag: Path, live: dict, solver: str) -> None:
+    """Evaluate without the recorded changes (as before they were recorded) misses the live figure."""
+    import lenn_ros.evaluate
+
+    monkeypatch.setattr(lenn_ros.evaluate, "recorded_changes", lambda path: [])
+    unchanged = evaluate_bag(str(bag)).evaluation.nmse_db
+    print(f"{solver}: evaluate without the changes {unchanged:.6f} dB")
+    assert abs(unchanged - live["phase_nmse_db"]) > 1e-3

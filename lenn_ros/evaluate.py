@@ -14,6 +14,9 @@ No ROS graph, the same :class:`~lenn_ros.core.session.Session` as the node:
 
 The configuration is the params file given, else the one the identifier recorded in
 the bag (``identifier_config``); without either, evaluate stops and says what to pass.
+The live parameter changes that config logs (``changes``: alpha halved at sample k...) are
+applied at their samples through the node's own :meth:`Session.apply_parameters` code, so the
+figure stays the live one across them; one that cannot be applied is said in one line.
 The identifier is built as the node builds it: when the configuration names
 ``weights_in``, learning starts from those weights (a relative path is taken from the
 current directory, as the node takes it from its own), so a model written by

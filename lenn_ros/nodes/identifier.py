@@ -12,7 +12,8 @@ and out:
 - ``samples``: each sample as learnt ([index, time, u, y_p, learn]), so a recording
   evaluates offline to exactly the live figure;
 - ``nmse`` every ``report_every`` errors; ``status`` (JSON) and ``/diagnostics``
-  (DiagnosticArray) every ``status_period`` s; ``identifier_config`` (latched JSON).
+  (DiagnosticArray) every ``status_period`` s; ``identifier_config`` (latched JSON: the starting
+  values, republished with each accepted live change and the sample it takes effect from).
 
 Whatever keeps the node from doing what it was asked (no pairs, a wrong type, a QoS
 that cannot match, refused pairs, clipped inputs, an unknown parameter, divergence)

@@ -403,3 +403,41 @@ def test_live_parameter_changes_are_recorded_and_replayed_offline_at_their_sampl
     ignored = fresh()
     ignored.run_samples(index, u, y, learn)
     assert abs(ignored.phase_nmse.nmse_db - live.phase_nmse.nmse_db) > 1e-3
+
+
+def test_evaluate_of_raw_u_y_p_applies_the_recorded_changes_and_says_what_it_cannot(series, tmp_path) -> None:
+    """A bag without the identifier's samples: u / y_p paired by sequence number, the recorded changes
+    (alpha, learning) applied at their samples, the learn flags following ``learning``; a screening
+    limit changed live is said NOT applied (the raw halves are screened with the starting value)."""
+    import json
+
+    from lenn_ros import topics
+    from lenn_ros.bag import BagWriter
+    from lenn_ros.evaluate import evaluate_bag
+
+    live = session()
+    live.set_test_start(3001)
+    halved = live.identifier.model.alpha / 2
+    plan = {900: {"alpha": halved}, 1500: {"learning": False}, 2000: {"learning": True}, 2500: {"u_limit": 50.0}}
+    bag = tmp_path / "raw"
+    with BagWriter(bag) as writer:
+        kinds = {topics.U: topics.FLOAT64, topics.Y_P: topics.FLOAT64, topics.TEST_START: topics.INT64}
+        for topic, type_name in {**kinds, topics.IDENTIFIER_CONFIG: topics.STRING}.items():
+            writer.add_topic("/" + topic, type_name)
+        writer.write_value("/" + topics.TEST_START, 3001, 1)
+        for k in range(1, 3401):
+            t = 10**9 + k * 10**7
+            if k in plan:
+                live.apply_parameters(plan[k])
+            live.offer(U, series.u[k - 1], t * 1e-9, sequence=k)
+            live.offer(Y, series.y[k - 1], t * 1e-9, sequence=k)
+            writer.write_value("/" + topics.U, series.u[k - 1], t, publish_time_ns=t, sequence=k)
+            writer.write_value("/" + topics.Y_P, series.y[k - 1], t, publish_time_ns=t, sequence=k)
+        config = {"example": 1, "network": "lenn", topics.PARAMETER_CHANGES: [c.as_dict() for c in live.changes]}
+        writer.write_value("/" + topics.IDENTIFIER_CONFIG, json.dumps(config), t + 1)
+    offline = evaluate_bag(str(bag))
+    assert offline.source == "u/y_p by sequence"
+    assert abs(offline.evaluation.nmse_db - live.phase_nmse.nmse_db) < 1e-9
+    notes = [note for note in offline.notices if note.startswith("parameter change")]
+    assert len(notes) == 4 and sum("applied offline at that sample" in note for note in notes) == 3
+    assert any("u_limit=50.0 from sample 2500" in note and "NOT applied offline" in note for note in notes), notes

@@ -109,11 +109,17 @@ def check_replay_sets_the_changes(tmp_path: Path, values: dict, bag: Path, live:
     for change in changes:
         assert f"in effect from sample {change.from_index} (recorded)" in id_err, id_err[-3000:]
     assert again["parameter_changes"] == len(changes) and again["phase_samples"] == TEST
-    # The figure itself: equal to the live one in 3 of 4 runs (also when this bag was replayed again by
-    # hand), 0.023 dB off in one with every change at its recorded sample; not understood yet (replay
-    # equal to live had no test before), so it is printed, with the counters, and not asserted.
     gap = abs(again["phase_nmse_db"] - live["phase_nmse_db"])
-    print(f"replayed: {again['phase_nmse_db']:.6f} dB ({gap:.2e} dB from live); counters {again['counters']}")
+    print(f"replayed: {again['phase_nmse_db']:.6f} dB ({gap:.2e} dB from live)")
+    # The replayed run can refuse a pair the live one learnt: halves published more than max_skew
+    # (0.25 s) apart when the replay process is descheduled between u(k) and y_p(k) on two loaded
+    # cores (seen: misaligned 1, 0.008 and 0.023 dB off). Then it is another run, and says so.
+    # (a pair live refused is replayed as NaN, counted nan: every misaligned one here is the replay's own)
+    extra = again["counters"]["misaligned"]
+    if extra == 0:
+        assert gap < 1e-6
+    else:
+        print(f"replayed run refused {extra} pair(s) live learnt (misaligned): the figures are not compared")
 
 
 def check_the_changes_matter(monkeypatch: pytest.MonkeyPatch, bag: Path, live: dict, solver: str) -> None:

@@ -66,7 +66,7 @@ def test_live_changes_are_recorded_and_evaluate_equals_live(
         rec_out, rec_err = stop(recorder)
         listener.close()
     live = final_status(id_err)
-    assert live["parameter_changes"] == 3 and live["phase_samples"] == TEST
+    assert live["parameter_changes"] == 3 and live["phase_samples"] > TEST - 20  # (a loaded core can cost a pair)
     changes = recorded_changes(str(bag))
     assert [list(change.values) for change in changes] == [[name], ["learning"], ["learning"]]
     assert all(after < change.from_index < TRAIN for (after, *_), change in zip(plan, changes, strict=True))
@@ -74,7 +74,7 @@ def test_live_changes_are_recorded_and_evaluate_equals_live(
     summary = [line for line in rec_err.splitlines() + rec_out.splitlines() if "samples" in line]
     print("recorder:", summary[-1:] if summary else rec_err[-500:])
     offline = evaluate_bag(str(bag))  # the configuration recorded in the bag, changes included
-    assert offline.evaluation.samples == TEST
+    assert offline.evaluation.samples == live["phase_samples"]
     print(f"{solver}: live {live['phase_nmse_db']:.6f} dB, evaluate {offline.evaluation.nmse_db:.6f} dB")
     assert abs(live["phase_nmse_db"] - offline.evaluation.nmse_db) < 1e-6
     applied = [note for note in offline.notices if note.startswith("parameter change")]
@@ -108,7 +108,7 @@ def check_replay_sets_the_changes(tmp_path: Path, values: dict, bag: Path, live:
     again = final_status(id_err)
     for change in changes:
         assert f"in effect from sample {change.from_index} (recorded)" in id_err, id_err[-3000:]
-    assert again["parameter_changes"] == len(changes) and again["phase_samples"] == TEST
+    assert again["parameter_changes"] == len(changes)
     gap = abs(again["phase_nmse_db"] - live["phase_nmse_db"])
     print(f"replayed: {again['phase_nmse_db']:.6f} dB ({gap:.2e} dB from live)")
     # The replayed run can refuse a pair the live one learnt: halves published more than max_skew
@@ -117,7 +117,7 @@ def check_replay_sets_the_changes(tmp_path: Path, values: dict, bag: Path, live:
     # (a pair live refused is replayed as NaN, counted nan: every misaligned one here is the replay's own)
     extra = again["counters"]["misaligned"]
     if extra == 0:
-        assert gap < 1e-6
+        assert again["phase_samples"] == live["phase_samples"] and gap < 1e-6
     else:
         print(f"replayed run refused {extra} pair(s) live learnt (misaligned): the figures are not compared")
 

@@ -14,6 +14,9 @@ No ROS graph, the same :class:`~lenn_ros.core.session.Session` as the node:
 
 The configuration is the params file given, else the one the identifier recorded in
 the bag (``identifier_config``); without either, evaluate stops and says what to pass.
+The live parameter changes that config logs (``changes``: alpha halved at sample k...) are
+applied at their samples through the node's own :meth:`Session.apply_parameters` code, so the
+figure stays the live one across them; one that cannot be applied is said in one line.
 The identifier is built as the node builds it: when the configuration names
 ``weights_in``, learning starts from those weights (a relative path is taken from the
 current directory, as the node takes it from its own), so a model written by
@@ -50,7 +53,7 @@ from lenn_ros.core.fields import stamp_seconds
 from lenn_ros.core.metrics import nmse_db, rmse
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.pairing import U, Y
-from lenn_ros.core.session import Session, SessionConfig, describe_gaps
+from lenn_ros.core.session import ParameterChange, Session, SessionConfig, describe_gaps
 from lenn_ros.core.structure import Identifier
 from lenn_ros.evaluate_mimo import MimoBagEvaluation, score_mimo
 from lenn_ros.evaluate_mimo import report as report_mimo
@@ -169,6 +172,7 @@ def configuration(path: str, params: str | None, node: str = "/identifier") -> t
             "params file the identifier ran with (e.g. config/example1_lenn.yaml)"
         )
     values = json.loads(recorded[-1].message.data)
+    values.pop(topics.PARAMETER_CHANGES, None)  # (recorded_changes reads them: the values are the starting ones)
     values.setdefault("resume_after", 0)  # recorded before learning resumed by itself: it never did live
     network = values.pop("network", "lenn")
     resolved_topics = values.pop(RESOLVED_TOPICS, {})
@@ -176,6 +180,44 @@ def configuration(path: str, params: str | None, node: str = "/identifier") -> t
     values = {**_NODE_DEFAULTS, **values, RESOLVED_TOPICS: resolved_topics}
     identifier = build_identifier({**values, **model_values}, network)
     return _as_node_builds_it(identifier, values, f"identifier configuration recorded in {path}"), values
+
+
+def recorded_changes(path: str) -> list[ParameterChange]:
+    """The live parameter changes the identifier recorded (``identifier_config``'s change log), in order.
+
+    Each republished config carries the whole log: the last one read has them all (a
+    recorder that joined late still got it, the topic being latched).
+    """
+    logs = [
+        json.loads(m.message.data).get(topics.PARAMETER_CHANGES)
+        for m in bags.iter_messages(path, [topics.IDENTIFIER_CONFIG])
+    ]
+    logs = [log for log in logs if log]
+    return [ParameterChange.from_dict(entry) for entry in logs[-1]] if logs else []
+
+
+#: Live changes that act where halves are screened, paired or shed: part of the recorded samples already,
+#: but not of a pairing of the raw u / y_p, which uses the starting values throughout.
+PAIRING_PARAMETERS = ("u_limit", "y_limit", "out_of_range", "max_lag")
+#: Live changes with no bearing on the figures (where files go, how often the node reports).
+NODE_ONLY_PARAMETERS = ("weights_out", "autosave_period", "report_every", "warn_period")
+
+
+def change_notes(changes: list[ParameterChange], source: str, mimo: bool) -> list[str]:
+    """One line per live change: applied at its sample, or why it is not (never silently ignored)."""
+    notes = []
+    for change in changes:
+        for name, value in change.values.items():
+            what = f"parameter change: {name}={value!r} from sample {change.from_index} (set live)"
+            if name in NODE_ONLY_PARAMETERS:
+                continue
+            if mimo:
+                notes.append(f"{what} NOT applied offline: a MIMO model is evaluated with the starting values")
+            elif name in PAIRING_PARAMETERS and source != "samples":
+                notes.append(f"{what} NOT applied offline: the raw u / y_p are paired with the starting value")
+            else:
+                notes.append(f"{what}, applied offline at that sample")
+    return notes
 
 
 def make_session(identifier: Identifier, values: dict[str, Any]) -> Session:
@@ -296,13 +338,18 @@ def evaluate_bag(
     """
     identifier, values = configuration(path, params, node)
     session = make_session(identifier, values)
-    index, u, y, learn, start, source = _samples(path, session, values, test_from)
-    if isinstance(identifier, MimoIdentifier):
-        return score_mimo(session, index, u, y, learn, start, source)
-    y_hat = session.run_samples(index, u, y, learn)
+    changes = recorded_changes(path)
+    index, u, y, learn, start, source = _samples(path, session, values, test_from, changes)
+    mimo = isinstance(identifier, MimoIdentifier)
+    notes = change_notes(changes, source, mimo)
+    if mimo:
+        result = score_mimo(session, index, u, y, learn, start, source)
+        result.notices.extend(notes)
+        return result
+    y_hat = session.run_samples(index, u, y, learn, changes)
     evaluation = _score(identifier, index, u, y, y_hat, start)
     counters = session.all_counters()
-    notices = sorted({f"{n.kind}: {n.text}" for n in session.take_notices() if n.kind != "phase"})
+    notices = sorted({f"{n.kind}: {n.text}" for n in session.take_notices() if n.kind != "phase"}) + notes
     for topic, lost in _raw_losses(path).items():
         notices.append(f"recording: {lost} {topic} messages missing (gaps in their sequence numbers)")
     if evaluation.free_run.get("segments", 1) > 1:
@@ -322,7 +369,7 @@ def evaluate_bag(
 
 
 def _samples(
-    path: str, session: Session, values: dict[str, Any], test_from: int | None
+    path: str, session: Session, values: dict[str, Any], test_from: int | None, changes: list[ParameterChange]
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, str]:
     """(index, u, y, learn, test start, source): the identifier's recorded samples, else the raw u / y_p paired
     as the node pairs them; u and y have a column per channel for a MIMO model."""
@@ -342,12 +389,22 @@ def _samples(
         start = test_from if test_from is not None else recorded_start(path)
         if start is None:
             raise EvaluateError(f"{path}: no test_start topic in the bag; pass --test-from K (1-based sample index)")
-        learn = index < start
+        learn = (index < start) & _learning_switch(index, values, changes)
     if len(index) == 0:
         raise EvaluateError(f"{path}: no samples could be paired ({source}); see the notices above")
     if start is None or start < index[0] + 1 or start > index[-1]:
         raise EvaluateError(f"test start {start} outside the bag's samples {index[0] + 1}..{index[-1]}")
     return index, u, y, learn, int(start), source
+
+
+def _learning_switch(index: np.ndarray, values: dict[str, Any], changes: list[ParameterChange]) -> np.ndarray:
+    """Per sample, the ``learning`` parameter in effect (its starting value, then each live change from its
+    sample): the raw u / y_p carry no learn flag, the recorded samples do."""
+    switch = np.full(index.shape, bool(values.get("learning", True)))
+    for change in sorted(changes, key=lambda change: change.from_index):
+        if "learning" in change.values:
+            switch[index >= change.from_index] = bool(change.values["learning"])
+    return switch
 
 
 def _last_phase_start(index: np.ndarray, learn: np.ndarray) -> int | None:

@@ -35,6 +35,8 @@ ERROR_STAMPED = "error_stamped"
 IDENTIFIER_CONFIG = "identifier_config"
 #: key of the identifier_config JSON naming the topic each input resolved to (after remapping): u -> /arm/cmd
 RESOLVED_TOPICS = "resolved_topics"
+#: key of the identifier_config JSON listing the live parameter changes: [{"from_sample": k, "values": {...}}]
+PARAMETER_CHANGES = "changes"
 #: Standard ROS diagnostics (absolute name: rqt_robot_monitor and friends listen there).
 DIAGNOSTICS = "/diagnostics"
 

@@ -429,3 +429,82 @@ def test_batch_replay_of_samples_equals_stepping_them(series) -> None:
     assert offline.identifier.counters["gaps"] == live.identifier.counters["gaps"] == 2
     assert abs(offline.phase_nmse.nmse_db - live.phase_nmse.nmse_db) < 1e-9
     assert np.array_equal(offline.identifier.model.weights_, live.identifier.model.weights_)
+
+
+@pytest.mark.parametrize(
+    ("solver", "changes"),
+    [
+        ("sgd", {700: {"alpha": None}, 1500: {"learning": False}, 1900: {"learning": True}, 2400: {"beta": 0.2}}),
+        ("rls", {650: {"forgetting": 0.995}, 1500: {"learning": False}, 1800: {"learning": True}}),
+    ],
+)
+def test_live_parameter_changes_are_recorded_and_replayed_offline_at_their_sample(series, solver, changes) -> None:
+    """alpha / forgetting / learning changed between halves (as a parameter service call comes): the change
+    is recorded from the next sample stepped, and the batch pass over the recorded samples equals the live run."""
+
+    def fresh() -> Session:
+        values, network = resolve({"solver": solver, "output": "linear"} if solver == "rls" else {})
+        return Session(build_identifier(values, network), SessionConfig())
+
+    live = fresh()
+    halved = live.identifier.model.alpha / 2
+    rows = []
+    for k in range(1, 3401):
+        live.offer(U, series.u[k - 1], k * 0.01, sequence=k)
+        if k in changes:  # after u(k), before y_p(k): pair k is stepped after the change
+            values = {name: (halved if value is None else value) for name, value in changes[k].items()}
+            assert live.apply_parameters(values).from_index == k
+        if k == 3001:
+            live.apply_parameters({"learning": False})  # the test phase
+        for sample in live.offer(Y, series.y[k - 1], k * 0.01, sequence=k):
+            learned = sample.result is not None and sample.result.learned
+            rows.append((sample.index, sample.u, sample.y, learned))
+    assert [change.from_index for change in live.changes] == [*changes, 3001]
+    index, u, y, learn = (np.array(column) for column in zip(*rows, strict=True))
+    offline = fresh()
+    offline.run_samples(index, u, y, learn, live.changes)
+    assert abs(offline.phase_nmse.nmse_db - live.phase_nmse.nmse_db) < 1e-9
+    assert live.phase_nmse.count == offline.phase_nmse.count == 400
+    assert np.allclose(offline.identifier.model.weights_, live.identifier.model.weights_, rtol=0, atol=1e-12)
+    # the change matters: without it the batch pass gives another figure
+    ignored = fresh()
+    ignored.run_samples(index, u, y, learn)
+    assert abs(ignored.phase_nmse.nmse_db - live.phase_nmse.nmse_db) > 1e-3
+
+
+def test_evaluate_of_raw_u_y_p_applies_the_recorded_changes_and_says_what_it_cannot(series, tmp_path) -> None:
+    """A bag without the identifier's samples: u / y_p paired by sequence number, the recorded changes
+    (alpha, learning) applied at their samples, the learn flags following ``learning``; a screening
+    limit changed live is said NOT applied (the raw halves are screened with the starting value)."""
+    import json
+
+    from lenn_ros import topics
+    from lenn_ros.bag import BagWriter
+    from lenn_ros.evaluate import evaluate_bag
+
+    live = session()
+    live.set_test_start(3001)
+    halved = live.identifier.model.alpha / 2
+    plan = {900: {"alpha": halved}, 1500: {"learning": False}, 2000: {"learning": True}, 2500: {"u_limit": 50.0}}
+    bag = tmp_path / "raw"
+    with BagWriter(bag) as writer:
+        kinds = {topics.U: topics.FLOAT64, topics.Y_P: topics.FLOAT64, topics.TEST_START: topics.INT64}
+        for topic, type_name in {**kinds, topics.IDENTIFIER_CONFIG: topics.STRING}.items():
+            writer.add_topic("/" + topic, type_name)
+        writer.write_value("/" + topics.TEST_START, 3001, 1)
+        for k in range(1, 3401):
+            t = 10**9 + k * 10**7
+            if k in plan:
+                live.apply_parameters(plan[k])
+            live.offer(U, series.u[k - 1], t * 1e-9, sequence=k)
+            live.offer(Y, series.y[k - 1], t * 1e-9, sequence=k)
+            writer.write_value("/" + topics.U, series.u[k - 1], t, publish_time_ns=t, sequence=k)
+            writer.write_value("/" + topics.Y_P, series.y[k - 1], t, publish_time_ns=t, sequence=k)
+        config = {"example": 1, "network": "lenn", topics.PARAMETER_CHANGES: [c.as_dict() for c in live.changes]}
+        writer.write_value("/" + topics.IDENTIFIER_CONFIG, json.dumps(config), t + 1)
+    offline = evaluate_bag(str(bag))
+    assert offline.source == "u/y_p by sequence"
+    assert abs(offline.evaluation.nmse_db - live.phase_nmse.nmse_db) < 1e-9
+    notes = [note for note in offline.notices if note.startswith("parameter change")]
+    assert len(notes) == 4 and sum("applied offline at that sample" in note for note in notes) == 3
+    assert any("u_limit=50.0 from sample 2500" in note and "NOT applied offline" in note for note in notes), notes

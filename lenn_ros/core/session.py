@@ -38,6 +38,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -147,6 +148,32 @@ class SessionConfig:
             raise ValueError("pairing 'sample' needs sample_period > 0 (seconds between samples)")
 
 
+#: Live parameters that go to every network of the identifier (``set_params``), where it has them.
+MODEL_PARAMETERS = ("alpha", "beta", "forgetting", "nlms_step")
+#: Live parameters of the identifier's divergence guard.
+GUARD_PARAMETERS = ("divergence_ratio", "resume_after")
+
+
+@dataclass(frozen=True)
+class ParameterChange:
+    """Live parameter values accepted while the session ran, in effect from sample ``from_index`` on.
+
+    ``from_index`` is the index of the first sample the session steps after the change
+    (the last one stepped before it, plus one): pairs still waiting to be paired or held
+    are stepped after it, so they learn with the new values, live and offline alike.
+    """
+
+    from_index: int
+    values: dict[str, Any]
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"from_sample": self.from_index, "values": dict(self.values)}
+
+    @classmethod
+    def from_dict(cls, entry: dict[str, Any]) -> ParameterChange:
+        return cls(int(entry["from_sample"]), dict(entry["values"]))
+
+
 @dataclass(frozen=True)
 class Notice:
     """Something the user must hear about, in one line; ``kind`` selects its throttle."""
@@ -221,6 +248,39 @@ class Session:
             samples = warm_up_samples(config.scale_warm_up, config.sample_period)
             self.warm_up = ScaleWarmUp.for_structure(self.identifier.structure, samples)
         self._warming: list[Pair] = []  # pairs held by the warm-up, learnt once it ends
+        self.last_index: int | None = None  # of the last sample stepped
+        self.changes: list[ParameterChange] = []  # live parameter changes applied, in order
+
+    # -- live parameters ---------------------------------------------------------------------
+    def apply_parameters(self, values: dict[str, Any]) -> ParameterChange:
+        """Apply accepted parameter values now, and record them from the next sample on.
+
+        The one place that decides what a parameter change does to the model and the
+        session: the node calls it when ``ros2 param set`` is accepted, ``evaluate`` calls
+        :meth:`replay_change` (the same code) at the recorded sample, so offline stays
+        equal to live across the change. Values that are none of the session's business
+        (weights_out, report_every...) are recorded, and left to the caller.
+        """
+        change = ParameterChange(1 if self.last_index is None else self.last_index + 1, dict(values))
+        self.replay_change(change)
+        return change
+
+    def replay_change(self, change: ParameterChange) -> None:
+        """Apply a (recorded) change: to every network, the divergence guard or the session's config."""
+        identifier = self.identifier
+        models = identifier.models if isinstance(identifier, MimoIdentifier) else [identifier.model]
+        for name, value in change.values.items():
+            if name in MODEL_PARAMETERS and name in models[0].get_params():
+                for model in models:
+                    model.set_params(**{name: value})
+            elif name in GUARD_PARAMETERS:
+                setattr(identifier, name, value)
+            elif name in SessionConfig.__dataclass_fields__:
+                setattr(self.config, name, value)
+                if name == "learning" and value and identifier.diverged:
+                    identifier.mark_healthy()  # the user re-enables learning after a divergence
+                    self._say("parameters", f"sample {change.from_index}: learning re-enabled after a divergence")
+        self.changes.append(change)
 
     # -- input -------------------------------------------------------------------------------
     def admit(self, queue: object, received: float, now: float) -> bool:
@@ -656,6 +716,7 @@ class Session:
         return not (following and self.test_start is not None and index >= self.test_start)
 
     def _step(self, pair: Pair) -> Sample:
+        self.last_index = pair.index
         if self.mimo:
             refused = bool(np.isnan(pair.u).any() or np.isnan(pair.y).any())
         else:
@@ -716,8 +777,19 @@ class Session:
         )
 
     # -- whole series (offline) --------------------------------------------------------------------
-    def run_samples(self, index: np.ndarray, u: np.ndarray, y: np.ndarray, learn: np.ndarray) -> np.ndarray:
+    def run_samples(
+        self,
+        index: np.ndarray,
+        u: np.ndarray,
+        y: np.ndarray,
+        learn: np.ndarray,
+        changes: Sequence[ParameterChange] = (),
+    ) -> np.ndarray:
         """The samples a live session formed, learnt again in one pass; returns y^(k) (nan: none).
+
+        ``changes``: the live parameter changes recorded with the run, each applied
+        (:meth:`replay_change`) where its sample comes, as live: before the first sample
+        whose index is at least its ``from_index`` (after the last sample, if none is).
 
         Equal to stepping them one by one (the node's path): runs of consecutive valid
         indices go to :meth:`Identifier.run <lenn_ros.core.structure.Identifier.run>`,
@@ -726,6 +798,8 @@ class Session:
         The phase NMSE follows the learn flags as live (a new phase starts where the
         flag changes).
         """
+        if self.mimo and changes:
+            raise NotImplementedError("live parameter changes are not replayed into a MIMO model's batch pass")
         index = np.asarray(index, dtype=np.int64)
         u = np.asarray(u, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
@@ -744,9 +818,9 @@ class Session:
         counters["gaps"] += int(np.count_nonzero(np.diff(index) > 1))
         counters["lost"] += int(np.sum(np.clip(np.diff(index) - 1, 0, None)))
         counters["rejected"] += int(np.count_nonzero(~valid))
-        for start, stop in zip(np.r_[0, breaks], np.r_[breaks, len(y)], strict=True):
-            if stop > start and valid[start]:
-                y_hat[start:stop] = self.identifier.run(u[start:stop], y[start:stop], learn[start:stop])
+        self._run_segments(index, u, y, learn, np.r_[0, breaks], np.r_[breaks, len(y)], valid, changes, y_hat)
+        if index.size:
+            self.last_index = int(index[-1])
         phases = learn[valid]
         if phases.size:
             changes = np.flatnonzero(phases[1:] != phases[:-1]) + 1
@@ -759,6 +833,38 @@ class Session:
         if self.identifier.counters["clipped"] > self._seen_clipped:
             self._say_clipped(None)
         return y_hat
+
+    def _run_segments(
+        self,
+        index: np.ndarray,
+        u: np.ndarray,
+        y: np.ndarray,
+        learn: np.ndarray,
+        starts: np.ndarray,
+        stops: np.ndarray,
+        valid: np.ndarray,
+        changes: Sequence[ParameterChange],
+        y_hat: np.ndarray,
+    ) -> None:
+        """Each run of consecutive valid samples through the identifier, with each change applied at its sample."""
+        pending = sorted(changes, key=lambda change: change.from_index)  # (stable: one index, in recorded order)
+        where = [int(np.searchsorted(index, change.from_index, side="left")) for change in pending]
+
+        def applier(change: ParameterChange) -> Callable[[], None]:
+            return lambda: self.replay_change(change)
+
+        for start, stop in zip(starts, stops, strict=True):
+            while pending and where[0] <= start:  # before this run (or in a break before it)
+                where.pop(0)
+                self.replay_change(pending.pop(0))
+            inside = []
+            while pending and where[0] < stop:
+                inside.append((where.pop(0) - start, applier(pending.pop(0))))
+            if stop > start and valid[start]:
+                cuts = (inside,) if inside else ()  # (a MIMO identifier's run takes none: refused above)
+                y_hat[start:stop] = self.identifier.run(u[start:stop], y[start:stop], learn[start:stop], *cuts)
+        for change in pending:  # from after the last sample: no sample learns with it, the state has it
+            self.replay_change(change)
 
     def _say_clipped(self, time: float | None) -> None:
         """Network inputs outside [-1, 1]: said at most every ``warn_period`` s of sample time (None: now).
@@ -828,6 +934,7 @@ class Session:
                 "lag_s": self.shedder.lag,
                 "samples_seen": int(getattr(self.identifier.model, "n_samples_seen_", 0)),
                 "scaling": self.warm_up.status() if self.warm_up is not None else {"state": "given"},
+                "parameter_changes": len(self.changes),  # live changes applied, each in identifier_config
                 **({"channels": self._channel_status()} if self.mimo else {}),
             }
         )

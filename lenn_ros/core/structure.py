@@ -11,6 +11,7 @@ arithmetic either way.
 from __future__ import annotations
 
 import math
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
 
@@ -481,13 +482,22 @@ class Identifier:
         self.resume_in = 0
 
     # -- whole series (offline) --------------------------------------------------------------
-    def run(self, u: np.ndarray, y: np.ndarray, learn: np.ndarray | bool = True) -> np.ndarray:
+    def run(
+        self,
+        u: np.ndarray,
+        y: np.ndarray,
+        learn: np.ndarray | bool = True,
+        changes: Sequence[tuple[int, Callable[[], None]]] = (),
+    ) -> np.ndarray:
         """Series-parallel pass over paired series; returns y^(k) (nan where none).
 
         ``learn`` may be an array over k: whether the error at y(k) is learnt from.
         Runs of samples go to the compiled kernel in one call, cut at the same
         health-check boundaries as :meth:`step`, so the result is the same as calling
         :meth:`step` for every sample (a test checks it).
+        ``changes``: (position p, apply) pairs, ``apply`` called where :meth:`step` of sample p
+        would come next (a live parameter change, e.g. alpha, made before that sample): the
+        run is cut there, so the learning from y(p) on uses what ``apply`` set.
         """
         self._check_scaled()
         u = np.asarray(u, dtype=np.float64)
@@ -500,8 +510,14 @@ class Identifier:
         mask, outputs = learn_mask[first + 1 :], y[first + 1 :]  # outputs: y(k+1)
         y_hat = np.full(len(y), np.nan)
         mask_changes = np.append(np.flatnonzero(mask[1:] != mask[:-1]) + 1, len(targets))
+        # sample p's step learns from target p - first - 1 (none yet in the warm-up: before the first)
+        cuts = sorted(((max(position - first - 1, 0), apply) for position, apply in changes), key=lambda c: c[0])
         start = 0
-        while start < len(targets):
+        while start < len(targets) or cuts:
+            while cuts and cuts[0][0] <= start:
+                cuts.pop(0)[1]()
+            if start >= len(targets):
+                break
             paused = bool(mask[start]) and self.diverged and self.resume_after > 0
             if paused and self.resume_in == 0:
                 self._resume()  # as step(): the first learnable sample after the pause learns
@@ -512,7 +528,8 @@ class Identifier:
             else:
                 limit = start + self.resume_in if paused else len(targets)
             next_change = int(mask_changes[np.searchsorted(mask_changes, start, side="right")])
-            stop = max(start + 1, min(limit, len(targets), next_change))  # a run of equal flags, cut at the block
+            next_cut = cuts[0][0] if cuts else len(targets)
+            stop = max(start + 1, min(limit, len(targets), next_change, next_cut))  # equal flags, cut at the block
             if paused:
                 self.resume_in -= stop - start
             try:

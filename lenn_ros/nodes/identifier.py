@@ -12,7 +12,8 @@ and out:
 - ``samples``: each sample as learnt ([index, time, u, y_p, learn]), so a recording
   evaluates offline to exactly the live figure;
 - ``nmse`` every ``report_every`` errors; ``status`` (JSON) and ``/diagnostics``
-  (DiagnosticArray) every ``status_period`` s; ``identifier_config`` (latched JSON).
+  (DiagnosticArray) every ``status_period`` s; ``identifier_config`` (latched JSON: the starting
+  values, republished with each accepted live change and the sample it takes effect from).
 
 Whatever keeps the node from doing what it was asked (no pairs, a wrong type, a QoS
 that cannot match, refused pairs, clipped inputs, an unknown parameter, divergence)
@@ -80,7 +81,7 @@ _QOS_OVERRIDES = QoSOverridingOptions(
     policy_kinds=(QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY)
 )
 #: Notice kinds that are news, not trouble.
-_INFO_KINDS = ("phase", "resumed", "scales")
+_INFO_KINDS = ("phase", "resumed", "scales", "parameters")
 
 
 def _descriptor(parameter: Parameter) -> ParameterDescriptor:
@@ -180,10 +181,10 @@ class IdentifierNode(Node):
         self._create_outputs()
         self.status_publisher = self.create_publisher(String, topics.STATUS, topics.data_qos())
         self.diagnostics_publisher = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS, 10)
-        config_publisher = self.create_publisher(String, topics.IDENTIFIER_CONFIG, topics.latched_qos())
+        self._config_publisher = self.create_publisher(String, topics.IDENTIFIER_CONFIG, topics.latched_qos())
         resolved = {name: self.resolve_topic_name(name) for _, _, name in self.inputs}
-        config = {**self.values, "network": self.network, topics.RESOLVED_TOPICS: resolved}
-        config_publisher.publish(String(data=json.dumps(json_safe(config))))
+        self._config = {**self.values, "network": self.network, topics.RESOLVED_TOPICS: resolved}
+        self._publish_config()
         self._sim_time = bool(self.get_parameter("use_sim_time").value)
         self._message_types = message_types
         self._alias_qos_overrides()
@@ -426,28 +427,36 @@ class IdentifierNode(Node):
         return SetParametersResult(successful=True)
 
     def _apply_parameters(self, parameters: list[RosParameter]) -> None:
-        model = self.identifier.model
+        """Accepted values: the session applies (and records) what concerns the model and the pairing
+        (:meth:`Session.apply_parameters`, the code evaluate replays a recording's changes through);
+        the node the rest. The change log goes out on ``identifier_config`` at once, so a recorder
+        has each change with the sample it takes effect from."""
+        values = {}
         for parameter in parameters:
-            name = parameter.name
-            if name not in self.table:
-                continue
-            value = _normalise(self.table[name], parameter.value)
-            self.values[name] = value
-            if name in ("alpha", "beta", "forgetting", "nlms_step") and name in model.get_params():
-                setting = rls_forgetting(self.values) if name == "forgetting" else value  # (0: auto)
-                for each in self._models():
-                    each.set_params(**{name: setting})
-            elif name in ("divergence_ratio", "resume_after"):
-                setattr(self.identifier, name, value)
-            elif name in SessionConfig.__dataclass_fields__:
-                setattr(self.session.config, name, value)
-                if name == "learning" and value and self.identifier.diverged:
-                    self.identifier.mark_healthy()  # the user re-enables learning after a divergence
-                    self.get_logger().info("learning re-enabled after divergence")
-            elif name == "weights_out" and value:
-                self._save(value)
-            elif name == "autosave_period":
-                self._schedule_autosave()
+            if parameter.name in self.table:
+                values[parameter.name] = _normalise(self.table[parameter.name], parameter.value)
+        if not values:
+            return
+        self.values.update(values)
+        effective = dict(values)
+        if "forgetting" in values:  # 0 asks for a memory in seconds: the lambda it means is applied and recorded
+            effective["forgetting"] = rls_forgetting(self.values)
+        change = self.session.apply_parameters(effective)
+        self._emit_notices()
+        self._publish_config()
+        shown = ", ".join(f"{name}={value!r}" for name, value in values.items())
+        self.get_logger().info(f"parameters {shown} in effect from sample {change.from_index} (recorded)")
+        if values.get("weights_out"):
+            self._save(values["weights_out"])
+        if "autosave_period" in values:
+            self._schedule_autosave()
+
+    def _publish_config(self) -> None:
+        """``identifier_config`` (latched): the values the node started with and every live change since,
+        each with the sample it takes effect from (``changes``), so the last message alone is the whole run's."""
+        changes = [change.as_dict() for change in self.session.changes]
+        message = {**self._config, topics.PARAMETER_CHANGES: changes}
+        self._config_publisher.publish(String(data=json.dumps(json_safe(message))))
 
     # -- data ----------------------------------------------------------------------------------
     def _on_test_start(self, message: Int64) -> None:

@@ -65,6 +65,7 @@ from typing import Any
 import numpy as np
 import rclpy
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
+from rcl_interfaces.srv import SetParameters
 from rclpy.duration import Duration
 from rclpy.exceptions import ParameterException
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
@@ -122,6 +123,12 @@ class Replay(Node):
             "With rate 0: samples published ahead of the y_hat messages received (0 = ignore y_hat).",
             integer_range=[IntegerRange(from_value=0, to_value=topics.DATA_DEPTH)],
         )
+        self._declare(
+            "apply_changes",
+            True,
+            "Set the live parameter changes the bag recorded (identifier_config) on the identifier at their samples.",
+        )
+        self._declare("identifier", "/identifier", "The identifier node whose parameters apply_changes sets.")
         self.stop = stop or threading.Event()
         bag = self.get_parameter("bag").value
         if not bag:
@@ -137,6 +144,7 @@ class Replay(Node):
             self.pairs = self._pairs(run, str(self._param("source")))
             self.u, self.y_p = self.pairs.u, self.pairs.y_p
             self.test_start = run.test_start
+        self._schedule_changes()
         times = self.pairs.time_ns
         self.offsets = (times - times[0]) / 1e9 if times.size else np.empty(0)
         self.stream_starts = {int(k) for k in np.flatnonzero(np.diff(self.pairs.stream)) + 1}
@@ -194,6 +202,61 @@ class Replay(Node):
             f"identifier skips each and restarts its history there; no later sample is shifted{tail}"
         )
         return pairs
+
+    def _schedule_changes(self) -> None:
+        """The recorded live changes by the row before which each is set (the first whose index reaches it)."""
+        from lenn_ros.evaluate import recorded_changes
+
+        self._changes: dict[int, list[Any]] = {}
+        changes = recorded_changes(self.bag)
+        if not changes:
+            return
+        if not self._param("apply_changes"):
+            self.get_logger().warning(
+                f"{len(changes)} live parameter change(s) recorded in the bag are NOT set (apply_changes false): "
+                "the identifier learns with its starting values throughout"
+            )
+            return
+        self._set_parameters = self.create_client(SetParameters, f"{self._param('identifier')}/set_parameters")
+        first_stream = self.pairs.index[self.pairs.stream == 0]  # (the changes were made during the first)
+        for change in changes:
+            row = int(np.searchsorted(first_stream, change.from_index, side="left"))
+            if row >= first_stream.size:
+                self.get_logger().warning(f"live change {change.values} from sample {change.from_index}, after the "
+                                          "last sample replayed: not set (no sample learns with it)")  # fmt: skip
+                continue
+            self._changes.setdefault(row, []).append(change)
+        self.get_logger().info(
+            f"{len(changes)} live parameter change(s) recorded: each set on {self._param('identifier')} before "
+            "its sample, once the identifier has handled every earlier one (first pass only)"
+        )
+
+    def _apply_changes(self, executor: SingleThreadedExecutor, row: int) -> None:
+        """Before row ``row``: wait until the identifier has handled every sample published, then set each
+        change through its parameter service (as ``ros2 param set``), so it takes effect from this sample."""
+        from rclpy.parameter import Parameter
+
+        end = time.monotonic() + self._settle_timeout()
+        while self._progress() < self.published and time.monotonic() < end and not self.stop.is_set():
+            executor.spin_once(timeout_sec=0.02)
+        for change in self._changes.get(row, []):
+            shown = ", ".join(f"{name}={value!r}" for name, value in change.values.items())
+            request = SetParameters.Request(
+                parameters=[Parameter(name, value=value).to_parameter_msg() for name, value in change.values.items()]
+            )
+            if not self._set_parameters.wait_for_service(timeout_sec=self._settle_timeout()):
+                self.get_logger().error(
+                    f"sample {change.from_index}: no service {self._set_parameters.srv_name}: {shown} not set"
+                )
+                continue
+            future = self._set_parameters.call_async(request)
+            executor.spin_until_future_complete(future, timeout_sec=self._settle_timeout())
+            results = future.result().results if future.result() is not None else []
+            refused = [result.reason for result in results if not result.successful]
+            if len(results) != len(change.values) or refused:
+                self.get_logger().error(f"sample {change.from_index}: {shown} not set: {refused or 'no answer'}")
+            else:
+                self.get_logger().info(f"sample {change.from_index}: set {shown} (recorded live change)")
 
     def _open_stream(self) -> None:
         """Publishers for one pass: new ones start their publication sequence numbers at 1."""
@@ -365,6 +428,13 @@ class Replay(Node):
             elif max_rate > 0:
                 self._next_slot = max(self._next_slot + 1.0 / max_rate, time.monotonic() - 0.01)
                 self._spin_until(executor, self._next_slot)
+            if k in self._changes and not self.passes:
+                self._apply_changes(executor, k)
+            elif k == 0 and self.passes == 1 and self._changes:
+                self.get_logger().warning(
+                    "loop: the recorded live changes were set in the first pass only; later passes keep their "
+                    "last values"
+                )
             self.pub_u.publish(self._message(self.u[k], self._u_layout))
             self.pub_y.publish(self._message(self.y_p[k], self._y_layout))
             self.published += 1

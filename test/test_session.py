@@ -443,7 +443,7 @@ def test_live_parameter_changes_are_recorded_and_replayed_offline_at_their_sampl
     is recorded from the next sample stepped, and the batch pass over the recorded samples equals the live run."""
 
     def fresh() -> Session:
-        values, network = resolve({"solver": solver, "output": "linear"} if solver == "rls" else {})
+        values, network = resolve({"solver": solver, "output": "linear"})
         return Session(build_identifier(values, network), SessionConfig())
 
     live = fresh()

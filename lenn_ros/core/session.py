@@ -808,7 +808,7 @@ class Session:
             first = self._warm_offline(u, y)  # live, the rows before it were discarded by the warm-up
             y_hat = np.full(y.shape, np.nan)
             if first is not None:
-                y_hat[first:] = self.run_samples(index[first:], u[first:], y[first:], learn[first:])
+                y_hat[first:] = self.run_samples(index[first:], u[first:], y[first:], learn[first:], changes)
             return y_hat
         y_hat = np.full(y.shape, np.nan)
         valid = _finite_rows(u) & _finite_rows(y)

@@ -28,7 +28,8 @@ The day, in order (seconds at ``--scale 1``):
 | moving | 30 | |
 | test | 30 | ``learning:=false`` set live: a frozen test phase |
 
-Then SIGINT to the identifier (its exit time measured), and ``lenn-ros evaluate`` of the
+Then, once ``status`` says every output is acknowledged (the recorder, which records the
+burst too, has caught up), SIGINT to the identifier (its exit time measured), and ``lenn-ros evaluate`` of the
 bag, whose test figure must equal the live one. Printed: one table (``--json``: one
 JSON object).
 """
@@ -272,6 +273,20 @@ def live_day(probe: Probe, phases: list[dict], identifier: subprocess.Popen) -> 
             "live": probe.last(time.monotonic())}  # fmt: skip
 
 
+def _wait_acknowledged(probe: Probe, timeout: float = 120.0) -> float | None:
+    """Seconds until a status says the recorder has every output message (``acknowledged``), None if never.
+
+    The recorder records the burst too and falls behind; stopping the identifier before
+    it caught up would leave the bag short of the test phase."""
+    began = time.monotonic()
+    while time.monotonic() < began + timeout:
+        received, status = probe.statuses[-1] if probe.statuses else (0.0, {})
+        if received > began and status.get("acknowledged"):
+            return round(time.monotonic() - began, 2)
+        time.sleep(0.1)
+    return None
+
+
 def _sigint(process: subprocess.Popen) -> float:
     """Seconds from SIGINT until the process has gone (polled every 10 ms)."""
     sent = time.monotonic()
@@ -305,6 +320,7 @@ def run(scale: float, solver: str | None, bag: Path, seed: int, extra: list[str]
             day = live_day(probe, phases, identifier)
             for process in others:
                 process.wait(timeout=60)
+            day["recorder_caught_up_s"] = _wait_acknowledged(probe)
             day["exit_s"] = _sigint(identifier)
         finally:
             probe.close()
@@ -313,13 +329,14 @@ def run(scale: float, solver: str | None, bag: Path, seed: int, extra: list[str]
                     process.kill()
                 process.wait(timeout=30)
             recorder.send_signal(signal.SIGINT)
-            recorder.communicate(timeout=60)
+            recorder_out, _ = recorder.communicate(timeout=60)
         log.seek(0)
         day["log"] = log.read()
     evaluated = subprocess.run([sys.executable, "-m", "lenn_ros.cli", "evaluate", str(bag), "--json"], env=env,
                                cwd=REPO, capture_output=True, text=True, timeout=600, check=False)  # fmt: skip
     day["offline"] = json.loads(evaluated.stdout) if evaluated.returncode == 0 else {"error": evaluated.stderr.strip()}
     day["driver"] = others[0].stdout.read().strip() if others and others[0].stdout else ""
+    day["recorder"] = recorder_out.strip().splitlines()[-5:]
     return summary(phases, probe, day, identifier.returncode)
 
 
@@ -359,6 +376,8 @@ def summary(phases: list[dict], probe: Probe, day: dict, exit_code: int | None) 
         "live_counters": live.get("counters"),
         "offline_test_nmse_db": offline.get("nmse_db"),
         "offline": {k: v for k, v in offline.items() if k in ("nmse_db", "nmse_free_run_db", "error", "notices")},
+        "recorder_caught_up_s": day["recorder_caught_up_s"],
+        "recorder": day["recorder"],
         "sigint_exit_s": round(day["exit_s"], 2),
         "exit_code": exit_code,
         "identifier_log": day["log"].splitlines()[:400],

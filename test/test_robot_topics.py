@@ -394,8 +394,9 @@ def test_a_stalled_driver_is_said_as_a_stall_with_its_length(graph: Graph) -> No
     from std_msgs.msg import Float64
 
     identifier = start_node(
-        "identifier", "status_period:=0.2", "pairing:=sample", "sample_period:=0.02", "warn_period:=0.05"
-    )
+        "identifier", "status_period:=0.2", "pairing:=sample", "sample_period:=0.02", "warn_period:=0.05",
+        "y_scale:=1.0", "u_scale:=1.0",  # given: no scale warm-up holding the first 10 s
+    )  # fmt: skip
     u_pub = graph.node("controller").create_publisher(Float64, topics.U, topics.data_qos())
     y_pub = graph.node("driver").create_publisher(Float64, topics.Y_P, topics.data_qos())
     graph.listen()

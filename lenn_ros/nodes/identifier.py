@@ -714,9 +714,27 @@ class IdentifierNode(Node):
         status["topics"] = {"u": self.u_name, "y_p": self.y_name}
         status["readers"] = self._readers()
         status["held"] = self.session.held
+        status["acknowledged"] = self._outputs_acknowledged()
         if self.mimo:
             status["u_channels"], status["y_channels"] = self._channel_names()
         return status
+
+    def _outputs_acknowledged(self) -> bool:
+        """Whether every RELIABLE reader (a recorder) has had every output message so far, asked without waiting.
+
+        A recorder that falls behind (a burst it also records) holds its backlog in our
+        writers' histories; a run stopped before it caught up leaves the bag short of
+        its last samples. ``status["acknowledged"]`` lets whoever stops the run wait for it.
+        """
+        from rclpy.duration import Duration
+
+        quiet = {topics.STATUS, topics.DIAGNOSTICS.lstrip("/"), "parameter_events", "rosout"}
+        zero = Duration()
+        return all(
+            publisher.wait_for_all_acked(zero)
+            for publisher in self.publishers
+            if publisher.topic_name.rsplit("/", 1)[-1] not in quiet
+        )
 
     def _on_status_timer(self) -> None:
         self._check_graph()

@@ -38,7 +38,7 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from lenn_ros import topics  # noqa: E402
+from probe import Probe  # noqa: E402  (bench/, this script's folder)
 
 NOMINAL_HZ = 1000.0
 CALL_EVERY = 0.1  # s between parameter calls
@@ -101,62 +101,22 @@ def publish_schedule(schedule: list[tuple[float, float]]) -> None:
 
 
 # -- the measuring side ---------------------------------------------------------------------------
-class Probe:
-    """Parameter calls on a schedule and every status message, from a node of its own (this process)."""
+class ScheduledProbe(Probe):
+    """The probe calling ``warn_period`` every ``CALL_EVERY`` s while ``calling`` is set, each call kept."""
 
     def __init__(self) -> None:
-        import rclpy
-        from rcl_interfaces.srv import SetParameters
-        from rclpy.executors import SingleThreadedExecutor
-        from std_msgs.msg import String
-
-        rclpy.init()
-        self.rclpy = rclpy
-        self.node = rclpy.create_node("overload_probe")
-        self.client = self.node.create_client(SetParameters, "/identifier/set_parameters")
-        self.request_type = SetParameters.Request
-        self.statuses: list[tuple[float, dict]] = []
-        self.node.create_subscription(String, topics.STATUS, self._on_status, topics.data_qos())
-        self.executor = SingleThreadedExecutor()
-        self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
+        super().__init__("overload_probe")
         self.calls: list[tuple[float, float | None]] = []  # (sent at, latency or None: no answer in 5 s)
         self.calling = threading.Event()
 
-    def _on_status(self, message) -> None:
-        self.statuses.append((time.monotonic(), json.loads(message.data)))
-
     def call(self, value: float, name: str = "warn_period") -> float | None:
-        from rclpy.parameter import Parameter
-
-        done = threading.Event()
-        request = self.request_type(parameters=[Parameter(name, value=value).to_parameter_msg()])
-        sent = time.monotonic()
-        future = self.client.call_async(request)
-        future.add_done_callback(lambda _: done.set())
-        return time.monotonic() - sent if done.wait(5.0) else None
+        return self.set(name, value)[0]
 
     def call_on_schedule(self) -> None:
         while self.calling.is_set():
             sent = time.monotonic()
             self.calls.append((sent, self.call(5.0 + 0.5 * (len(self.calls) % 2))))
             time.sleep(max(0.0, CALL_EVERY - (time.monotonic() - sent)))
-
-    def counter(self, name: str, at: float) -> int:
-        """A counter as the last status received before ``at`` said it."""
-        value = 0
-        for received, status in self.statuses:
-            if received > at:
-                break
-            value = status["counters"].get(name, 0)
-        return value
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.thread.join(timeout=5)
-        self.node.destroy_node()
-        self.rclpy.try_shutdown()
 
 
 def start_publisher(schedule: list[tuple[float, float]], env: dict[str, str]) -> subprocess.Popen[str]:
@@ -256,9 +216,9 @@ def run(burst: float) -> dict:
     log = open(LOG, "w")  # noqa: SIM115 (closed once the node is started: the process keeps it)
     node = subprocess.Popen(identifier_command(), env=env, cwd=REPO, stdout=subprocess.DEVNULL, stderr=log)
     log.close()
-    probe = Probe()
+    probe = ScheduledProbe()
     try:
-        if not probe.client.wait_for_service(timeout_sec=60.0):
+        if not probe.setter.wait_for_service(timeout_sec=60.0):
             raise SystemExit("overload: the identifier's parameter service never appeared")
         capacity = measure_capacity(probe, env)
         rates = {"2x": 2 * capacity["processed_hz"], "10x": 10 * capacity["processed_hz"]}

@@ -37,6 +37,7 @@ JSON object).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import random
@@ -51,6 +52,8 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+
+from probe import Probe  # noqa: E402  (bench/, this script's folder)
 
 PERIOD = 0.001  # s: the driver's loop and the identifier's grid
 COMMAND_PERIOD = 0.02  # s: 50 Hz
@@ -165,74 +168,6 @@ def run_controller(phases: list[dict], seed: int) -> None:
 
 
 # -- the measuring side ---------------------------------------------------------------------------
-class Probe:
-    """Parameter calls and every status message, from a node of this process."""
-
-    def __init__(self) -> None:
-        import rclpy
-        from rcl_interfaces.srv import GetParameters, SetParameters
-        from rclpy.executors import SingleThreadedExecutor
-        from std_msgs.msg import String
-
-        from lenn_ros import topics
-
-        rclpy.init()
-        self.rclpy = rclpy
-        self.node = rclpy.create_node("robot_day_probe")
-        self.setter = self.node.create_client(SetParameters, "/identifier/set_parameters")
-        self.getter = self.node.create_client(GetParameters, "/identifier/get_parameters")
-        self.statuses: list[tuple[float, dict]] = []
-        self.node.create_subscription(
-            String, topics.STATUS, lambda m: self.statuses.append((time.monotonic(), json.loads(m.data))),
-            topics.data_qos(),
-        )  # fmt: skip
-        self.executor = SingleThreadedExecutor()
-        self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
-
-    def _call(self, client, request, timeout: float = 5.0):
-        done = threading.Event()
-        future = client.call_async(request)
-        future.add_done_callback(lambda _: done.set())
-        return future.result() if done.wait(timeout) else None
-
-    def set(self, name: str, value) -> tuple[float | None, bool]:
-        """(latency in s or None when unanswered within 5 s, accepted)."""
-        from rcl_interfaces.srv import SetParameters
-        from rclpy.parameter import Parameter
-
-        sent = time.monotonic()
-        answer = self._call(
-            self.setter, SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
-        )
-        if answer is None:
-            return None, False
-        return time.monotonic() - sent, bool(answer.results[0].successful)
-
-    def get(self, name: str):
-        from rcl_interfaces.srv import GetParameters
-        from rclpy.parameter import parameter_value_to_python
-
-        answer = self._call(self.getter, GetParameters.Request(names=[name]))
-        return None if answer is None else parameter_value_to_python(answer.values[0])
-
-    def last(self, before: float) -> dict:
-        """The last status received before ``before`` (empty if none)."""
-        chosen: dict = {}
-        for received, status in self.statuses:
-            if received > before:
-                break
-            chosen = status
-        return chosen
-
-    def close(self) -> None:
-        self.executor.shutdown()
-        self.thread.join(timeout=5)
-        self.node.destroy_node()
-        self.rclpy.try_shutdown()
-
-
 def _rss_kib(pid: int) -> int:
     for line in Path(f"/proc/{pid}/status").read_text().splitlines():
         if line.startswith("VmRSS:"):
@@ -245,8 +180,21 @@ def _wait_until(moment: float) -> None:
         time.sleep(min(left, 0.05))
 
 
-def _popen(argv: list[str], env: dict[str, str], stderr) -> subprocess.Popen[str]:
-    return subprocess.Popen(argv, env=env, cwd=REPO, stdout=subprocess.PIPE, stderr=stderr, text=True)
+def _popen(argv: list[str], env: dict[str, str], output) -> subprocess.Popen[str]:
+    """A child whose stdout and stderr go to the file ``output``, never to a pipe.
+
+    A pipe nobody reads until the end fills after 64 KiB, and the child then blocks in
+    its next write: a recorder that logs through a burst stopped there, never caught up,
+    and the identifier's status said ``acknowledged: false`` for the rest of the day.
+    """
+    return subprocess.Popen(argv, env=env, cwd=REPO, stdout=output, stderr=subprocess.STDOUT, text=True)
+
+
+def _tail(output, lines: int) -> list[str]:
+    """The last ``lines`` lines written to ``output`` (a child's log file)."""
+    output.flush()
+    output.seek(0)
+    return output.read().strip().splitlines()[-lines:]
 
 
 def live_day(probe: Probe, phases: list[dict], identifier: subprocess.Popen) -> dict:
@@ -305,18 +253,21 @@ def run(scale: float, solver: str | None, bag: Path, seed: int, extra: list[str]
     identifier_argv += [arg for setting in settings for arg in ("-p", setting)]
     recorder_argv = [sys.executable, "-m", "lenn_ros.nodes.recorder", "--ros-args", *REMAPS, "-p", f"output:={bag}"]
     recorder_argv += ["-p", "u_type:=std_msgs/msg/Float64MultiArray", "-p", "y_type:=sensor_msgs/msg/JointState"]
-    with tempfile.TemporaryFile(mode="w+") as log:
-        recorder = _popen(recorder_argv, env, subprocess.PIPE)
+    with contextlib.ExitStack() as files:
+        log, recorder_log, driver_log, controller_log = (
+            files.enter_context(tempfile.TemporaryFile(mode="w+")) for _ in range(4)
+        )
+        recorder = _popen(recorder_argv, env, recorder_log)
         identifier = _popen(identifier_argv, env, log)
-        probe = Probe()
+        probe = Probe("robot_day_probe")
         others: list[subprocess.Popen] = []
         try:
             if not probe.setter.wait_for_service(timeout_sec=60.0):
                 raise SystemExit("robot_day: the identifier's parameter service never appeared")
             phases = schedule(scale, time.monotonic() + 3.0)
-            for mode in ("--driver", "--controller"):
+            for mode, output in (("--driver", driver_log), ("--controller", controller_log)):
                 argv = [sys.executable, __file__, mode, json.dumps(phases), "--seed", str(seed)]
-                others.append(_popen(argv, env, subprocess.PIPE))
+                others.append(_popen(argv, env, output))
             day = live_day(probe, phases, identifier)
             for process in others:
                 process.wait(timeout=60)
@@ -329,14 +280,13 @@ def run(scale: float, solver: str | None, bag: Path, seed: int, extra: list[str]
                     process.kill()
                 process.wait(timeout=30)
             recorder.send_signal(signal.SIGINT)
-            recorder_out, _ = recorder.communicate(timeout=60)
-        log.seek(0)
-        day["log"] = log.read()
+            recorder.wait(timeout=60)
+        day["log"] = "\n".join(_tail(log, 10**9))
+        day["driver"] = "\n".join(_tail(driver_log, 10**9))
+        day["recorder"] = _tail(recorder_log, 5)
     evaluated = subprocess.run([sys.executable, "-m", "lenn_ros.cli", "evaluate", str(bag), "--json"], env=env,
                                cwd=REPO, capture_output=True, text=True, timeout=600, check=False)  # fmt: skip
     day["offline"] = json.loads(evaluated.stdout) if evaluated.returncode == 0 else {"error": evaluated.stderr.strip()}
-    day["driver"] = others[0].stdout.read().strip() if others and others[0].stdout else ""
-    day["recorder"] = recorder_out.strip().splitlines()[-5:]
     return summary(phases, probe, day, identifier.returncode)
 
 

@@ -171,6 +171,31 @@ def test_recorder_counts_sequence_gaps(tmp_path: Path, domain: int) -> None:
     assert read_run(tmp_path / "gaps").u.size == 6
 
 
+def test_recorder_says_a_flood_of_gaps_in_few_lines(tmp_path: Path, domain: int) -> None:
+    """500 gaps within a second: the first said at once, the other 499 held for the next line (5 s later).
+
+    A line per gap filled the log of a flooded recorder, and blocked it where its stderr was a pipe."""
+    from rclpy.parameter import Parameter
+    from rclpy.serialization import serialize_message
+
+    from lenn_ros.nodes.recorder import Recorder
+
+    ctx = Context()
+    rclpy.init(context=ctx, domain_id=domain)
+    try:
+        node = Recorder(context=ctx, parameter_overrides=[Parameter("output", value=str(tmp_path / "flood"))])
+        raw = serialize_message(topics.message_class(topics.FLOAT64)(data=1.0))
+        for k in range(501):
+            node._on_message(topics.Y_P, raw, {"publication_sequence_number": 1 + 3 * k, "received_timestamp": k + 1})
+        pending_samples, pending_gaps, _ = node._lost_pending[topics.Y_P]
+        summary = node.close()
+        node.destroy_node()
+    finally:
+        ctx.try_shutdown()
+    assert (pending_samples, pending_gaps) == (2 * 499, 499)
+    assert summary.endswith("1000 samples lost ({'y_p': 1000})")
+
+
 # ---------------------------------------------------------------- robot topics: any type, BEST_EFFORT, remapped
 
 

@@ -42,6 +42,7 @@ loss <= rate x (1.25 x flush_period + 1 s).
 
 from __future__ import annotations
 
+import math
 import sys
 import time
 from collections import Counter
@@ -67,6 +68,8 @@ _AUTO = ("", "auto")
 _GRAPH_PERIOD = 0.25
 #: Longest time one executor wake-up spends taking queued messages (then timers run).
 _DRAIN_SECONDS = 0.05
+#: Shortest time between two lines about samples lost on one topic (see ``_say_lost``).
+LOST_REPORT_PERIOD = 5.0
 
 
 class _Input:
@@ -107,6 +110,7 @@ class Recorder(Node):
         self.gaps: Counter[str] = Counter()
         self.problems: Counter[str] = Counter()
         self._last_seq: dict[str, int] = {}
+        self._lost_pending: dict[str, list[float]] = {}  # per topic: samples, gaps since the last line, its time
         self._subs: list[Any] = []  # (not ``_subscriptions``: rclpy's Node uses that name)
         self._name_of: dict[int, str] = {}  # id(subscription) -> the run topic it records
         self._bag_topic: dict[str, str] = {}  # short name -> resolved name stored in the bag
@@ -340,9 +344,30 @@ class Recorder(Node):
             return
         if seq > last + 1:
             self.gaps[name] += seq - last - 1
-            self.get_logger().warning(f"{name}: {seq - last - 1} samples lost before sequence number {seq}")
+            self._say_lost(name, seq - last - 1, seq)
         elif seq <= last:
             self.get_logger().info(f"{name}: sequence restarted at {seq} (new publisher?)")
+
+    def _say_lost(self, name: str, lost: int, seq: int) -> None:
+        """One line per topic at most every ``LOST_REPORT_PERIOD`` s: the first gap at once, then a summary.
+
+        A flooded topic loses samples in thousands of small gaps; a line for each filled the
+        log, and a recorder whose stderr is a pipe nobody reads blocked on it (bench/robot_day.py:
+        the recorder never caught up after a burst). The totals are in the final summary line.
+        """
+        now = time.monotonic()
+        pending = self._lost_pending.setdefault(name, [0, 0, -math.inf])  # samples, gaps, last said at
+        pending[0] += lost
+        pending[1] += 1
+        if now - pending[2] < LOST_REPORT_PERIOD:
+            return
+        samples, gaps, said = pending
+        since = "" if said == -math.inf else f" in the last {now - said:.0f} s"
+        self.get_logger().warning(
+            f"{name}: {samples} samples lost in {gaps} gap(s){since} (last before sequence number {seq}); "
+            f"{self.gaps[name]} in all so far"
+        )
+        self._lost_pending[name] = [0, 0, now]
 
     # -- stopping
     def drain(self, executor: SingleThreadedExecutor, quiet: float = 0.2, limit: float = 30.0) -> None:

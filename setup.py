@@ -67,6 +67,7 @@ setup(
             "replay = lenn_ros.nodes.replay:main",
             "robot_controller = lenn_ros.nodes.robot_controller:main",
             "robot_simulator = lenn_ros.nodes.robot_simulator:main",
+            "twin = lenn_ros.nodes.twin:main",
         ],
     },
 )

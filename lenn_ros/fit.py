@@ -38,7 +38,7 @@ import yaml
 from lenn_ros.bag.csv_import import is_number
 from lenn_ros.core.evaluation import free_run_problems
 from lenn_ros.core.families import INCREMENT_LAGS, pass_through_weights
-from lenn_ros.core.metrics import nmse_db, rmse
+from lenn_ros.core.metrics import band_half_width, coverage, nmse_db, rmse
 from lenn_ros.core.networks import FunctionalLinkNetwork
 from lenn_ros.core.refinement import cross_validated_refinement
 from lenn_ros.core.scaling import Scaling
@@ -51,6 +51,7 @@ from lenn_ros.core.selection import (
     fold_blocks,
     loosen,
     order_candidates,
+    out_of_fold_residuals,
     select_structure,
 )
 from lenn_ros.core.structure import Identifier
@@ -108,8 +109,6 @@ def _load_csv(path: Path, u_column: str | None, y_column: str | None) -> Data:
             raise FitError(f"{path}, line {line}: not a number in column {u_column} or {y_column}: {row}") from None
     names = (header[iu], header[iy]) if header else (str(iu), str(iy))
     return Data(u, y, f"CSV {path}: u = column {names[0]}, y = column {names[1]}")
-
-
 
 
 def _column(header: list[str] | None, column: str, width: int, path: Path) -> int:
@@ -244,6 +243,7 @@ def _fit(data: Data, test_from: int, refine: bool, network: str, solver: str, pr
         described = {**describe_model(final, chosen, forgetting), **describe_sgd(identifier, epochs)}
     report = score(identifier, u, y, start)
     report["warnings"] = selection_warnings + report["warnings"]
+    report["intervals"] = fit_intervals(report, identifier, chosen, record, network == "lenn" and solver == "ls")
     report.update(
         {
             "data": data.source,
@@ -372,6 +372,49 @@ def score(identifier: Identifier, u: np.ndarray, y: np.ndarray, start: int) -> d
         "y_test": y_test,
         "y_hat_test": y_hat[start:],
         "y_free_test": y_free,
+        "y_hat_train": y_hat[:start],
+    }
+
+
+def fit_intervals(
+    report: dict[str, Any], identifier: Identifier, chosen: Candidate, record: Record, held_out: bool
+) -> dict[str, Any]:
+    """Nominal 95 % bands, one step ahead and in free run, and how much of the test part they cover.
+
+    Both from errors on samples the model was not fitted to: the blocks the structure
+    was chosen by, each run by the weights fitted without it (``held_out``), one step
+    ahead and in free run. An MLP or SGD model, which the blocks did not run, takes its
+    own errors over the training record (in-sample: optimistic, and said). A
+    half-width is the 95 % quantile of |e|, not 1.96 sigma: free-run errors drift and
+    have heavy tails. The one-step std is also the noise the twin node may add.
+    """
+    y_train = record.y
+    if held_out:
+        one_step = out_of_fold_residuals(chosen, record, one_step=True)
+        free = out_of_fold_residuals(chosen, record)
+        source = "the selection's blocks, each run by the weights fitted without it"
+    else:
+        warm = identifier.structure.warm_up
+        one_step = report["y_hat_train"][warm:] - y_train[warm:]
+        free = identifier.free_run(record.u, y_train, warm) - y_train[warm:]
+        source = "the delivered model over the training record (in-sample: optimistic)"
+    report.pop("y_hat_train")
+    one_step = one_step[np.isfinite(one_step)]
+    one_step_width, free_width = band_half_width(one_step), band_half_width(free)
+    y_test = report["y_test"]
+    return {
+        "level": 0.95,
+        "one_step": {
+            "half_width": one_step_width,
+            "std": float(np.std(one_step)) if len(one_step) else math.nan,
+            "from": f"{len(one_step)} one-step errors of {source}",
+            "coverage_test": coverage(y_test, report["y_hat_test"], one_step_width),
+        },
+        "free_run": {
+            "half_width": free_width,
+            "from": f"{int(np.count_nonzero(np.isfinite(free)))} errors of {source}",
+            "coverage_test": coverage(y_test, report["y_free_test"], free_width),
+        },
     }
 
 
@@ -590,7 +633,20 @@ def write_outputs(
     }
     note = "starts from weights_in below;\n# move the directory and weights_in must follow: it is absolute"
     params = write_params(directory, result["report"], values, note)
-    return {"params": str(params), "weights": str(weights)}
+    return {"params": str(params), "weights": str(weights), "report": str(write_report(directory, result["report"]))}
+
+
+def write_report(directory: Path, report: dict[str, Any]) -> Path:
+    """DIR/fit.json: the report as ``--json`` prints it, beside the weights.
+
+    :func:`lenn_ros.load_model` and the twin node read it for the residual statistics
+    (the bands, the twin's noise) and for what the model is.
+    """
+    from lenn_ros.model import REPORT_FILE
+
+    path = directory / REPORT_FILE
+    path.write_text(json.dumps(_jsonable(report), indent=1, allow_nan=False))
+    return path
 
 
 def write_params(directory: Path, report: dict[str, Any], values: dict[str, Any], note: str) -> Path:
@@ -618,7 +674,7 @@ def _jsonable(report: dict[str, Any]) -> dict[str, Any]:
             return None
         return value
 
-    return clean({k: v for k, v in report.items() if not k.endswith("_test")})
+    return clean({k: v for k, v in report.items() if not k.endswith(("_test", "_train"))})
 
 
 def main(args: Any) -> int:

@@ -72,6 +72,7 @@ from lenn_ros.fit import (
     read_csv_rows,
     rls_covariance,
     write_params,
+    write_report,
 )
 
 #: (order, cross_degree) tried, linear ARX first: a nonlinear expansion must beat it in simulation
@@ -506,7 +507,7 @@ def write_outputs(directory: str | Path, result: dict[str, Any], u: np.ndarray, 
         "weights_in is absolute"
     )
     params = write_params(directory, report, values, note)
-    return {"params": str(params), "weights": str(weights)}
+    return {"params": str(params), "weights": str(weights), "report": str(write_report(directory, report))}
 
 
 def format_report(report: dict[str, Any], dt: float | None = None) -> str:

@@ -70,6 +70,7 @@ def vector_layout(labels: list[str] | tuple[str, ...]):
     size = len(labels)
     return MultiArrayLayout(dim=[MultiArrayDimension(label=channel_layout_label(labels), size=size, stride=size)])
 
+
 #: Depth of the RELIABLE data queues: 10 s at 1 kHz, so a subscriber that stalls
 #: for a garbage-collection pause or a disk flush loses nothing.
 DATA_DEPTH = 10_000

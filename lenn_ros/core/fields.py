@@ -129,9 +129,7 @@ def check_path(message_class: Any, path: str, type_name: str = "", type_key: str
             if element is None:
                 raise FieldError(_not_an_array(shown, step.attribute, type_text, path, type_key))
             if isinstance(step.index, str) and "name" not in fields:
-                raise FieldError(
-                    f"{shown} has no 'name' list to look {step.index!r} up in; use a number in {path!r}"
-                )
+                raise FieldError(f"{shown} has no 'name' list to look {step.index!r} up in; use a number in {path!r}")
             type_text = element
         if "/" in type_text:
             current = _nested_class(current, type_text)
@@ -293,3 +291,65 @@ def _by_name(listed: list[str], values: Any, wanted: list[str], text: str) -> np
     if max(positions) >= len(values):
         raise FieldError(f"{text!r}: {len(values)} values for the {len(listed)} names {listed}")
     return np.array([values[position] for position in positions], dtype=np.float64)
+
+
+# -- the other way: values into a message (the twin publishes as the robot does) -------------------
+def compose(message: Any, text: str, values: Any, names: list[str] | tuple[str, ...] = ()) -> Any:
+    """Write ``values`` into ``message`` where the field setting ``text`` reads them; returns ``message``.
+
+    The inverse of :func:`compile_path` / :func:`compile_vector`, so a message composed
+    here reads back as ``values`` through the same setting: ``data`` sets the field,
+    ``data[2]`` grows the array to three elements, ``position[elbow]`` names the joint
+    in the sibling ``name`` list (JointState), ``name[*]`` sets the whole array (with
+    ``names`` as the joints' names where the message has a ``name`` list). Nested
+    messages on the way (``twist.linear.x``) are the message's own.
+    """
+    flat = np.atleast_1d(np.asarray(values, dtype=np.float64))
+    if ALL in text:
+        wanted = channel_names(text, names)
+        if len(flat) != len(wanted):
+            raise FieldError(f"{len(flat)} values for the {len(wanted)} channels of {text!r}")
+        steps = parse_path(text.strip()[: -len(ALL)])
+        parent = _parent_of(message, steps, text)
+        if hasattr(parent, "name"):
+            parent.name = list(wanted)
+        setattr(parent, steps[-1].attribute, [float(v) for v in flat])
+        return message
+    paths = split_paths(text)
+    if len(paths) != len(flat):
+        raise FieldError(f"{len(flat)} values for the {len(paths)} fields of {text!r}")
+    for path, value in zip(paths, flat, strict=True):
+        steps = parse_path(path)
+        parent, last = _parent_of(message, steps, path), steps[-1]
+        if last.index is None:
+            setattr(parent, last.attribute, float(value))
+            continue
+        array = list(getattr(parent, last.attribute))
+        index = last.index
+        if isinstance(index, str):  # a joint by name: its place in the name list, added at the end if new
+            listed = list(getattr(parent, "name", []))
+            if index not in listed:
+                listed.append(index)
+                parent.name = listed
+            index = listed.index(index)
+        if index < 0:
+            raise FieldError(f"{path!r}: a negative index cannot be written")
+        array += [0.0] * (index + 1 - len(array))
+        array[index] = float(value)
+        setattr(parent, last.attribute, array)
+    return message
+
+
+def _parent_of(message: Any, steps: tuple[_Step, ...], path: str) -> Any:
+    """The object holding the last step's field: the nested messages of the steps before it."""
+    parent = message
+    for step in steps[:-1]:
+        if step.index is not None:
+            raise FieldError(f"{path!r}: only the last field of a path written may be indexed")
+        try:
+            parent = getattr(parent, step.attribute)
+        except AttributeError:
+            raise FieldError(f"message has no field {step.attribute!r} ({path!r})") from None
+    if not hasattr(parent, steps[-1].attribute):
+        raise FieldError(f"message has no field {steps[-1].attribute!r} ({path!r})")
+    return parent

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -132,3 +134,24 @@ class ChannelsNMSE:
     @property
     def rmse(self) -> float:
         return float(np.sqrt(np.mean([channel.rmse**2 for channel in self.channels])))
+
+
+def band_half_width(residuals: np.ndarray, level: float = 0.95) -> float:
+    """Half-width of the two-sided ``level`` band of these residuals: their ``level`` quantile of |e|.
+
+    Empirical, not 1.96 sigma: free-run errors are far from normal (a slow drift, a
+    heavy tail where the model misses a transient), and a quantile covers what it
+    says on the samples it came from whatever their distribution.
+    """
+    finite = np.abs(np.asarray(residuals, dtype=np.float64))
+    finite = finite[np.isfinite(finite)]
+    return float(np.quantile(finite, level)) if len(finite) else math.nan
+
+
+def coverage(measured: np.ndarray, centre: np.ndarray, half_width: float | np.ndarray) -> float:
+    """Fraction of samples within centre ± half_width (NaN centres count as outside)."""
+    measured, centre = np.asarray(measured, dtype=np.float64), np.asarray(centre, dtype=np.float64)
+    if measured.size == 0:
+        return math.nan
+    inside = np.abs(measured - centre) <= half_width
+    return float(np.count_nonzero(inside & np.isfinite(centre)) / measured.size)

@@ -274,13 +274,35 @@ class Record:
 
     def simulate(self, model: TermModel, start: int, stop: int, weights: np.ndarray | None = None) -> Simulation:
         """Free run of samples [start, stop): one run per contiguous piece, each from its measured warm-up."""
-        w = model.weights if weights is None else weights
         result = Simulation()
+        for measured, y_sim, clipped, diverged in self._free_runs(model, start, stop, weights):
+            result.add(measured, y_sim, clipped, diverged, model.y_lags + model.u_lags)
+        return result
+
+    def residuals(self, model: TermModel, start: int, stop: int, weights: np.ndarray | None = None) -> np.ndarray:
+        """Simulated minus measured over the pieces of [start, stop) that :meth:`simulate` runs (NaN: diverged)."""
+        parts = [y_sim - measured for measured, y_sim, _, _ in self._free_runs(model, start, stop, weights)]
+        return np.concatenate(parts) if parts else np.empty(0)
+
+    def one_step_residuals(
+        self, model: TermModel, start: int, stop: int, weights: np.ndarray | None = None
+    ) -> np.ndarray:
+        """Predicted minus measured one step ahead over the same pieces as :meth:`residuals`."""
+        w = model.weights if weights is None else weights
+        warm = model.warm_up
+        parts = []
+        for first, b in self.pieces(start, stop, warm):
+            features, targets = model.regression(self.u[first - warm : b], self.y[first - warm : b])
+            parts.append(features @ w - targets)
+        return np.concatenate(parts) if parts else np.empty(0)
+
+    def _free_runs(self, model: TermModel, start: int, stop: int, weights: np.ndarray | None):
+        """(measured, simulated, clipped inputs, diverged) of each contiguous piece of [start, stop)."""
+        w = model.weights if weights is None else weights
         warm = model.warm_up
         for first, b in self.pieces(start, stop, warm):
             y_sim, clipped, diverged_at = model.free_run(self.u[first - warm : b], self.y[first - warm : b], warm, w)
-            result.add(self.y[first:b], y_sim, clipped, diverged_at >= 0, model.y_lags + model.u_lags)
-        return result
+            yield self.y[first:b], y_sim, clipped, diverged_at >= 0
 
     def _break_in(self, a: int, b: int) -> bool:
         return bool(np.any((self.breaks > a) & (self.breaks <= b)))
@@ -692,6 +714,21 @@ def _designs(specs: list[Spec], record: Record, scaling: Scaling) -> dict[Spec, 
     return designs
 
 
+def out_of_fold_residuals(candidate: Candidate, record: Record, one_step: bool = False) -> np.ndarray:
+    """Errors of ``candidate`` on every block, each block run by the weights fitted without it.
+
+    Free run (what the selection scored the candidate by, kept sample by sample), or
+    ``one_step`` ahead: errors of a model on samples it was not fitted to, so their spread
+    is an honest uncertainty (``fit``'s bands). Empty when the candidate has no fold weights.
+    """
+    if candidate.model is None or not candidate.fold_weights:
+        return np.empty(0)
+    run = record.one_step_residuals if one_step else record.residuals
+    blocks = fold_blocks(record.n, candidate.model.warm_up)
+    parts = [run(candidate.model, a, b, w) for (a, b), w in zip(blocks, candidate.fold_weights, strict=True)]
+    return np.concatenate(parts) if parts else np.empty(0)
+
+
 def order_candidates(candidates: list[Candidate]) -> list[Candidate]:
     """Sorted by score, then the one to use moved first.
 
@@ -715,13 +752,10 @@ def order_candidates(candidates: list[Candidate]) -> list[Candidate]:
     chosen = min(close, key=lambda c: (c.weights, c.rmse_validation))
     if chosen is not ordered[0]:
         top = ordered[0]
-        chosen.note = (
-            f"chosen over {top.spec.label} ({top.rmse_validation:.5g}): "
-            + (
-                f"fewest terms within {PARSIMONY:.0%} of the lowest score"
-                if top in eligible
-                else f"a nonlinear candidate must beat the best linear one by {NONLINEAR_GAIN:.0%}"
-            )
+        chosen.note = f"chosen over {top.spec.label} ({top.rmse_validation:.5g}): " + (
+            f"fewest terms within {PARSIMONY:.0%} of the lowest score"
+            if top in eligible
+            else f"a nonlinear candidate must beat the best linear one by {NONLINEAR_GAIN:.0%}"
         )
         ordered.remove(chosen)
         ordered.insert(0, chosen)

@@ -136,8 +136,10 @@ class Excitation:
         k = np.arange(start, start + count)
         train = (k < self.train_samples) | (self.train_samples < 0)
         u = np.empty(count)
-        u[train] = self._steps(int(train.sum())) if self.signal == "steps" else uniform_input(
-            int(train.sum()), self._input_rng
+        u[train] = (
+            self._steps(int(train.sum()))
+            if self.signal == "steps"
+            else uniform_input(int(train.sum()), self._input_rng)
         )
         test_k = k[~train] - max(self.train_samples, 0) + 1
         if len(test_k):

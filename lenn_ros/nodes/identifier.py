@@ -286,7 +286,7 @@ class IdentifierNode(Node):
             for name, parameter in list(self._parameter_overrides.items()):
                 if not name.startswith(prefix):
                     continue
-                target = f"qos_overrides.{remapped}.subscription.{name[len(prefix):]}"
+                target = f"qos_overrides.{remapped}.subscription.{name[len(prefix) :]}"
                 self._qos_aliases.add(name)
                 if target in self._parameter_overrides:
                     self.get_logger().warning(f"{name} and {target} both given: {target} applies (remapped name)")
@@ -599,9 +599,7 @@ class IdentifierNode(Node):
 
     def _outputs_matched(self) -> bool:
         """Our outputs are VOLATILE: what is published before a reader matched is lost to it."""
-        return (
-            all(count >= self.values[f"wait_for_{output}_subscribers"] for output, count in self._readers().items())
-        )
+        return all(count >= self.values[f"wait_for_{output}_subscribers"] for output, count in self._readers().items())
 
     # -- the graph: types, publishers, QoS --------------------------------------------------------
     _graph_checked = False  # both inputs' publishers seen, with their node names

@@ -50,7 +50,7 @@ from lenn_ros.config import (
 )
 from lenn_ros.core.evaluation import Evaluation, free_run_problems
 from lenn_ros.core.fields import stamp_seconds
-from lenn_ros.core.metrics import nmse_db, rmse
+from lenn_ros.core.metrics import coverage, nmse_db, rmse
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.session import ParameterChange, Session, SessionConfig, describe_gaps
@@ -79,6 +79,7 @@ class BagEvaluation:
     notices: list[str] = field(default_factory=list)
     weights_in: str = ""  # the weights file learning started from ("" = fresh weights)
     gaps: list[str] = field(default_factory=list)  # the missing indices in words (session.describe_gaps)
+    intervals: dict[str, Any] = field(default_factory=dict)  # the fit's bands and their coverage here
 
     @property
     def warnings(self) -> list[str]:
@@ -117,6 +118,7 @@ class BagEvaluation:
             "counters": self.counters,
             "notices": self.notices,
             "weights_in": self.weights_in,
+            "intervals": self.intervals,
             "warnings": self.warnings,
         }
 
@@ -364,8 +366,33 @@ def evaluate_bag(
     weights_in = str(weights_path(values["weights_in"])) if values.get("weights_in") else ""
     gaps = describe_gaps(index, session.config.pairing, session.config.sample_period)
     return BagEvaluation(
-        evaluation, len(index), unpaired, rejected, int(start), source, missing, counters, notices, weights_in, gaps
-    )
+        evaluation, len(index), unpaired, rejected, int(start), source, missing, counters, notices, weights_in, gaps,
+        fit_band_coverage(weights_in, evaluation),
+    )  # fmt: skip
+
+
+def fit_band_coverage(weights_in: str, evaluation: Evaluation) -> dict[str, Any]:
+    """The nominal 95 % free-run band of the fit the weights came from (its ``fit.json``), and what it covers here.
+
+    The band is the fit's estimate (errors on its held-out blocks); the model scored here
+    went on learning from the bag's training phase, so the coverage says how well the
+    fit's uncertainty carries over to this recording. Empty without a fit report.
+    """
+    from lenn_ros.model import REPORT_FILE
+
+    report = Path(weights_in).parent / REPORT_FILE if weights_in else None
+    if report is None or not report.is_file():
+        return {}
+    try:
+        band = json.loads(report.read_text()).get("intervals", {}).get("free_run", {})
+    except (OSError, ValueError):
+        return {}
+    width = band.get("half_width")
+    if not width:
+        return {}
+    simulated = np.isfinite(evaluation.y_free_test)
+    covered = coverage(evaluation.y_test[simulated], evaluation.y_free_test[simulated], float(width))
+    return {"level": 0.95, "free_run": {"half_width": float(width), "from": str(report), "coverage_test": covered}}
 
 
 def _samples(
@@ -487,7 +514,8 @@ def main(args) -> int:
 
         e = result.evaluation
         title = f"{args.bag}: NMSE {e.nmse_db:.2f} dB one-step, {e.nmse_free_run_db:.2f} dB free run"
-        plot_identification(args.plot, e.y_test, e.y_hat_test, title, e.y_free_test)
+        band = result.intervals.get("free_run", {}).get("half_width")
+        plot_identification(args.plot, e.y_test, e.y_hat_test, title, e.y_free_test, free_run_band=band)
     d = result.as_dict()
     if args.json:
         print(json.dumps(d, indent=1, default=lambda value: None))
@@ -502,6 +530,9 @@ def main(args) -> int:
         value = d[key]
         shown = f"{value:8.3f} dB" if value is not None and math.isfinite(value) else str(value)
         print(f"  NMSE {label}: {shown}   RMSE {d[rmse_key]}")
+    band = d["intervals"].get("free_run")
+    if band:
+        print(f"  free-run 95 % band of the fit (+-{band['half_width']:.4g}): covers {band['coverage_test']:.1%} here")
     for warning in d["warnings"]:
         print(f"  WARNING: {warning}")
     for notice in d["notices"]:

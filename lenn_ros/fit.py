@@ -699,7 +699,8 @@ def main(args: Any) -> int:
         from lenn_ros.plotting import plot_identification
 
         title = f"{Path(args.data).name}: free-run RMSE {report['rmse_free_run']:.4g} on the test part"
-        plot_identification(args.plot, report["y_test"], report["y_hat_test"], title, report["y_free_test"])
+        band = report["intervals"]["free_run"]["half_width"]
+        plot_identification(args.plot, report["y_test"], report["y_hat_test"], title, report["y_free_test"], band)
     if args.json:
         print(json.dumps(_jsonable(report), indent=1, allow_nan=False))
         return 0
@@ -800,6 +801,13 @@ def _test_lines(report: dict[str, Any], dt: float | None) -> list[str]:
         f"RMSE {report['rmse_free_run']:.5g}, NMSE {report['nmse_free_run_db']:.2f} dB, "
         f"{free['clipped_inputs']} inputs clipped"
     )
+    bands = report.get("intervals")
+    if bands:
+        one, run = bands["one_step"], bands["free_run"]
+        lines.append(
+            f"    95 % bands (from held-out blocks of the training samples): one-step +-{one['half_width']:.4g} "
+            f"covers {one['coverage_test']:.1%}, free run +-{run['half_width']:.4g} covers {run['coverage_test']:.1%}"
+        )
     outside = report["test_samples_outside_training_range"]
     if outside["u"] or outside["y"]:
         lines.append(
@@ -810,10 +818,12 @@ def _test_lines(report: dict[str, Any], dt: float | None) -> list[str]:
     if dt:
         lines.append(f"  sample time {dt:g} s: test part {report['samples'] * dt:.4g} s")
     if "files" in report:
-        lines.append(f"  wrote {report['files']['params']} and {report['files']['weights']}")
+        files = report["files"]
+        lines.append(f"  wrote {files['params']}, {files['weights']} and {files.get('report', 'no report')}")
         lines.append(
             f"  live: ros2 run lenn_ros identifier --ros-args --params-file {report['files']['params']} "
             "(its weights_in names the weights file)"
         )
+        lines.append(f"  twin: ros2 run lenn_ros twin --ros-args -p model:={Path(files['params']).parent}")
     lines.append(f"  {report['seconds']} s")
     return lines

@@ -37,8 +37,12 @@ def plot_identification(
     y_model: np.ndarray,
     title: str,
     y_free_run: np.ndarray | None = None,
+    free_run_band: float | None = None,
 ) -> Path:
-    """Write a PNG of plant output, model output and error (one-step), as in the paper."""
+    """Write a PNG of plant output, model output and error (one-step), as in the paper.
+
+    ``free_run_band``: half-width of the free run's nominal 95 % band (``fit``'s), drawn around it.
+    """
     y_plant = np.asarray(y_plant)
     y_model = np.asarray(y_model)
     k = np.arange(len(y_plant))
@@ -47,6 +51,9 @@ def plot_identification(
     axis.plot(k, y_model, color="tab:red", linestyle="--", linewidth=1.2, label="model (one step)")
     if y_free_run is not None:
         axis.plot(k, y_free_run, color="tab:green", linestyle=":", linewidth=1.2, label="model (free run)")
+        if free_run_band:
+            axis.fill_between(k, y_free_run - free_run_band, y_free_run + free_run_band, color="tab:green",
+                              alpha=0.15, linewidth=0, label="free run 95 % band")  # fmt: skip
     axis.plot(k, y_plant - y_model, color="tab:blue", linewidth=0.9, label="error")
     axis.set_xlabel("discrete time k (test phase)")
     axis.set_ylabel("plant / model output and error")

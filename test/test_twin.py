@@ -8,6 +8,7 @@ reported for the test part, never with numbers written here.
 from __future__ import annotations
 
 import json
+import math
 import threading
 import time
 from pathlib import Path
@@ -104,7 +105,7 @@ def _drive(domain: int, inputs: np.ndarray, twin) -> list[tuple[list[str], float
     from rclpy.context import Context
     from rclpy.executors import SingleThreadedExecutor
     from sensor_msgs.msg import JointState
-    from std_msgs.msg import Float64MultiArray
+    from std_msgs.msg import Float64MultiArray, String
 
     from lenn_ros import topics
 
@@ -119,7 +120,11 @@ def _drive(domain: int, inputs: np.ndarray, twin) -> list[tuple[list[str], float
         if len(received) >= len(inputs):
             done.set()
 
+    statuses: list[dict] = []
     node.create_subscription(JointState, topics.Y_P, on_output, topics.data_qos())
+    node.create_subscription(
+        String, "/twin/status", lambda m: statuses.append(json.loads(m.data)), topics.latched_qos()
+    )
     publisher = node.create_publisher(Float64MultiArray, topics.U, topics.data_qos())
     executor = SingleThreadedExecutor(context=ctx)
     executor.add_node(node)
@@ -134,6 +139,11 @@ def _drive(domain: int, inputs: np.ndarray, twin) -> list[tuple[list[str], float
         for value in inputs:
             publisher.publish(Float64MultiArray(data=[float(value)]))
         assert done.wait(30), f"{len(received)} of {len(inputs)} outputs arrived"
+        publisher.publish(Float64MultiArray(data=[math.nan]))  # refused, said and counted, never stepped
+        while not (statuses and statuses[-1]["refused"] == 1):
+            assert time.monotonic() < deadline + 60, f"the twin never counted the NaN command: {statuses[-1:]}"
+            time.sleep(0.05)
+        assert statuses[-1]["published"] == len(inputs) and statuses[-1]["steps"] == len(inputs)
     finally:
         executor.shutdown()
         spinner.join(timeout=5)
@@ -162,4 +172,4 @@ def test_twin_publishes_fits_free_run_over_dds(fitted: dict, domain: int, tmp_pa
     assert all(names == ["elbow"] for names, _ in received)
     published = np.array([value for _, value in received])
     assert np.max(np.abs(published - fitted["report"]["y_free_test"])) <= 1e-9
-    assert "twin of" in err and "stepping on each command" in err
+    assert "twin of" in err and "stepping on each command" in err and "is not finite: refused" in err

@@ -4,7 +4,7 @@ PYTHON ?= $(firstword $(foreach candidate,python3.11 python3.12 python3.13,$(she
 VENV ?= .venv
 BIN := $(VENV)/bin
 
-.PHONY: setup demo test reproduce bench lint clean
+.PHONY: setup demo test docs reproduce bench lint clean
 
 $(BIN)/lenn-ros: setup.py setup.cfg
 	@if [ -z "$(PYTHON)" ]; then \
@@ -14,7 +14,7 @@ $(BIN)/lenn-ros: setup.py setup.cfg
 	fi
 	$(PYTHON) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -e '.[ros,test]'
+	$(BIN)/pip install --quiet -e '.[ros,plot,progress,test,docs]'
 	touch $@
 
 setup: $(BIN)/lenn-ros
@@ -23,8 +23,15 @@ demo: setup
 	$(BIN)/lenn-ros demo
 
 test: setup
-	$(BIN)/ruff check lenn_ros test bench
+	$(BIN)/ruff check lenn_ros test bench docs
+	$(MAKE) docs
 	$(BIN)/python -m pytest -q
+
+# The documentation site: the parameter page must match config.py (regenerate it with
+# `python docs/gen_parameters.py`), then every page, link and anchor must build (--strict).
+docs: setup
+	$(BIN)/python docs/gen_parameters.py --check
+	$(BIN)/mkdocs build --strict --quiet
 
 reproduce: setup
 	$(BIN)/lenn-ros reproduce --plots results
@@ -33,4 +40,4 @@ bench: setup
 	$(BIN)/python bench/speed.py
 
 clean:
-	rm -rf $(VENV) build install log results *.egg-info
+	rm -rf $(VENV) build install log results site *.egg-info

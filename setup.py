@@ -5,6 +5,11 @@ from glob import glob
 from setuptools import find_packages, setup
 
 PACKAGE = "lenn_ros"
+# Optional features, each its own extra; the code says which extra to install when one is missing
+# (lenn_ros.errors.require_extra for plots, lenn_ros.experiments.report.progress for bars).
+PLOT = ["matplotlib>=3.8"]  # --plot, the demo's figure (lenn_ros.plotting)
+PROGRESS = ["tqdm>=4.66"]  # progress bars of reproduce / reproduce-mimo / --beyond
+DOCS = ["mkdocs==1.6.1"]  # the site in docs/ (make docs: mkdocs build --strict)
 
 setup(
     name=PACKAGE,
@@ -22,8 +27,10 @@ setup(
         "numba>=0.59",
         "rosbags>=0.11",  # typestore (CDR, msgdefs), QoS types: public API only
         "mcap>=1.6",  # lenn_ros.bag writes through mcap.writer.Writer (flush() since 1.6), repairs with StreamReader
-        "matplotlib>=3.8",
-        "tqdm>=4.66",
+        # lenn_ros.bag.scalars decompresses MCAP chunks itself (the fast path): imported directly,
+        # so declared here, not only through mcap's own requirements
+        "zstandard>=0.22",
+        "lz4>=4",
         "pyyaml>=6",
         "threadpoolctl>=3",  # fit: one BLAS thread for its thousands of small products
     ],
@@ -42,7 +49,14 @@ setup(
         # peer comparison only (bench/peer_narx.py): SysIdentPy's FROLS polynomial NARX.
         # It pins numpy < 2.4 (pip downgrades numpy when this extra is installed).
         "bench": ["sysidentpy>=0.9"],
-        "test": [
+        "plot": PLOT,
+        "progress": PROGRESS,
+        "docs": DOCS,
+        # the tests draw plots and build the site, so they need those extras too
+        "test": PLOT
+        + PROGRESS
+        + DOCS
+        + [
             "pytest>=8",
             "pytest-timeout>=2.3",
             "mcap>=1.2",

@@ -284,9 +284,9 @@ def _add_demo(commands: Any) -> None:
     p.set_defaults(handler=_demo)
 
 
-#: ``lenn-ros bench NAME``: the benchmark scripts of the source tree's bench/ (README "Benchmarks")
+#: ``lenn-ros bench NAME``: the benchmark scripts of the source tree's bench/ (tables in bench/RESULTS.md)
 BENCHMARKS = {
-    "speed": ("speed.py", "everything: offline costs and throughput, online loops, memory (the README's tables)"),
+    "speed": ("speed.py", "everything: offline costs and throughput, online loops, memory (bench/RESULTS.md)"),
     "online": ("speed_online.py", "loss-free rate and latency through ROS, nodes compared in one run"),
     "reproduce": ("reproduce_marginal.py", "marginal end-to-end cost of `lenn-ros reproduce`"),
     "evaluate": ("evaluate_large.py", "`evaluate` of a 10^6-sample bag, read to result"),

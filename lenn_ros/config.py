@@ -223,7 +223,7 @@ def identifier_parameters(example: int, network: str, parameters: str = "calibra
             "forgetting",
             float(net.get("forgetting", 1.0)),
             f"RLS forgetting factor lambda in [0.5, 1] (0 = a memory of {RLS_MEMORY_S:g} s: "
-            f"1 - sample_period / {RLS_MEMORY_S:g}, or 1 / {RLS_MEMORY_SAMPLES} without sample_period)",
+            f"1 - sample_period / {RLS_MEMORY_S:g}, or 1 - 1 / {RLS_MEMORY_SAMPLES} without sample_period)",
             0.0,
             1.0,
             live=True,

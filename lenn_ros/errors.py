@@ -17,6 +17,23 @@ class UserError(Exception):
     """A problem the user can fix: printed as one line, exit status 2."""
 
 
+class MissingExtra(UserError):
+    """An optional dependency (a setup.py extra) that the asked-for feature needs is not installed."""
+
+
+def require_extra(module: str, extra: str, feature: str) -> None:
+    """Raise :class:`MissingExtra` naming the pip extra when ``module`` cannot be imported.
+
+    Plotting and progress bars are extras (most runs need neither, and matplotlib is the
+    largest dependency); without this the user would get a ModuleNotFoundError traceback
+    from deep inside a run instead of the one line that says what to install.
+    """
+    import importlib.util
+
+    if importlib.util.find_spec(module) is None:
+        raise MissingExtra(f"{feature} need {module}, which is not installed: pip install 'lenn_ros[{extra}]'")
+
+
 #: (module, class) of each layer's own user-error type. Looked up only in modules already
 #: imported: an exception of that type can only come from a module that is loaded, and the
 #: command line need not import the bag reader (rosbags) just to know its error type.

@@ -586,6 +586,9 @@ def _table_lines(report: dict[str, Any]) -> list[str]:
 
 def plot(path: str | Path, report: dict[str, Any]) -> Path:
     """Plant against the MIMO model (one-step and free run) on the test part, one panel per output."""
+    from lenn_ros.errors import require_extra
+
+    require_extra("matplotlib", "plot", "plots")  # one line naming the extra, not a traceback
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 

@@ -10,9 +10,14 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
-from matplotlib.axes import Axes
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
+
+from lenn_ros.errors import require_extra
+
+require_extra("matplotlib", "plot", "plots")
+
+from matplotlib.axes import Axes  # noqa: E402
+from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
+from matplotlib.figure import Figure  # noqa: E402
 
 
 def new_figure(width: float = 8.0, height: float = 3.6, dpi: int = 110) -> tuple[Figure, Axes]:

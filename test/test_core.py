@@ -315,7 +315,9 @@ def test_compiled_step_equals_the_python_step(monkeypatch, number: int, settings
     for a, b in zip(fast, slow, strict=True):
         assert [getattr(a, name) for name in fields] == [getattr(b, name) for name in fields]
     assert fast_id.counters == slow_id.counters
-    assert fast_id.counters["clipped"] > 0 or number != 1
+    # |u| up to 1.6 is clipped wherever u feeds the network (690-1379 inputs here); example 2's u
+    # enters only through its known linear part (u_lags 0), so nothing of it is clipped there
+    assert (fast_id.counters["clipped"] > 0) == (example.structure.u_lags > 0), fast_id.counters["clipped"]
     assert fast_id.diverged == slow_id.diverged == (number == 2)
     assert np.array_equal(fast_id.model.weights_, slow_id.model.weights_)
     assert fast_id.model.n_samples_seen_ == slow_id.model.n_samples_seen_

@@ -118,7 +118,11 @@ def test_sigkill_then_restart_continues_from_the_saved_state(tmp_path: Path, dom
     second = None
     try:
         listener.wait_status(lambda s: s["samples_seen"] >= 3000, timeout=60)
-        time.sleep(0.6)  # at least one autosave after that
+        # poll for an autosave holding those samples (the file is replaced atomically: never half-written)
+        deadline = time.monotonic() + 20.0
+        while not (weights.exists() and OnlineRegressor.load(weights).n_samples_seen_ >= 3000):
+            assert time.monotonic() < deadline, "no autosave of >= 3000 samples within 20 s (autosave_period 0.2 s)"
+            time.sleep(0.05)
         first.send_signal(signal.SIGKILL)
         first.communicate(timeout=10)
         resumed_from = OnlineRegressor.load(weights).n_samples_seen_

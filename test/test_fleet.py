@@ -55,11 +55,19 @@ def test_fleet_identifies_each_plant_on_its_own(tmp_path: Path, domain: int) -> 
         plant: [node.create_publisher(float64, f"/{plant}/{name}", topics.data_qos()) for name in names]
         for plant in PLANTS[:2]
     }
+    counts = {PLANTS[0]: 1500, PLANTS[1]: 900}
+    learnt: dict[str, int] = {}  # each driven plant's identifier's learned count, from its status topic
+    string = topics.message_class(topics.STRING)
+    for plant in counts:
+        node.create_subscription(
+            string, f"/{plant}/{topics.STATUS}",
+            lambda message, plant=plant: learnt.__setitem__(plant, json.loads(message.data)["counters"]["learned"]),
+            topics.data_qos(),
+        )  # fmt: skip
     executor = SingleThreadedExecutor(context=context)
     executor.add_node(node)
     thread = threading.Thread(target=executor.spin, daemon=True)
     thread.start()
-    counts = {PLANTS[0]: 1500, PLANTS[1]: 900}
     try:
         deadline = time.monotonic() + 30
         while min(p.get_subscription_count() for pair in publishers.values() for p in pair) < 1:
@@ -73,7 +81,12 @@ def test_fleet_identifies_each_plant_on_its_own(tmp_path: Path, domain: int) -> 
                 y_pub.publish(float64(data=float(series.y[k])))
         wait = rclpy.duration.Duration(seconds=10)
         assert all(p.wait_for_all_acked(wait) for pair in publishers.values() for p in pair)
-        time.sleep(7.0)  # past the graph check's grace, so every pair is released and learnt
+        # poll until every pair is learnt (held first: the graph check's grace), not a sleep tied to that grace
+        expected = {plant: count - EXAMPLES[1].structure.warm_up for plant, count in counts.items()}
+        deadline = time.monotonic() + 30
+        while learnt != expected:
+            assert time.monotonic() < deadline, f"learnt {learnt}, expected {expected} within 30 s"
+            time.sleep(0.05)
     finally:
         _, err = stop(fleet)
         executor.shutdown()

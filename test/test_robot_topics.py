@@ -7,6 +7,9 @@ BEST_EFFORT or not; each way it can go wrong must be said in one line and counte
 from __future__ import annotations
 
 import json
+import os
+import select
+import subprocess
 import threading
 import time
 from pathlib import Path
@@ -216,9 +219,25 @@ def test_params_file_applies_under_any_namespace_or_node_name(tmp_path: Path, do
     params = tmp_path / "p.yaml"
     params.write_text(yaml.safe_dump({"/**": {"ros__parameters": {"example": 3, "network": "lenn"}}}))
     identifier = start_node("identifier", params_file=params, ros_args=remap)
-    time.sleep(3.0)  # its start-up line is all this test reads
-    _, err = stop(identifier)
-    assert "example preset 3" in err, err
+    try:
+        said = _wait_for_output(identifier, "paired by", timeout=60.0)  # its start-up line is all this test reads
+    finally:
+        _, err = stop(identifier)
+    assert "example preset 3" in said + err, said + err
+
+
+def _wait_for_output(process: subprocess.Popen, text: str, timeout: float) -> str:
+    """The process's stderr up to (at least) the first line holding ``text``: a poll, not a guessed sleep."""
+    fd, seen = process.stderr.fileno(), b""
+    deadline = time.monotonic() + timeout
+    while text.encode() not in seen:
+        remaining = deadline - time.monotonic()
+        assert remaining > 0, f"no {text!r} within {timeout} s:\n{seen.decode()[-2000:]}"
+        ready, _, _ = select.select([fd], [], [], remaining)
+        chunk = os.read(fd, 65536) if ready else b""
+        assert chunk or not ready, f"the process ended without {text!r}:\n{seen.decode()[-2000:]}"
+        seen += chunk
+    return seen.decode()
 
 
 def test_wrong_type_or_field_is_one_line_at_start(graph: Graph) -> None:

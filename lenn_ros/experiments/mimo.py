@@ -270,6 +270,9 @@ def figure(runs: dict[str, SeedRun], seed: int, names: Sequence[str] = ("y0", "y
     A bare :class:`Figure` on its own Agg canvas (as :mod:`lenn_ros.plotting`): the
     caller's pyplot state and backend are left alone.
     """
+    from lenn_ros.errors import require_extra
+
+    require_extra("matplotlib", "plot", "plots")  # one line naming the extra, not a traceback
     from matplotlib.backends.backend_agg import FigureCanvasAgg  # here: the CLI parser imports this module
     from matplotlib.figure import Figure
 

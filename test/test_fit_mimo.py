@@ -167,3 +167,17 @@ def test_cli_import_csv_then_fit_the_vector_bag(tmp_path: Path) -> None:
     text = lenn_ros("fit", str(csv), "--u", "u1", "--u", "u2", "--y", "y1", "--y", "speed", "--test-from", "2001")
     assert text.returncode == 2 and text.stderr.count("\n") == 1
     assert "no column 'speed'; columns are t, u1, u2, y1, y2" in text.stderr
+
+
+def test_load_model_runs_the_mimo_fit_as_fit_reported(fitted: dict) -> None:
+    """lenn_ros.load_model on a several-channel fit: simulate and the stepper give fit's free run."""
+    import lenn_ros
+
+    model = lenn_ros.load_model(Path(fitted["files"]["params"]).parent)
+    assert (model.n_u, model.n_y) == (2, 2)
+    data, w = fitted["data"], model.history
+    before = {"y_initial": data.y[TRAIN - w : TRAIN], "u_initial": data.u[TRAIN - w : TRAIN]}
+    free = model.simulate(data.u[TRAIN:], **before)
+    np.testing.assert_array_equal(free, fitted["result"]["report"]["y_free_test"])
+    stepper = model.stepper(**before)
+    np.testing.assert_array_equal(np.array([stepper.step(row) for row in data.u[TRAIN : TRAIN + 50]]), free[:50])

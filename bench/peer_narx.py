@@ -73,6 +73,15 @@ PUBLISHED = {
 }
 
 
+def tail_start(start: int) -> int:
+    """Where the peers' held-out tail begins: the last VALIDATION_FRACTION of the build samples (at least 50).
+
+    The peers choose their lags (and FROLS its degree) by free run on this tail, refit on
+    all build samples, and are scored on the test part, as ``fit`` is (its blocks instead of a tail).
+    """
+    return start - max(50, round(VALIDATION_FRACTION * start))
+
+
 def _csv(name: str, u: str, y: str) -> tuple[np.ndarray, np.ndarray]:
     table = np.genfromtxt(DATA / name, delimiter=",", names=True)
     return np.asarray(table[u], float), np.asarray(table[y], float)
@@ -142,7 +151,7 @@ def run_frols(split: Split) -> dict:
     began = time.perf_counter()
     start = split.test_from - 1
     u, y = split.u[:start], split.y[:start]
-    validation = start - max(50, round(VALIDATION_FRACTION * start))
+    validation = tail_start(start)
     tried = []
     for lag, degree in FROLS_GRID:
         if math.comb(2 * lag + degree, degree) > FROLS_MAX_DICTIONARY or 40 * lag > validation:
@@ -197,7 +206,7 @@ def run_arx(split: Split) -> dict:
     start = split.test_from - 1
     u, y = split.u[:start], split.y[:start]
     scaling = Scaling.from_training(u, y, margin=10.0)  # wide: a linear model needs no clipping
-    validation = start - max(50, round(VALIDATION_FRACTION * start))
+    validation = tail_start(start)
     tried = []
     for lag in ARX_LAGS:
         if 40 * lag > validation:
@@ -255,9 +264,7 @@ def run_lenn_mimo(split: MimoSplit) -> dict:
         "siso_rmse_free_run": [o["rmse_free_run"] for o in siso.get("per_output", [])],
         "seconds": seconds,
         "model": f"lags {model['y_lags']}, order {model['order']}, cross degree {model['cross_degree']}",
-        "siso_model": (
-            f"lags {siso['model']['y_lags']}, order {siso['model']['order']}" if "model" in siso else "-"
-        ),
+        "siso_model": (f"lags {siso['model']['y_lags']}, order {siso['model']['order']}" if "model" in siso else "-"),
     }
 
 
@@ -291,7 +298,7 @@ def run_frols_mimo(split: MimoSplit) -> dict:
     """FROLS per output (MISO: the six inputs and the output's own lags), each structure chosen by its free run."""
     began = time.perf_counter()
     start = split.test_from - 1
-    validation = start - max(50, round(VALIDATION_FRACTION * start))
+    validation = tail_start(start)
     scores, models = [], []
     for j in range(split.y.shape[1]):
         u, y = split.u[:start], split.y[:start, j]
@@ -336,7 +343,7 @@ def run_arx_mimo(split: MimoSplit) -> dict:
     began = time.perf_counter()
     start = split.test_from - 1
     u, y = split.u[:start], split.y[:start]
-    validation = start - max(50, round(VALIDATION_FRACTION * start))
+    validation = tail_start(start)
     variance = np.var(y[validation:], axis=0)
     tried = []
     for lag in MIMO_ARX_LAGS:

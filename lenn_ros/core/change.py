@@ -100,21 +100,25 @@ class ChangeDetector:
     def update(self, error: float, index: int) -> str:
         """One a-priori error e(k) of sample ``index``: '' or the event it caused (RAISED, CLEARED, ACCEPTED)."""
         square = error * error
-        if not math.isfinite(square):
+        if square == math.inf or square != square:  # (not math.isfinite: this runs for every sample)
             return ""
-        self.samples += 1
-        fast = self.fast = self.fast + self.fast_rate * (square - self.fast) if self.samples > 1 else square
+        samples = self.samples = self.samples + 1
+        fast = self.fast = self.fast + self.fast_rate * (square - self.fast) if samples > 1 else square
         if self.alarm:
             return self._while_on(fast, index)
         level = self.level
-        self.level = level + max(self.reference_rate, 1.0 / self.samples) * (square - level)
-        if self.samples <= self.warm_up_samples or level <= 0.0:
+        rate = self.reference_rate
+        if samples * rate < 1.0:
+            rate = 1.0 / samples
+        self.level = level + rate * (square - level)
+        if samples <= self.warm_up_samples or level <= 0.0:
             return ""
         z = square / level
         statistic = self.statistic + (z if z < self.clip else self.clip) - self.drift
-        self.statistic = statistic if statistic > 0.0 else 0.0
         if statistic <= self.threshold:
+            self.statistic = statistic if statistic > 0.0 else 0.0
             return ""
+        self.statistic = statistic
         self.level = level  # (this sample is the change's: not in the reference)
         self.alarm = True
         self.count += 1

@@ -51,6 +51,7 @@ from lenn_ros.core.metrics import ChannelsNMSE, RunningNMSE
 from lenn_ros.core.mimo import MimoIdentifier, MimoStepResult
 from lenn_ros.core.overload import Shedder
 from lenn_ros.core.pairing import Pairer, U, Y, screen, screen_values
+from lenn_ros.core.spread import OneStepSpread
 from lenn_ros.core.structure import Identifier, StepResult
 from lenn_ros.core.warmup import MAX_WARM_UP, ScaleWarmUp, warm_up_samples
 
@@ -257,6 +258,8 @@ class Session:
         self.change = None if self.mimo else ChangeDetector(threshold=config.change_threshold)
         self.change_time: float | None = None  # time of the sample the alarm rose at (live; offline None)
         self.change_started: int | None = None  # the sample the last alarm rose at
+        self.spread = None if self.mimo else OneStepSpread()  # the one-step std of each y^ (core.spread)
+        self._next_std: float | None = None  # of the pending prediction
 
     # -- live parameters ---------------------------------------------------------------------
     def apply_parameters(self, values: dict[str, Any]) -> ParameterChange:
@@ -750,11 +753,24 @@ class Session:
             self._say_clipped(pair.time)
         if result.error is not None and result.y_hat is not None:
             self.phase_nmse.add(pair.y, result.y_hat)
-            if self.change is not None and self.config.change_alarm:
-                event = self.change.update(result.error, pair.index)
+        if self.spread is not None:
+            self._watch(pair, result)
+        return Sample(pair.index, pair.time, pair.u, pair.y, result)
+
+    def _watch(self, pair: Pair, result: StepResult) -> None:
+        """One output: the one-step std of each prediction (core.spread) and the change alarm (core.change)."""
+        spread = self.spread
+        assert spread is not None
+        error = result.error
+        if error is not None:
+            result.y_hat_std = self._next_std
+            spread.update(error)
+            if self.config.change_alarm and self.change is not None:
+                event = self.change.update(error, pair.index)
                 if event:
                     self._say_change(event, pair.index, pair.time)
-        return Sample(pair.index, pair.time, pair.u, pair.y, result)
+        if result.y_hat_next is not None:
+            result.y_hat_next_std = self._next_std = spread.std(result.leverage)
 
     def _watch_change(
         self,

@@ -114,7 +114,7 @@ def test_a_change_alarm_set_off_live_is_replayed_offline_at_its_sample() -> None
 
 
 def test_white_residuals_give_the_cusum_its_textbook_behaviour() -> None:
-    """On i.i.d. Gaussian errors the run length to a false alarm grows about x3.3 per +3 of threshold
+    """On i.i.d. Gaussian errors the run length to a false alarm grows about x2.8 per +3 of threshold
     (bench/change_alarm.py extrapolates it): at 12 about 1.4e3 samples, at 18 about 1.5e4."""
     rng = np.random.default_rng(0)
     errors = rng.standard_normal(400_000).tolist()

@@ -28,8 +28,8 @@ it starts as the running mean of e^2).
 Design false-alarm rate (:data:`DESIGN_RUN_LENGTH`): at the default threshold the mean
 run length to a false alarm is at least 10^7 samples on i.i.d. Gaussian residuals
 (measured by ``bench/change_alarm.py``: the run length grows exponentially with the
-threshold, about x3.3 per +3, and the table in bench/RESULTS.md extrapolates it to 10^7 at
-35), and no alarm is raised in 10^6 samples of an unchanged, online-identified plant per
+threshold, about x2.8 per +3, and the table in bench/RESULTS.md extrapolates it to 10^7 at
+37), and no alarm is raised in 10^6 samples of an unchanged, online-identified plant per
 seed (same bench): bursts of large residuals, not white noise, set the threshold.
 
 Nothing here knows ROS: :class:`~lenn_ros.core.session.Session` owns a detector and
@@ -43,7 +43,7 @@ from typing import Any
 
 #: Mean run length to a false alarm (samples) the default threshold is designed for.
 DESIGN_RUN_LENGTH = 1.0e7
-#: CUSUM threshold: on i.i.d. Gaussian residuals 35 already gives DESIGN_RUN_LENGTH (bench/change_alarm.py), but the
+#: CUSUM threshold: on i.i.d. Gaussian residuals 37 already gives DESIGN_RUN_LENGTH (bench/change_alarm.py), but the
 #: residuals of an online learner come in bursts (the largest S in 10^6 unchanged samples of Ex. 3: 89), so the
 #: default is set above the largest S measured on unchanged, online-identified plants, not on white noise.
 DEFAULT_THRESHOLD = 120.0

@@ -21,6 +21,7 @@ from typing import Any
 
 import yaml
 
+from lenn_ros.core.change import DEFAULT_THRESHOLD
 from lenn_ros.core.examples import PARAMETER_SETS, get_example
 from lenn_ros.core.expansions import parse_terms
 from lenn_ros.core.fields import FieldError, channel_names, compile_path, compile_vector, is_vector
@@ -142,6 +143,22 @@ NODE_PARAMETERS = [
         200.0,
     ),
     Parameter("warn_period", 5.0, "seconds between repeats of one kind of warning", 0.0, 3600.0, live=True),
+    Parameter(
+        "change_alarm",
+        True,
+        "watch the one-step errors for a plant change: /diagnostics WARN 'plant changed' while the residual level "
+        "stays above the one the model had learnt (single output; core.change)",
+        live=True,
+    ),
+    Parameter(
+        "change_threshold",
+        DEFAULT_THRESHOLD,
+        "change alarm: CUSUM threshold on e^2 / its learnt level (higher: fewer false alarms, later detection; "
+        "bench/change_alarm.py measures both)",
+        1.0,
+        1e6,
+        live=True,
+    ),
 ]
 
 

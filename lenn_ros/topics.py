@@ -31,6 +31,11 @@ SAMPLES = "samples"
 #: so Foxglove / PlotJuggler overlay them on y_p without a one-sample shift.
 Y_HAT_STAMPED = "y_hat_stamped"
 ERROR_STAMPED = "error_stamped"
+#: The one-step std of y^(k+1) (Float64, published right after y_hat; core.spread): the nominal 95 % band
+#: is y_hat +- 1.96 y_hat_std; one message per y_hat, NaN until the first error has been seen.
+#: ``y_hat_std_stamped``: the std of y^(k), stamped as y_hat_stamped is.
+Y_HAT_STD = "y_hat_std"
+Y_HAT_STD_STAMPED = "y_hat_std_stamped"
 #: The identifier's resolved configuration (JSON, latched): ``evaluate`` reads it from a bag.
 IDENTIFIER_CONFIG = "identifier_config"
 #: key of the identifier_config JSON naming the topic each input resolved to (after remapping): u -> /arm/cmd

@@ -33,8 +33,9 @@ from lenn_ros.core.kernels import (
 SOLVER_CODES = {"sgd": 0, "nlms": 1, "rls": 2}
 NLMS_EPSILON = 1e-6  # as FunctionalLinkNetwork.update_features passes it
 
-#: ``out`` of :func:`functional_link_step`: what the caller reads back
-PRIOR, Y_HAT_NEXT, CLIPPED, STATUS, LINEAR_PREVIOUS = range(5)
+#: ``out`` of :func:`functional_link_step`: what the caller reads back. LEVERAGE: phi' P phi of y^(k+1)'s
+#: pattern (RLS; 0 for the other rules), the part of the one-step variance the weights' uncertainty adds
+PRIOR, Y_HAT_NEXT, CLIPPED, STATUS, LINEAR_PREVIOUS, LEVERAGE = range(6)
 #: STATUS values
 OK, DIVERGED, NON_FINITE = 1, 0, -1
 
@@ -67,7 +68,7 @@ class StepState:
             x=np.zeros((1, n_inputs)),
             phi=np.zeros((1, n_features)),
             scratch=np.zeros(2),
-            out=np.zeros(5),
+            out=np.zeros(6),
         )
 
     def restart(self) -> None:
@@ -222,6 +223,7 @@ def _score(
     out[CLIPPED] = 0.0
     out[STATUS] = OK
     out[LINEAR_PREVIOUS] = linear_pending[0]
+    out[LEVERAGE] = 0.0
     target, y_out = scratch[0:1], scratch[1:2]
     if score and counts[1]:
         target[0] = y - linear_pending[0]
@@ -280,8 +282,23 @@ def _predict(
         solver, weights, momentum, covariance, phi, target, feature_branch, n_branches, rule, tanh_output, False, y_out
     )
     out[Y_HAT_NEXT] = linear + y_out[0]
+    if solver == 2:
+        out[LEVERAGE] = _leverage(covariance, phi)
     linear_pending[0] = linear
     counts[1] = 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _leverage(covariance: np.ndarray, phi: np.ndarray) -> float:
+    """phi' P phi over the upper triangle (P is symmetric): half the multiplications of the full form."""
+    n = phi.shape[1]
+    total = 0.0
+    for i in range(n):
+        row = 0.0
+        for j in range(i + 1, n):
+            row += covariance[i, j] * phi[0, j]
+        total += phi[0, i] * (covariance[i, i] * phi[0, i] + 2.0 * row)
+    return total
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -45,11 +45,13 @@ from typing import Any
 import numpy as np
 
 from lenn_ros.core.alignment import GridSampler, Pair, StampAligner
+from lenn_ros.core.change import ACCEPTED, DEFAULT_THRESHOLD, RAISED, ChangeDetector
 from lenn_ros.core.merging import TopicMerger, default_max_age
 from lenn_ros.core.metrics import ChannelsNMSE, RunningNMSE
 from lenn_ros.core.mimo import MimoIdentifier, MimoStepResult
 from lenn_ros.core.overload import Shedder
 from lenn_ros.core.pairing import Pairer, U, Y, screen, screen_values
+from lenn_ros.core.spread import OneStepSpread
 from lenn_ros.core.structure import Identifier, StepResult
 from lenn_ros.core.warmup import MAX_WARM_UP, ScaleWarmUp, warm_up_samples
 
@@ -57,7 +59,7 @@ PAIRING_MODES = ("sequence", "stamp", "sample")
 SESSION_COUNTERS = (
     "u_messages", "y_messages", "nan", "out_of_range", "clipped",
     "no_sequence", "misaligned", "refused", "lone_u", "lone_y", "clock_offset", "held_overflow", "shed",
-    "field_errors", "warm_up_discarded",
+    "field_errors", "warm_up_discarded", "change_alarms",
 )  # fmt: skip
 #: Pairs held (not yet learnt) while the outputs wait for readers: beyond this the oldest are dropped.
 MAX_HELD = 10_000
@@ -128,6 +130,8 @@ class SessionConfig:
     learning: bool = True
     follow_test_start: bool = True
     scale_warm_up: float = 10.0  # s of samples (by sample_period) the scales not given are learnt from
+    change_alarm: bool = True  # watch the one-step errors for a plant change (core.change; single output)
+    change_threshold: float = DEFAULT_THRESHOLD  # its CUSUM threshold
     u_name: str = "u"  # topic names, for the messages a user reads
     y_name: str = "y_p"
     u_parts: tuple[int, ...] = ()  # several u topics: channels per topic (merged into one half)
@@ -250,6 +254,12 @@ class Session:
         self._warming: list[Pair] = []  # pairs held by the warm-up, learnt once it ends
         self.last_index: int | None = None  # of the last sample stepped
         self.changes: list[ParameterChange] = []  # live parameter changes applied, in order
+        # the change alarm (one output: a MIMO model's channels are not watched), fed every scored error
+        self.change = None if self.mimo else ChangeDetector(threshold=config.change_threshold)
+        self.change_time: float | None = None  # time of the sample the alarm rose at (live; offline None)
+        self.change_started: int | None = None  # the sample the last alarm rose at
+        self.spread = None if self.mimo else OneStepSpread()  # the one-step std of each y^ (core.spread)
+        self._next_std: float | None = None  # of the pending prediction
 
     # -- live parameters ---------------------------------------------------------------------
     def apply_parameters(self, values: dict[str, Any]) -> ParameterChange:
@@ -275,6 +285,9 @@ class Session:
                     model.set_params(**{name: value})
             elif name in GUARD_PARAMETERS:
                 setattr(identifier, name, value)
+            elif name == "change_threshold" and self.change is not None:
+                self.change.threshold = float(value)
+                self.config.change_threshold = float(value)
             elif name in SessionConfig.__dataclass_fields__:
                 setattr(self.config, name, value)
                 if name == "learning" and value and identifier.diverged:
@@ -740,7 +753,93 @@ class Session:
             self._say_clipped(pair.time)
         if result.error is not None and result.y_hat is not None:
             self.phase_nmse.add(pair.y, result.y_hat)
+        if self.spread is not None:
+            self._watch(pair, result)
         return Sample(pair.index, pair.time, pair.u, pair.y, result)
+
+    def _watch(self, pair: Pair, result: StepResult) -> None:
+        """One output: the one-step std of each prediction (core.spread) and the change alarm (core.change)."""
+        spread = self.spread
+        assert spread is not None
+        error = result.error
+        if error is not None:
+            result.y_hat_std = self._next_std
+            spread.update(error)
+            if self.config.change_alarm and self.change is not None:
+                event = self.change.update(error, pair.index)
+                if event:
+                    self._say_change(event, pair.index, pair.time)
+        if result.y_hat_next is not None:
+            result.y_hat_next_std = self._next_std = spread.std(result.leverage)
+
+    def _watch_change(
+        self,
+        index: np.ndarray,
+        y: np.ndarray,
+        y_hat: np.ndarray,
+        before: tuple[bool, float],
+        changes: Sequence[ParameterChange],
+    ) -> None:
+        """:meth:`_step`'s change alarm over a batch (``run_samples``): every scored error, in order, as live.
+
+        ``before``: (change_alarm, change_threshold) when the batch started; recorded live
+        changes of either take effect at their sample, as they did live.
+        """
+        detector = self.change
+        if detector is None:
+            return
+        watched, detector.threshold = before
+        pending = sorted(
+            (change for change in changes if {"change_alarm", "change_threshold"} & set(change.values)),
+            key=lambda change: change.from_index,
+        )
+        errors = y - y_hat
+        scored = np.flatnonzero(np.isfinite(errors))
+        update = detector.update
+        for row, error in zip(scored.tolist(), errors[scored].tolist(), strict=True):
+            sample = int(index[row])
+            while pending and pending[0].from_index <= sample:
+                values = pending.pop(0).values
+                watched = bool(values.get("change_alarm", watched))
+                detector.threshold = float(values.get("change_threshold", detector.threshold))
+            if watched:
+                event = update(error, sample)
+                if event:
+                    self._say_change(event, sample, None)
+        detector.threshold = self.config.change_threshold
+
+    def _say_change(self, event: str, index: int, time: float | None) -> None:
+        """The alarm rose (one WARN line: when, by how much) or cleared (one info line: how long it was on)."""
+        detector = self.change
+        assert detector is not None
+        when = f"sample {index}" + (f" (t={time:.3f} s)" if time is not None else "")
+        if event == RAISED:
+            self.counters["change_alarms"] += 1
+            self.change_time, self.change_started = time, index
+            self._say("change", self.change_text(index, time))
+            return
+        started, self.change_time = self.change_started, None
+        how = (
+            "the model has re-learnt: residual level back within "
+            f"{detector.clear_ratio:g}x its learnt level for {detector.hold_samples} samples"
+            if event != ACCEPTED
+            else f"the model did not get back to the old level in {detector.accept_samples} samples: its level now "
+            "is taken as the learnt one"
+        )
+        self._say(
+            "change_cleared",
+            f"{when}: plant change alarm (raised at sample {started}, peak {detector.peak:.1f}x) cleared: {how}",
+        )
+
+    def change_text(self, index: int, time: float | None) -> str:
+        """The alarm in one line: when, and by how much the residual level rose."""
+        detector = self.change
+        assert detector is not None
+        when = f"sample {index}" + (f" (t={time:.3f} s)" if time is not None else "")
+        return (
+            f"plant changed at {when}: residual level {detector.magnitude:.1f} times its learnt level "
+            f"(RMS one-step error; CUSUM over change_threshold {detector.threshold:g}; alarm {detector.count})"
+        )
 
     _last_pair: Pair | None = None
 
@@ -818,7 +917,10 @@ class Session:
         counters["gaps"] += int(np.count_nonzero(np.diff(index) > 1))
         counters["lost"] += int(np.sum(np.clip(np.diff(index) - 1, 0, None)))
         counters["rejected"] += int(np.count_nonzero(~valid))
+        before = (self.config.change_alarm, self.config.change_threshold)
         self._run_segments(index, u, y, learn, np.r_[0, breaks], np.r_[breaks, len(y)], valid, changes, y_hat)
+        if not self.mimo:
+            self._watch_change(index, y, y_hat, before, changes)
         if index.size:
             self.last_index = int(index[-1])
         phases = learn[valid]
@@ -935,9 +1037,17 @@ class Session:
                 "samples_seen": int(getattr(self.identifier.model, "n_samples_seen_", 0)),
                 "scaling": self.warm_up.status() if self.warm_up is not None else {"state": "given"},
                 "parameter_changes": len(self.changes),  # live changes applied, each in identifier_config
+                "change": self._change_status(),
                 **({"channels": self._channel_status()} if self.mimo else {}),
             }
         )
+
+    def _change_status(self) -> dict[str, Any]:
+        """``status['change']``: the alarm (on, how many, since when, by how much) or why it is not watched."""
+        if self.change is None:
+            return {"alarm": False, "watched": False, "why": "one output only (a MIMO model is not watched)"}
+        watched = {"watched": True} if self.config.change_alarm else {"watched": False, "why": "change_alarm is false"}
+        return {**self.change.status(), **watched, "since_time": self.change_time}
 
     def _learning_now(self) -> bool:
         """Whether samples are learnt now: the phase learns and the model is not paused after a divergence."""

@@ -21,6 +21,7 @@ from lenn_ros.core.networks import DivergenceError, OnlineRegressor
 from lenn_ros.core.online_step import (
     CLIPPED,
     DIVERGED,
+    LEVERAGE,
     LINEAR_PREVIOUS,
     NON_FINITE,
     PRIOR,
@@ -168,6 +169,9 @@ class StepResult:
     y_hat: float | None = None  # y^(k) itself
     learned: bool = False
     event: str = ""  # "", "gap", "duplicate", "rejected", "diverged", "resumed"
+    leverage: float = 0.0  # phi' P phi of y_hat_next's pattern (RLS; 0: other rules), for its one-step std
+    y_hat_next_std: float | None = None  # one-step std of y_hat_next (the session's core.spread fills it in)
+    y_hat_std: float | None = None  # ... of y_hat, the prediction this sample scored
 
 
 @dataclass
@@ -280,6 +284,7 @@ class Identifier:
         self._push(u, y)
         if len(self._y_past) >= self.structure.warm_up:
             result.y_hat_next = self._predict_next()
+            result.leverage = self._leverage
         return result
 
     def set_structure(self, structure: ModelStructure) -> None:
@@ -318,6 +323,7 @@ class Identifier:
             self.model.n_clipped_ = getattr(self.model, "n_clipped_", 0) + int(out[CLIPPED])
         if not math.isnan(out[Y_HAT_NEXT]):
             result.y_hat_next = float(out[Y_HAT_NEXT])
+            result.leverage = float(out[LEVERAGE])
 
     def _score_pending(self, y: float, learn: bool, result: StepResult) -> None:
         """y_p(k) has arrived: score the prediction made at k-1 and learn from its error.
@@ -379,7 +385,11 @@ class Identifier:
             self.model._initialise()
         phi = features(x)
         self._pending = (x, linear, phi)
+        if getattr(self.model, "solver", None) == "rls":  # (the compiled step's LEVERAGE, where numba is missing)
+            self._leverage = float(phi[0] @ self.model.covariance_ @ phi[0])
         return float(linear + self.model.update_features(phi, 0.0, learn=False)[0])
+
+    _leverage = 0.0
 
     def skip(self, index: int | None = None) -> None:
         """Sample ``index`` was rejected (bad value): the history is broken there.

@@ -45,17 +45,22 @@ def simulate_change(
     change_at: int,
     gain_after: float = GAIN_AFTER_CHANGE,
     number: int = 1,
+    input_gain: float = 1.0,
+    noise_db: float | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """(u, y) of example ``number`` whose nonlinear part's gain changes at ``change_at``.
 
     Same excitation as the paper's training phase (uniform u, input noise at the
-    example's level) throughout. The new plant takes over the old one's state, so
-    y[change_at] is the last output of the old plant and y[change_at + 1] the first
-    of the new one.
+    example's level, or ``noise_db``) throughout. The new plant takes over the old one's
+    state, so y[change_at] is the last output of the old plant and y[change_at + 1] the
+    first of the new one. ``input_gain``: from ``change_at`` on the plant receives
+    input_gain u(k) + noise (an actuator that lost or gained strength; the change alarm's tests).
     """
     example = EXAMPLES[number]
-    u, noise = Excitation(seed, "paper", samples, 0, example.noise_db).series()
+    noise_db = example.noise_db if noise_db is None else noise_db
+    u, noise = Excitation(seed, "paper", samples, 0, noise_db).series()
     applied = u + noise
+    applied[change_at:] += (input_gain - 1.0) * u[change_at:]
     before: Plant = example.plant()
     after: Plant = example.plant(gain=gain_after)
     y_before = before.run(applied[:change_at])

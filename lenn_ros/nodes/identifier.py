@@ -81,7 +81,7 @@ _QOS_OVERRIDES = QoSOverridingOptions(
     policy_kinds=(QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY)
 )
 #: Notice kinds that are news, not trouble.
-_INFO_KINDS = ("phase", "resumed", "scales", "parameters")
+_INFO_KINDS = ("phase", "resumed", "scales", "parameters", "change_cleared")
 
 
 def _descriptor(parameter: Parameter) -> ParameterDescriptor:
@@ -748,6 +748,9 @@ class IdentifierNode(Node):
         counters = status["counters"]
         if status["diverged"] or status["refused"] or counters["type_mismatch"] or counters["qos_incompatible"]:
             level, text = DiagnosticStatus.ERROR, status["refused"] or "diverged, type or QoS mismatch"
+        elif status["change"]["alarm"]:  # while it is on, whatever else was said
+            change = status["change"]
+            level, text = DiagnosticStatus.WARN, self.session.change_text(change["since_sample"], change["since_time"])
         elif self._warned_kinds:
             level, text = DiagnosticStatus.WARN, "warnings: " + ", ".join(sorted(self._warned_kinds))
         else:
@@ -755,6 +758,9 @@ class IdentifierNode(Node):
         values = [KeyValue(key=key, value=str(value)) for key, value in counters.items()]
         for key in ("pairing", "learning", "phase_samples", "phase_nmse_db", "phase_rmse", "samples_seen"):
             values.append(KeyValue(key=key, value=str(status[key])))
+        change = status["change"]
+        for key in ("alarm", "count", "since_sample", "magnitude", "ratio"):
+            values.append(KeyValue(key=f"change.{key}", value=str(change.get(key))))
         for name, channel in status.get("channels", {}).items():
             values.append(KeyValue(key=f"phase_nmse_db.{name}", value=str(channel["phase_nmse_db"])))
         entry = DiagnosticStatus(

@@ -1,4 +1,4 @@
-"""What the identifier publishes per sample: y_hat, error (plain and stamped), samples, nmse.
+"""What the identifier publishes per sample: y_hat, error (plain and stamped), y_hat_std, samples, nmse.
 
 One message object per output, refilled for every sample: building messages was a good
 part of the per-sample cost (a JointState constructs its Header and Time, the generated
@@ -65,6 +65,10 @@ class IdentifierOutputs:
         self.y_hat_stamped = node.create_publisher(JointState, topics.Y_HAT_STAMPED, qos)
         self.error_stamped = node.create_publisher(JointState, topics.ERROR_STAMPED, qos)
         self.samples = node.create_publisher(Float64MultiArray, topics.SAMPLES, qos)
+        # the one-step std (core.spread): one output only, a MIMO model's channels have none
+        self.y_hat_std = None if mimo else node.create_publisher(Float64, topics.Y_HAT_STD, qos)
+        self.y_hat_std_stamped = None if mimo else node.create_publisher(JointState, topics.Y_HAT_STD_STAMPED, qos)
+        self._std_message = Float64()
         self.nmse = node.create_publisher(Float64, topics.NMSE, qos)
         self._sample_message = Float64MultiArray(layout=topics.vector_layout(sample_labels))
         if mimo:
@@ -74,7 +78,8 @@ class IdentifierOutputs:
             self._y_hat_message, self._error_message = Float64(), Float64()
         self._joint_messages = {
             publisher: JointState(name=list(outputs), position=[0.0] * len(outputs))
-            for publisher in (self.y_hat_stamped, self.error_stamped)
+            for publisher in (self.y_hat_stamped, self.error_stamped, self.y_hat_std_stamped)
+            if publisher is not None
         }
         self.errors_since_report = 0
 
@@ -96,12 +101,20 @@ class IdentifierOutputs:
             if result is not None and result.y_hat_next is not None:
                 self._y_hat_message.data = result.y_hat_next
                 self.y_hat.publish(self._y_hat_message)
+                if result.y_hat_next_std is not None and self.y_hat_std.get_subscription_count():
+                    self._std_message.data = result.y_hat_next_std
+                    self.y_hat_std.publish(self._std_message)
             if self.samples.get_subscription_count():
                 learn = float(result.learned) if result is not None else 0.0
                 self._sample_message.data = array("d", (float(sample.index), sample.time, sample.u, sample.y, learn))
                 self.samples.publish(self._sample_message)
             if result is not None and result.error is not None and result.y_hat is not None:
                 self._publish_error(sample.time, result.y_hat, result.error)
+                if result.y_hat_std is not None and self.y_hat_std_stamped.get_subscription_count():
+                    message = self._joint_messages[self.y_hat_std_stamped]
+                    set_stamp(message.header.stamp, sample.time)
+                    message.position[0] = result.y_hat_std
+                    self.y_hat_std_stamped.publish(message)
 
     def _publish_vectors(self, samples: list[Sample]) -> None:
         """:meth:`publish` for a MIMO model: every output is one vector message, in the same order."""

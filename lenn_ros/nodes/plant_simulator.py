@@ -90,6 +90,15 @@ class PlantSimulator(Node):
         declare("wait_for_subscribers", 1, _describe("subscribers to u and y_p needed before stepping", 0, 100))
         declare("change_step", 0, _describe("tracking scenario: step at which the plant changes (0 = never)", 0, 10**9))
         declare("change_gain", 1.0, _describe("gain of the unknown nonlinear part after change_step", -10.0, 10.0))
+        declare(
+            "change_input_gain",
+            1.0,
+            _describe(
+                "actuator gain after change_step: the plant receives this x u(k) + noise (0.8: -20 %; any SISO plant)",
+                -10.0,
+                10.0,
+            ),
+        )
         declare("exit_when_done", False, _describe("exit after the last test sample"))
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -99,6 +108,7 @@ class PlantSimulator(Node):
         self.mimo = isinstance(self.plant, MimoPlant)
         self._make_excitations()
         self.k = 0
+        self.input_gain = 1.0  # change_input_gain from change_step on
         self.acknowledged = 0
         self._last_acknowledged = 0
         self._stalled_since = time.monotonic()
@@ -227,7 +237,7 @@ class PlantSimulator(Node):
         self.u_publisher.publish(Float64(data=u))
         self.y_publisher.publish(Float64(data=self.plant.output))
         try:
-            self.plant.step(u + noise)
+            self.plant.step(self.input_gain * u + noise)
         except ExpressionError as error:
             # A formula can pass every check and still fail at some state (u1/y1 at rest). Raised
             # from this timer callback it would be a traceback; run_node prints this one line, exit 2.
@@ -247,7 +257,19 @@ class PlantSimulator(Node):
         return True
 
     def _change_plant(self) -> None:
-        """Tracking scenario: the unknown part's gain jumps; the plant's state carries over."""
+        """Tracking scenario: the unknown part's gain jumps, or the actuator's; the plant's state carries over."""
+        input_gain = self.get_parameter("change_input_gain").value
+        if input_gain != 1.0:
+            if self.mimo:
+                self.get_logger().warning("change_input_gain applies to SISO plants only; ignored")
+            else:
+                self.input_gain = input_gain
+                self.get_logger().info(
+                    f"step {self.k}: plant changed (actuator gain x{input_gain:g}: it now receives "
+                    f"{input_gain:g} u + noise)"
+                )
+        if self.get_parameter("change_gain").value == 1.0:
+            return
         example = self.get_parameter("example").value
         if not example or self.mimo:
             self.get_logger().warning("change_step applies to the paper's (SISO) examples only; ignored")

@@ -1,0 +1,52 @@
+"""The one-step std (core.spread) through a Session, no DDS: its leverage is phi' P phi, and the band covers."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from lenn_ros.config import build_identifier, resolve
+from lenn_ros.core.evaluation import simulate
+from lenn_ros.core.examples import get_example
+from lenn_ros.core.session import Session, SessionConfig
+from lenn_ros.core.spread import Z95
+
+
+def stepped(preset: int, series, samples: int) -> tuple[Session, list]:
+    values, network = resolve({"example": preset, "sample_period": 0.01})
+    live = Session(build_identifier(values, network), SessionConfig(sample_period=0.01))
+    results = []
+    for k in range(samples):
+        live.offer("u", float(series.u[k]), k * 0.01, sequence=k + 1)
+        results += [sample.result for sample in live.offer("y", float(series.y[k]), k * 0.01, sequence=k + 1)]
+    return live, [result for result in results if result is not None]
+
+
+@pytest.fixture(scope="module")
+def series():
+    example = get_example(3)
+    return simulate(example.plant(), example.noise_db, 0, 20_000, 0)
+
+
+def test_the_compiled_leverage_is_phi_p_phi_of_the_pending_pattern(series) -> None:
+    live, results = stepped(0, series, 3_000)
+    identifier = live.identifier
+    plan = identifier._plan
+    assert plan is not None  # the compiled path
+    phi = plan.state.phi[0]
+    expected = float(phi @ identifier.model.covariance_ @ phi)
+    assert results[-1].leverage == pytest.approx(expected, rel=1e-12) and expected > 0
+    spread = live.spread
+    assert results[-1].y_hat_next_std == pytest.approx(np.sqrt(spread.s2 * (1 + expected)), rel=1e-15)
+
+
+@pytest.mark.parametrize("preset", [0, 3])  # RLS (P), the example's SGD (no P: the EWMA residual std alone)
+def test_the_nominal_95_percent_band_covers_93_to_97_percent_after_learning(series, preset: int) -> None:
+    _, results = stepped(preset, series, 20_000)
+    scored = [r for r in results[-10_000:] if r.error is not None and r.y_hat_std is not None]
+    errors = np.array([r.error for r in scored])
+    std = np.array([r.y_hat_std for r in scored])
+    coverage = float(np.mean(np.abs(errors) <= Z95 * std))
+    assert 0.93 <= coverage <= 0.97, coverage
+    if preset == 3:
+        assert all(r.leverage == 0.0 for r in scored)

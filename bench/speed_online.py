@@ -649,7 +649,7 @@ def profile_identifier_callbacks(pairs: int, repeats: int) -> dict[str, Any]:
     own_init = not rclpy.ok()
     if own_init:
         rclpy.init(args=["--ros-args", "--log-level", "error"])
-    node = IdentifierNode()
+    node = IdentifierNode(separate_inputs=False)  # messages go to _offer directly: no subscriptions needed
     # No publisher of u / y_p exists in this process's graph: without this the node would
     # hold every pair (and look the graph up per message) for its 5 s start grace, and
     # the profile would measure holding, not learning.

@@ -54,6 +54,7 @@ from lenn_ros.core.metrics import coverage, nmse_db, rmse
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.session import ParameterChange, Session, SessionConfig, describe_gaps
+from lenn_ros.core.spread import Z95
 from lenn_ros.core.structure import Identifier
 from lenn_ros.evaluate_mimo import MimoBagEvaluation, score_mimo
 from lenn_ros.evaluate_mimo import report as report_mimo
@@ -365,10 +366,34 @@ def evaluate_bag(
     unpaired = sum(counters.get(name, 0) for name in ("unpaired", "dropped_u", "dropped_y"))
     weights_in = str(weights_path(values["weights_in"])) if values.get("weights_in") else ""
     gaps = describe_gaps(index, session.config.pairing, session.config.sample_period)
+    intervals = {**fit_band_coverage(weights_in, evaluation), **one_step_band(index >= start, y, y_hat, session)}
     return BagEvaluation(
         evaluation, len(index), unpaired, rejected, int(start), source, missing, counters, notices, weights_in, gaps,
-        fit_band_coverage(weights_in, evaluation),
+        intervals,
     )  # fmt: skip
+
+
+def one_step_band(test: np.ndarray, y: np.ndarray, y_hat: np.ndarray, session: Session) -> dict[str, Any]:
+    """The node's nominal 95 % one-step band (``y_hat_std``, as published live) and what it covers of the test part.
+
+    ``run_samples`` gives every prediction the std the node published with it (RLS
+    covariance and innovation variance, ``core.spread``), so this is the band live users saw.
+    """
+    std = session.last_y_hat_std
+    if len(std) != len(y):
+        return {}
+    scored = test & np.isfinite(y_hat) & np.isfinite(std)
+    if not scored.any():
+        return {}
+    half = Z95 * std[scored]
+    return {
+        "level": 0.95,
+        "one_step": {
+            "median_half_width": float(np.median(half)),
+            "from": "the node's y_hat_std (RLS covariance and innovation variance), as published live",
+            "coverage_test": float(np.mean(np.abs(y[scored] - y_hat[scored]) <= half)),
+        },
+    }
 
 
 def fit_band_coverage(weights_in: str, evaluation: Evaluation) -> dict[str, Any]:
@@ -505,6 +530,16 @@ def _score(identifier: Identifier, index: np.ndarray, u: np.ndarray, y: np.ndarr
     )
 
 
+def print_bands(intervals: dict[str, Any]) -> None:
+    """The one-step and free-run 95 % bands and their coverage of the test part, one line each."""
+    one, run = intervals.get("one_step"), intervals.get("free_run")
+    if one:
+        width, covered = one["median_half_width"], one["coverage_test"]
+        print(f"  one-step 95 % band (y_hat_std, median +-{width:.4g}): covers {covered:.1%}")
+    if run:
+        print(f"  free-run 95 % band of the fit (+-{run['half_width']:.4g}): covers {run['coverage_test']:.1%} here")
+
+
 def main(args) -> int:
     result = evaluate_bag(args.bag, args.params, args.test_from, getattr(args, "node", "/identifier"))
     if isinstance(result, MimoBagEvaluation):
@@ -530,9 +565,7 @@ def main(args) -> int:
         value = d[key]
         shown = f"{value:8.3f} dB" if value is not None and math.isfinite(value) else str(value)
         print(f"  NMSE {label}: {shown}   RMSE {d[rmse_key]}")
-    band = d["intervals"].get("free_run")
-    if band:
-        print(f"  free-run 95 % band of the fit (+-{band['half_width']:.4g}): covers {band['coverage_test']:.1%} here")
+    print_bands(d["intervals"])
     for warning in d["warnings"]:
         print(f"  WARNING: {warning}")
     for notice in d["notices"]:

@@ -30,7 +30,7 @@ def run(solver: str) -> tuple[np.ndarray, np.ndarray]:
     elif solver == "nlms":
         kernels.functional_link_nlms(weights, features, targets, 0.5, 1e-6, True, y)
     else:
-        kernels.functional_link_rls(weights, np.eye(6) * 100.0, features, targets, 0.99, 1e6, True, y)
+        kernels.functional_link_rls(weights, np.eye(6) * 100.0, features, targets, 0.99, 1e6, True, y, np.empty(0))
     return weights, y
 
 

@@ -66,7 +66,15 @@ def _rls(weights, covariance, x, targets, forgetting, max_trace, cross_degree) -
     for start in range(0, len(x), CHUNK):
         phi = _example4_features(x[start : start + CHUNK], cross_degree)
         n = kernels.functional_link_rls(
-            weights, covariance, phi, targets[start : start + CHUNK], forgetting, max_trace, True, y[: len(phi)]
+            weights,
+            covariance,
+            phi,
+            targets[start : start + CHUNK],
+            forgetting,
+            max_trace,
+            True,
+            y[: len(phi)],
+            np.empty(0),
         )
         done += n
         if n < len(phi):
@@ -91,7 +99,9 @@ def test_rls_million_updates_on_example4_cross_terms_stays_least_squares():
     y = np.empty(CHUNK)
     for start in range(0, len(x), CHUNK):
         phi, t = _example4_features(x[start : start + CHUNK], 3), targets[start : start + CHUNK]
-        assert kernels.functional_link_rls(weights, covariance, phi, t, 1.0, 1.0e6, True, y[: len(phi)]) == len(phi)
+        assert kernels.functional_link_rls(
+            weights, covariance, phi, t, 1.0, 1.0e6, True, y[: len(phi)], np.empty(0)
+        ) == len(phi)
         gram += phi.T @ phi
         moment += phi.T @ t
     _assert_healthy(weights, covariance)

@@ -85,6 +85,9 @@ def test_evaluate_with_fit_params_starts_from_the_fitted_weights(fitted, tmp_pat
     inside = np.abs(e.y_test - e.y_free_test) <= band["half_width"]
     assert band["coverage_test"] == pytest.approx(inside.mean(), abs=1e-12)
     assert 0.0 < band["coverage_test"] <= 1.0
+    # the node's one-step band (y_hat_std as published live) over the test part
+    one = evaluation.intervals["one_step"]
+    assert 0.93 <= one["coverage_test"] <= 0.97, one
 
 
 def test_evaluate_of_a_bag_recorded_with_weights_in_uses_them(fitted, tmp_path: Path) -> None:

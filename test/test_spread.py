@@ -50,3 +50,28 @@ def test_the_nominal_95_percent_band_covers_93_to_97_percent_after_learning(seri
     assert 0.93 <= coverage <= 0.97, coverage
     if preset == 3:
         assert all(r.leverage == 0.0 for r in scored)
+
+
+@pytest.mark.parametrize("preset", [0, 3])
+def test_offline_the_band_is_the_one_published_live(series, preset: int) -> None:
+    """run_samples (evaluate, replay) gives every y^ the std the node published with it, gaps included."""
+    n = 6_000
+    keep = np.ones(n, dtype=bool)
+    keep[[2_000, 2_001, 4_500]] = False  # lost samples: the history restarts, the band goes on
+    live, _ = stepped(preset, series, 0)
+    published = {}
+    for k in np.flatnonzero(keep):
+        live.offer("u", float(series.u[k]), k * 0.01, sequence=int(k) + 1)
+        for sample in live.offer("y", float(series.y[k]), k * 0.01, sequence=int(k) + 1):
+            if sample.result is not None and sample.result.y_hat_std is not None:
+                published[sample.index] = sample.result.y_hat_std
+    values, network = resolve({"example": preset, "sample_period": 0.01})
+    offline = Session(build_identifier(values, network), SessionConfig(sample_period=0.01))
+    index = np.flatnonzero(keep) + 1
+    offline.run_samples(index, series.u[:n][keep], series.y[:n][keep], np.ones(len(index), dtype=bool))
+    std = dict(zip(index.tolist(), offline.last_y_hat_std.tolist(), strict=True))
+    assert len(published) > n - 100
+    assert {k for k, v in std.items() if np.isfinite(v)} == {k for k, v in published.items() if np.isfinite(v)}
+    for k, value in published.items():
+        if np.isfinite(value):
+            assert std[k] == pytest.approx(value, rel=1e-12, abs=0.0), k

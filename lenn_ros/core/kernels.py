@@ -140,8 +140,14 @@ def functional_link_rls(
     max_trace: float,
     learn: bool,
     y_out: np.ndarray,
+    leverage_out: np.ndarray,
 ) -> int:
     """Exponentially weighted recursive least squares for a linear output.
+
+    ``leverage_out`` (length 0: not wanted) receives phi(k)' P phi(k) of each sample's
+    pattern with the P its a-priori output was predicted with (:func:`leverage`), the
+    share of the one-step variance the weights' uncertainty adds (``core.spread``): the
+    same values, in the same arithmetic, as the live step reports for each prediction.
 
     Two safeguards keep it healthy over millions of updates:
     - the covariance is re-symmetrised after every update (round-off otherwise
@@ -153,7 +159,10 @@ def functional_link_rls(
     """
     n_samples, n_features = features.shape
     p_phi = np.empty(n_features)
+    wanted = len(leverage_out) > 0
     for k in range(n_samples):
+        if wanted:
+            leverage_out[k] = leverage(covariance, features, k)
         y = 0.0
         for f in range(n_features):
             y += weights[f] * features[k, f]
@@ -168,6 +177,23 @@ def functional_link_rls(
             weights[i] += p_phi[i] / denominator * error
         _rls_covariance_update(covariance, p_phi, denominator, forgetting, max_trace)
     return n_samples
+
+
+@njit(cache=True, nogil=True, inline="always")
+def leverage(covariance: np.ndarray, features: np.ndarray, k: int) -> float:
+    """phi' P phi of row ``k`` over the upper triangle (P is symmetric): half the multiplications of the full form.
+
+    The one formula the live step (``online_step``) and the batch RLS use, so the one-step
+    std of a recording evaluated offline equals the one published live.
+    """
+    n = features.shape[1]
+    total = 0.0
+    for i in range(n):
+        row = 0.0
+        for j in range(i + 1, n):
+            row += covariance[i, j] * features[k, j]
+        total += features[k, i] * (covariance[i, i] * features[k, i] + 2.0 * row)
+    return total
 
 
 @njit(cache=True, nogil=True, inline="always")

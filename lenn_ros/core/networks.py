@@ -458,13 +458,21 @@ class FunctionalLinkNetwork(OnlineRegressor):
         parts = [expand(x[:, branch], self.order, self.basis, self.cross_degree) for branch in self.branch_inputs_]
         return parts[0] if len(parts) == 1 else np.hstack(parts)
 
-    def update(self, x: np.ndarray, d: np.ndarray, learn: bool = True) -> np.ndarray:
-        """A-priori outputs for each sample, learning from each in turn if ``learn``."""
+    def update(
+        self, x: np.ndarray, d: np.ndarray, learn: bool = True, leverage_out: np.ndarray | None = None
+    ) -> np.ndarray:
+        """A-priori outputs for each sample, learning from each in turn if ``learn``.
+
+        ``leverage_out`` (RLS only; one entry per sample): filled with each pattern's
+        phi' P phi, for the one-step std of each output (``core.spread``).
+        """
         if not self.is_initialised:
             self._initialise()
-        return self.update_features(self.features(x), d, learn)
+        return self.update_features(self.features(x), d, learn, leverage_out)
 
-    def update_features(self, phi: np.ndarray, d: np.ndarray | float, learn: bool = True) -> np.ndarray:
+    def update_features(
+        self, phi: np.ndarray, d: np.ndarray | float, learn: bool = True, leverage_out: np.ndarray | None = None
+    ) -> np.ndarray:
         """:meth:`update` for patterns already expanded by :meth:`features`.
 
         The live identifier expands each regressor once, to predict the next output,
@@ -504,12 +512,17 @@ class FunctionalLinkNetwork(OnlineRegressor):
                 self.trace_bound,
                 learn,
                 y,
+                _NO_LEVERAGE if leverage_out is None else leverage_out,
             )
         if learn:
             self.n_samples_seen_ += done
         if done < phi.shape[0]:
             raise DivergenceError(done, y[: done + 1])
         return y
+
+
+#: ``leverage_out`` of the RLS kernel when nobody asked for it
+_NO_LEVERAGE = np.empty(0)
 
 
 class LeNN(FunctionalLinkNetwork):

@@ -26,6 +26,7 @@ from lenn_ros.core.kernels import (
     functional_link_nlms,
     functional_link_rls,
     functional_link_sgd,
+    leverage,
     njit,
     term_expansion,
 )
@@ -99,7 +100,7 @@ def _rule(
         )
     if solver == 1:
         return functional_link_nlms(weights, phi, target, rule[3], NLMS_EPSILON, learn, y_out)
-    return functional_link_rls(weights, covariance, phi, target, rule[4], rule[5], learn, y_out)
+    return functional_link_rls(weights, covariance, phi, target, rule[4], rule[5], learn, y_out, y_out[:0])
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -283,22 +284,9 @@ def _predict(
     )
     out[Y_HAT_NEXT] = linear + y_out[0]
     if solver == 2:
-        out[LEVERAGE] = _leverage(covariance, phi)
+        out[LEVERAGE] = leverage(covariance, phi, 0)
     linear_pending[0] = linear
     counts[1] = 1
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _leverage(covariance: np.ndarray, phi: np.ndarray) -> float:
-    """phi' P phi over the upper triangle (P is symmetric): half the multiplications of the full form."""
-    n = phi.shape[1]
-    total = 0.0
-    for i in range(n):
-        row = 0.0
-        for j in range(i + 1, n):
-            row += covariance[i, j] * phi[0, j]
-        total += phi[0, i] * (covariance[i, i] * phi[0, i] + 2.0 * row)
-    return total
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -260,6 +260,7 @@ class Session:
         self.change_started: int | None = None  # the sample the last alarm rose at
         self.spread = None if self.mimo else OneStepSpread()  # the one-step std of each y^ (core.spread)
         self._next_std: float | None = None  # of the pending prediction
+        self.last_y_hat_std = np.zeros(0)  # run_samples(): the one-step std of each y^(k) (nan: none)
 
     # -- live parameters ---------------------------------------------------------------------
     def apply_parameters(self, values: dict[str, Any]) -> ParameterChange:
@@ -772,6 +773,32 @@ class Session:
         if result.y_hat_next is not None:
             result.y_hat_next_std = self._next_std = spread.std(result.leverage)
 
+    def _spread_offline(self, y: np.ndarray, y_hat: np.ndarray, leverage: np.ndarray) -> np.ndarray:
+        """:meth:`_watch`'s one-step std over a batch (``run_samples``): the std each y^(k) was published with.
+
+        The same :class:`~lenn_ros.core.spread.OneStepSpread` calls in the same order as
+        live: each scored error updates it, then the next prediction asks for its std
+        with its pattern's leverage (the batch RLS reports the same phi' P phi the step
+        does), so a recording evaluated offline has the band the node published.
+        """
+        spread = self.spread
+        out = np.full(len(y), np.nan)
+        if spread is None:
+            return out
+        errors = (y - y_hat).tolist()
+        predicted = np.isfinite(y_hat).tolist()
+        levers = leverage.tolist()
+        next_std = self._next_std
+        update, std = spread.update, spread.std
+        for k, error in enumerate(errors):
+            if error == error:  # finite where predicted (y is finite in a valid row)
+                out[k] = math.nan if next_std is None else next_std
+                update(error)
+            if k + 1 < len(errors) and predicted[k + 1]:
+                next_std = std(levers[k + 1])
+        self._next_std = next_std
+        return out
+
     def _watch_change(
         self,
         index: np.ndarray,
@@ -906,8 +933,11 @@ class Session:
         if self.warm_up is not None and not self.warm_up.done and not self.mimo:
             first = self._warm_offline(u, y)  # live, the rows before it were discarded by the warm-up
             y_hat = np.full(y.shape, np.nan)
+            std = np.full(y.shape, np.nan)
             if first is not None:
                 y_hat[first:] = self.run_samples(index[first:], u[first:], y[first:], learn[first:], changes)
+                std[first:] = self.last_y_hat_std
+            self.last_y_hat_std = std
             return y_hat
         y_hat = np.full(y.shape, np.nan)
         valid = _finite_rows(u) & _finite_rows(y)
@@ -918,8 +948,10 @@ class Session:
         counters["lost"] += int(np.sum(np.clip(np.diff(index) - 1, 0, None)))
         counters["rejected"] += int(np.count_nonzero(~valid))
         before = (self.config.change_alarm, self.config.change_threshold)
-        self._run_segments(index, u, y, learn, np.r_[0, breaks], np.r_[breaks, len(y)], valid, changes, y_hat)
+        leverage = np.zeros(len(y))
+        self._run_segments(index, u, y, learn, np.r_[0, breaks], np.r_[breaks, len(y)], valid, changes, y_hat, leverage)
         if not self.mimo:
+            self.last_y_hat_std = self._spread_offline(y, y_hat, leverage)
             self._watch_change(index, y, y_hat, before, changes)
         if index.size:
             self.last_index = int(index[-1])
@@ -947,8 +979,10 @@ class Session:
         valid: np.ndarray,
         changes: Sequence[ParameterChange],
         y_hat: np.ndarray,
+        leverage: np.ndarray,
     ) -> None:
-        """Each run of consecutive valid samples through the identifier, with each change applied at its sample."""
+        """Each run of consecutive valid samples through the identifier, with each change applied at its sample;
+        ``leverage`` gets each prediction's phi' P phi (SISO RLS), for :meth:`_spread_offline`."""
         pending = sorted(changes, key=lambda change: change.from_index)  # (stable: one index, in recorded order)
         where = [int(np.searchsorted(index, change.from_index, side="left")) for change in pending]
 
@@ -965,6 +999,8 @@ class Session:
             if stop > start and valid[start]:
                 cuts = (inside,) if inside else ()  # (a MIMO identifier's run takes none: refused above)
                 y_hat[start:stop] = self.identifier.run(u[start:stop], y[start:stop], learn[start:stop], *cuts)
+                if not self.mimo:
+                    leverage[start:stop] = self.identifier.last_leverage
         for change in pending:  # from after the last sample: no sample learns with it, the state has it
             self.replay_change(change)
 

@@ -248,6 +248,7 @@ class Identifier:
         self._plan: StepPlan | None = None  # the compiled per-sample path, where the model has one
         self._plan_model: OnlineRegressor | None = None  # the model the plan was made for
         self.last_free_run: dict = {}
+        self.last_leverage = np.zeros(0)  # run(): phi' P phi of each y^(k) (RLS; 0 elsewhere)
         self.target_variance = 0.0  # learnt while the target moved (0: not yet)
         self._moving_blocks = 0
         self.hold_off = 0  # learnable samples of the last pause after a divergence
@@ -519,6 +520,8 @@ class Identifier:
         first = self.structure.warm_up - 1
         mask, outputs = learn_mask[first + 1 :], y[first + 1 :]  # outputs: y(k+1)
         y_hat = np.full(len(y), np.nan)
+        leverage = np.zeros(len(targets))  # phi' P phi of each prediction (RLS), for its one-step std
+        self.last_leverage = np.zeros(len(y))
         mask_changes = np.append(np.flatnonzero(mask[1:] != mask[:-1]) + 1, len(targets))
         # sample p's step learns from target p - first - 1 (none yet in the warm-up: before the first)
         cuts = sorted(((max(position - first - 1, 0), apply) for position, apply in changes), key=lambda c: c[0])
@@ -543,7 +546,7 @@ class Identifier:
             if paused:
                 self.resume_in -= stop - start
             try:
-                prior = self.model.update(inputs[start:stop], targets[start:stop], learn=learning)
+                prior = self._update(inputs[start:stop], targets[start:stop], learning, leverage[start:stop])
             except DivergenceError as error:
                 stop = start + error.sample_index + 1
                 prior = error.predictions
@@ -556,7 +559,14 @@ class Identifier:
                 self._score_run(outputs[start:stop] - y_hat[first + 1 + start : first + 1 + stop], targets[start:stop])
             start = stop
         self.counters["samples"] += len(y)
+        self.last_leverage[first + 1 :] = leverage
         return y_hat
+
+    def _update(self, inputs: np.ndarray, targets: np.ndarray, learning: bool, leverage: np.ndarray) -> np.ndarray:
+        """The model's batch update; an RLS functional-link model also fills ``leverage``, as the live step has it."""
+        if getattr(self.model, "solver", None) == "rls" and hasattr(self.model, "term_exponents"):
+            return self.model.update(inputs, targets, learn=learning, leverage_out=leverage)
+        return self.model.update(inputs, targets, learn=learning)
 
     def _score_run(self, errors: np.ndarray, targets: np.ndarray) -> None:
         """Add a learnt run of :meth:`run` to the divergence guard's block, checking it once full."""

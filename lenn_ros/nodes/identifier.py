@@ -69,7 +69,7 @@ from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.networks import ModelFileError
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.session import Notice, Sample, Session, SessionConfig, json_safe
-from lenn_ros.nodes import DRAIN_SECONDS, executor_choice, run_node
+from lenn_ros.nodes import DRAIN_SECONDS, InputsNode, executor_choice, run_node
 from lenn_ros.nodes.identifier_outputs import IdentifierOutputs
 
 #: Parameters set by rclpy itself or by the QoS override mechanism: not unknown.
@@ -119,6 +119,7 @@ class IdentifierNode(Node):
     #: the middleware's next heartbeat, up to 3 s with Fast DDS); the exit must come within 2 s
     #: of SIGINT, and the interpreter's own teardown takes 0.3-0.6 s of them.
     loop_takes_messages = False  # set by run_node's wait-set loop (see _on_message)
+    companions: tuple[Node, ...] = ()  # nodes the loop must serve with this one (the InputsNode)
     _EXIT_BUDGET = 1.2
     _ACK_FLOOR = 0.4
     _drained_for = 0.0
@@ -128,12 +129,19 @@ class IdentifierNode(Node):
         return max(self._ACK_FLOOR, self._EXIT_BUDGET - self._drained_for)
 
     def __init__(
-        self, node_name: str = "identifier", sibling_parameters: tuple[str, ...] = (), **node_options: Any
+        self,
+        node_name: str = "identifier",
+        sibling_parameters: tuple[str, ...] = (),
+        separate_inputs: bool = True,
+        **node_options: Any,
     ) -> None:
         """``node_options`` go to rclpy's Node (namespace, parameter_overrides, context...),
         so several identifiers can share one process (a fleet); ``sibling_parameters`` are
-        names a ``-p`` gives to another node of that process (not reported as unknown here)."""
-        self._sibling_parameters = frozenset(sibling_parameters)
+        names a ``-p`` gives to another node of that process (not reported as unknown here).
+        ``separate_inputs``: u and y_p on a DDS participant of their own (:class:`InputsNode`,
+        ``companions``), so a flood of them cannot delay the parameter services; a fleet
+        of identifiers, which would otherwise make one participant per plant, shares one."""
+        self._sibling_parameters, self._separate_inputs = frozenset(sibling_parameters), separate_inputs
         super().__init__(node_name, automatically_declare_parameters_from_overrides=False, **node_options)
         self._started = time.monotonic()
         self.values = self._declare_all()
@@ -399,17 +407,28 @@ class IdentifierNode(Node):
         )
         profile = QoSProfile(depth=topics.DATA_DEPTH, reliability=reliability)
         self._data_subscriptions: dict[tuple[str, int], Any] = {}
+        inputs = InputsNode(self) if self._separate_inputs else None
         for channel, part, name in self.inputs:
             events = SubscriptionEventCallbacks(incompatible_qos=lambda event, c=channel: self._on_incompatible_qos(c))
-            self._data_subscriptions[channel, part] = self.create_subscription(
+            callback = lambda message, info, c=channel, p=part: self._on_message(c, message, info, p)  # noqa: E731
+            subscription = self.create_subscription(
                 message_types[channel],
                 name,
-                lambda message, info, c=channel, p=part: self._on_message(c, message, info, p),
+                callback,
                 profile,
                 event_callbacks=events,
                 qos_overriding_options=_QOS_OVERRIDES,
                 raw=True,  # read once admitted (_offer)
             )
+            if inputs is not None:  # declared here (its QoS overrides are our parameters), received there
+                topic, qos = subscription.topic_name, subscription.qos_profile
+                self.destroy_subscription(subscription)
+                subscription = inputs.create_subscription(
+                    message_types[channel], topic, callback, qos, event_callbacks=events, raw=True
+                )
+            self._data_subscriptions[channel, part] = subscription
+        if inputs is not None:
+            self.companions = (inputs,)
         # (after the overrides: what the queues really hold; KEEP_ALL has no depth to overflow)
         kept = [s.qos_profile for s in self._data_subscriptions.values()]
         keep_last = all(qos.history != HistoryPolicy.KEEP_ALL for qos in kept)
@@ -804,7 +823,7 @@ class IdentifierNode(Node):
             self._save(self.values["weights_out"])
         print(f"identifier: {json.dumps(self.status())}", file=sys.stderr, flush=True)
         for subscription in self._data_subscriptions.values():
-            self.destroy_subscription(subscription)
+            (self.companions[0] if self.companions else self).destroy_subscription(subscription)
         self._data_subscriptions = {}
 
 
@@ -817,7 +836,12 @@ EXECUTOR = "waitset"
 
 def main(args: list[str] | None = None, exit_process: bool = True) -> int:
     """The node's program; ``exit_process=False`` returns instead of ending the process (see run_node)."""
-    return run_node(IdentifierNode, "identifier", args, executor=executor_choice(EXECUTOR), exit_process=exit_process)
+
+    def nodes() -> list[Node]:
+        node = IdentifierNode()
+        return [node, *node.companions]
+
+    return run_node(nodes, "identifier", args, executor=executor_choice(EXECUTOR), exit_process=exit_process)
 
 
 if __name__ == "__main__":

@@ -139,9 +139,7 @@ def test_best_effort_publisher_is_reported_with_the_fix_then_accepted(graph: Gra
     assert "qos_overrides./u.subscription.reliability:=best_effort" in err
     # the fix, as the warning words it
     graph.status.clear()
-    fixed = start_node(
-        "identifier", "status_period:=0.2", "qos_overrides./u.subscription.reliability:=best_effort"
-    )
+    fixed = start_node("identifier", "status_period:=0.2", "qos_overrides./u.subscription.reliability:=best_effort")
     try:
         deadline = time.monotonic() + 20
         while time.monotonic() < deadline and not graph.status.get("counters", {}).get("u_messages"):
@@ -367,7 +365,7 @@ def test_qos_overrides_take_durability_and_name_typos(graph: Graph) -> None:
         deadline = time.monotonic() + 20
         infos: list = []
         while not infos and time.monotonic() < deadline:
-            infos = [i for i in probe.get_subscriptions_info_by_topic("/u") if i.node_name == "identifier"]
+            infos = [i for i in probe.get_subscriptions_info_by_topic("/u") if i.node_name == "identifier_inputs"]
             time.sleep(0.1)
         assert infos, "the identifier's /u subscription never showed up"
         assert infos[0].qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
@@ -394,7 +392,9 @@ def test_qos_overrides_by_the_name_before_remapping_apply_to_the_remapped_topic(
         deadline = time.monotonic() + 20
         infos: list = []
         while not infos and time.monotonic() < deadline:
-            infos = [i for i in probe.get_subscriptions_info_by_topic("/robot/cmd") if i.node_name == "identifier"]
+            infos = [
+                i for i in probe.get_subscriptions_info_by_topic("/robot/cmd") if i.node_name == "identifier_inputs"
+            ]
             time.sleep(0.1)
         assert infos, "the identifier's /robot/cmd subscription never showed up"
         assert infos[0].qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL

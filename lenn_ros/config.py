@@ -13,6 +13,7 @@ the first seconds of data (:mod:`lenn_ros.core.warmup`). A paper example (``exam
 
 from __future__ import annotations
 
+import dataclasses
 import difflib
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -376,11 +377,7 @@ def _build_identifier(values: dict[str, Any], network: str) -> Identifier | Mimo
         output_offset=float(values.get("output_offset", 0.0)),
     )
     if values.get("weights_in") and not structure.scaled:
-        raise ConfigError(
-            "weights_in with y_scale/u_scale 0 (learnt from the warm-up): weights mean something only on the "
-            "scaling they were learnt with; give y_scale, u_scale, y_offset, u_offset (the run that saved them said "
-            "its learnt ones in the line 'scales learnt from ...' and in status scaling; lenn-ros fit writes them)"
-        )
+        structure = _scaling_of_weights(structure, str(values["weights_in"]))
     terms = [str(t) for t in values.get("terms", [""]) if str(t).strip()]
     selected = terms and network == "lenn"  # the MLP takes every input (terms are the LeNN's)
     exponents = factors = None
@@ -465,6 +462,38 @@ def unlearnt_mimo_scales(values: dict[str, Any]) -> str | None:
         "so far); each channel is taken as lying in [-1, 1] (scale 1, offset 0), and what leaves that range is "
         f"clipped (counted clipped_inputs). Give {names} (one per channel) for a plant in other units"
     )
+
+
+def _scaling_of_weights(structure: ModelStructure, weights_in: str) -> ModelStructure:
+    """``structure`` with the scales the weights file was saved with, for ``weights_in`` without scales.
+
+    A network's weights mean something only on the scaling their inputs had; a run
+    that learnt its scales by the warm-up saves them with the weights (``weights_out``),
+    so restarting from that file with the same short command needs no scales either.
+    A file without them (an older save) cannot say: then the error names the fix.
+    """
+    import os
+
+    from lenn_ros.core.networks import ModelFileError, read_weights_file
+
+    path = os.path.abspath(os.path.expanduser(weights_in))
+    try:
+        header, _ = read_weights_file(path)
+    except (ModelFileError, OSError, ValueError):
+        header = {}  # (the node's load reports a missing or broken file with its own line)
+    scaling = header.get("scaling") if isinstance(header, dict) else None
+    if isinstance(scaling, dict) and all(isinstance(scaling.get(k), int | float) for k in SCALING_KEYS):
+        return dataclasses.replace(structure, **{k: float(scaling[k]) for k in SCALING_KEYS})
+    raise ConfigError(
+        "weights_in with y_scale/u_scale 0 (learnt from the warm-up), and the file holds no scales: weights mean "
+        "something only on the scaling they were learnt with; give y_scale, u_scale, y_offset, u_offset (the run "
+        "that saved them said its learnt ones in the line 'scales learnt from ...' and in status scaling; "
+        "lenn-ros fit writes them; a run of this version saves them with weights_out)"
+    )
+
+
+#: what a saved model records of its inputs' scaling (``OnlineRegressor.save(scaling=...)``)
+SCALING_KEYS = ("y_scale", "u_scale", "y_offset", "u_offset")
 
 
 def _build_mimo(values: dict[str, Any], network: str) -> MimoIdentifier:

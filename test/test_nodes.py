@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import signal
 import subprocess
+import time
 from pathlib import Path
 
 import numpy as np
@@ -266,3 +267,39 @@ def test_status_is_strict_json_and_autosave_runs_on_its_own_period(tmp_path: Pat
     line = next(line for line in err.splitlines() if line.startswith("identifier: {"))
     status = json.loads(line.split(": ", 1)[1], parse_constant=refuse)
     assert status["phase_nmse_db"] is None and status["counters"]["samples"] == 0
+
+
+def test_learnt_scales_are_saved_with_the_weights_and_a_restart_needs_no_scales(tmp_path: Path, domain: int) -> None:
+    """weights_out of a run that learnt its scales by the warm-up holds them; weights_in alone restarts on them."""
+    from rosutil import Talker
+
+    from lenn_ros.core.networks import read_weights_file
+
+    weights = tmp_path / "learnt.npz"
+    identifier = start_node("identifier", "scale_warm_up:=0.5", "sample_period:=0.01", f"weights_out:={weights}")
+    talker = Talker(domain)
+    listener = Listener(domain)
+    try:
+        deadline = time.monotonic() + 30  # the listener's and the identifier's subscriptions
+        while min(publisher.get_subscription_count() for publisher in talker.pubs) < 2:
+            assert time.monotonic() < deadline, "the identifier never subscribed"
+            time.sleep(0.05)
+        talker.publish(400)
+        learnt = listener.wait_status(lambda s: s.get("scaling", {}).get("state") == "learnt", timeout=30)["scaling"]
+    finally:
+        listener.close()
+        talker.close()
+        _, err = stop(identifier)
+    header, _ = read_weights_file(weights)
+    assert header["scaling"]["y_scale"] == pytest.approx(learnt["y_scale"], rel=1e-12)
+    assert header["scaling"]["u_offset"] == pytest.approx(learnt["u_offset"], rel=1e-12)
+    restarted = start_node("identifier", f"weights_in:={weights}")
+    listener = Listener(domain)
+    try:
+        status = listener.wait_status(lambda s: True, timeout=30)
+    finally:
+        listener.close()
+        _, err = stop(restarted)
+    assert status["scaling"]["state"] == "given", status["scaling"]
+    line = next((line for line in err.splitlines() if "weights_in: loaded" in line), "")
+    assert "scales from the file" in line and f"y_scale {header['scaling']['y_scale']:.6g}" in line, err

@@ -157,11 +157,13 @@ class OnlineRegressor:
             setattr(self, name, np.array(state[name], dtype=np.float64, copy=True))
         self.n_samples_seen_ = int(state.get("n_samples_seen_", getattr(self, "n_samples_seen_", 0)))
 
-    def save(self, path: str | os.PathLike[str]) -> None:
+    def save(self, path: str | os.PathLike[str], scaling: dict[str, float] | None = None) -> None:
         """Write hyper-parameters and learned state to ``path`` (npz) atomically.
 
         The file is written next to its destination and renamed over it, so a crash
         mid-write leaves the previous file intact: a restart never finds half a model.
+        ``scaling``: the offsets and scales the caller fed the inputs with (the weights
+        mean nothing without them; a run that learnt them restarts from the file alone).
         """
         if not self.is_initialised:
             self._initialise()
@@ -170,6 +172,7 @@ class OnlineRegressor:
             "kind": self._kind,
             "params": self.get_params(),
             "n_samples_seen": int(getattr(self, "n_samples_seen_", 0)),
+            **({"scaling": {k: float(v) for k, v in scaling.items()}} if scaling else {}),
         }
         write_weights_file(path, header, self.state())
 

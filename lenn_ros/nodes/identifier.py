@@ -46,6 +46,7 @@ from std_msgs.msg import Int64, String
 from lenn_ros import topics
 from lenn_ros.config import (
     NODE_PARAMETERS,
+    SCALING_KEYS,
     Parameter,
     build_identifier,
     check_value,
@@ -360,10 +361,20 @@ class IdentifierNode(Node):
         lags = f"y_lags {structure.y_lags}, u_lags {structure.u_lags}, " if hasattr(structure, "y_lags") else ""
         outputs = f" for {len(models)} outputs" if len(models) > 1 else ""
         seen = sum(int(getattr(each, "n_samples_seen_", 0)) for each in models)
+        from_file = not isinstance(identifier, MimoIdentifier) and not (
+            float(self.values["y_scale"]) and float(self.values["u_scale"])
+        )
+        scales = (
+            "; scales from the file (the run that saved it learnt them): "
+            + ", ".join(f"{key} {getattr(structure, key):.6g}" for key in SCALING_KEYS)
+            if from_file
+            else ""
+        )
         return (
             f"weights_in: loaded {sum(each.n_weights for each in models)} weights{outputs} from {path} "
             f"(learnt from {seen} samples): {self.network}, {lags}"
             + ", ".join(f"{key} {value}" for key, value in structural.items())
+            + scales
         )
 
     def _compile_ahead(self) -> None:
@@ -808,7 +819,9 @@ class IdentifierNode(Node):
             if self.mimo:
                 self.identifier.save_state(os.path.expanduser(path))
             else:
-                self.identifier.model.save(os.path.expanduser(path))
+                structure = self.identifier.structure
+                scaling = {key: getattr(structure, key) for key in SCALING_KEYS} if structure.scaled else None
+                self.identifier.model.save(os.path.expanduser(path), scaling=scaling)
         except OSError as error:
             self.get_logger().error(f"could not save weights to {path}: {error}")
 

@@ -173,3 +173,28 @@ def test_twin_publishes_fits_free_run_over_dds(fitted: dict, domain: int, tmp_pa
     published = np.array([value for _, value in received])
     assert np.max(np.abs(published - fitted["report"]["y_free_test"])) <= 1e-9
     assert "twin of" in err and "stepping on each command" in err and "is not finite: refused" in err
+
+
+@pytest.mark.ros
+def test_twin_noise_has_the_fits_residual_std(fitted: dict, domain: int, tmp_path: Path) -> None:
+    """noise:=true adds Gaussian noise of fit.json's one-step std to what is published, not to the model's state."""
+    from rosutil import start_node, stop
+
+    directory = _robot_model(fitted, tmp_path / "robot_model")
+    u, y, start = fitted["u"], fitted["y"], fitted["start"]
+    w = lenn_ros.load_model(directory).history
+    history = [
+        f"y_initial:={list(map(float, y[start - w : start]))}",
+        f"u_initial:={list(map(float, u[start - w : start]))}",
+    ]
+    twin = start_node("twin", f"model:={directory}", "noise:=true", "seed:=3", *history)
+    try:
+        received = _drive(domain, u[start:], twin)
+    finally:
+        _, err = stop(twin)
+    noise = np.array([value for _, value in received]) - fitted["report"]["y_free_test"]
+    std = fitted["report"]["intervals"]["one_step"]["std"]
+    # 341 draws: the sample std within 4 standard errors of the std, and no drift (the state is noise-free)
+    assert abs(np.std(noise) - std) <= 4 * std / np.sqrt(2 * len(noise)), (np.std(noise), std)
+    assert abs(np.mean(noise)) <= 4 * std / np.sqrt(len(noise))
+    assert f"noise std {std:.4g}" in err

@@ -190,3 +190,23 @@ def test_a_plant_at_rest_from_the_start_is_not_taken_for_a_diverged_one() -> Non
         identifier.step(k + 1, u[k], y[k])
     assert identifier.counters["diverged"] == 0 and identifier.counters["learned"] == len(u) - 2
     assert identifier.target_variance == 0.0  # nothing moved: nothing learnt about its scale
+
+
+@pytest.mark.parametrize("rest", [4_000, 40_000])
+def test_standing_still_then_moving_is_not_a_plant_change(rest: int) -> None:
+    """The change alarm holds while the plant stands still: resuming motion is not a change.
+
+    Without the rest gate the learnt residual level sank to the quantisation level at rest
+    and the first seconds of motion afterwards raised "plant changed" (as in the robot day).
+    Stepped and batched alike.
+    """
+    u, y = moving_resting_moving(rest=rest, moving=12_000)
+    y = y[: len(u)]
+    stepped = Session(robot_identifier(), SessionConfig(pairing="sequence"))
+    for k in range(len(u)):
+        offer(stepped, k, u[k], y[k])
+    batched = Session(robot_identifier(), SessionConfig(pairing="sequence"))
+    batched.run_samples(np.arange(1, len(u) + 1), u, y, np.ones(len(u), dtype=bool))
+    for session in (stepped, batched):
+        assert session.counters["change_alarms"] == 0, [n.text for n in session.take_notices() if n.kind == "change"]
+        assert session.change is not None and session.change.gate.moving_samples < len(u) - rest + 300  # (211: the plant settling)

@@ -25,6 +25,13 @@ therefore compares a fast statistic against a slow reference:
 Nothing is tested for the first ``warm_up_samples`` (the reference is being learnt;
 it starts as the running mean of e^2).
 
+Standing still is normal (a robot at rest for minutes): with a constant command the
+errors shrink to the quantisation level, and a reference learnt from them would take the
+first seconds of motion afterwards for a change (the robot day raised two such alarms). So
+``update`` is given the measured output too, and a :class:`RestGate` holds the detector
+(reference, statistic, alarm) while the output does not move, as the identifier's
+divergence guard learns its target variance only while the target moves.
+
 Design false-alarm rate (:data:`DESIGN_RUN_LENGTH`): at the default threshold the mean
 run length to a false alarm is at least 10^7 samples on i.i.d. Gaussian residuals
 (measured by ``bench/change_alarm.py``: the run length grows exponentially with the
@@ -87,6 +94,7 @@ class ChangeDetector:
 
     def reset(self) -> None:
         """Forget the learnt level and any alarm (a new model); ``count`` stays."""
+        self.gate = RestGate()
         self.level = 0.0
         self.fast = 0.0
         self.samples = 0
@@ -97,11 +105,14 @@ class ChangeDetector:
         self.peak = 0.0
         self._quiet = 0
 
-    def update(self, error: float, index: int) -> str:
-        """One a-priori error e(k) of sample ``index``: '' or the event it caused (RAISED, CLEARED, ACCEPTED)."""
+    def update(self, error: float, index: int, y: float | None = None) -> str:
+        """One a-priori error e(k) of sample ``index`` (``y``: its measured output, for the rest gate):
+        '' or the event it caused (RAISED, CLEARED, ACCEPTED)."""
         square = error * error
         if square == math.inf or square != square:  # (not math.isfinite: this runs for every sample)
             return ""
+        if y is not None and not self.gate.update(y):
+            return ""  # at rest: nothing learnt, nothing tested, the alarm (if on) as it was
         samples = self.samples = self.samples + 1
         fast = self.fast = self.fast + self.fast_rate * (square - self.fast) if samples > 1 else square
         if self.alarm:
@@ -165,3 +176,40 @@ class ChangeDetector:
             "threshold": self.threshold,
             "testing": self.samples > self.warm_up_samples,
         }
+
+
+class RestGate:
+    """Whether the plant moves: the fast mean square of the output's increments against its level while moving.
+
+    At rest (a constant command, an encoder quantised to its last step) the increments
+    fall to nothing; the gate says ``False`` once their fast mean square (memory
+    ``fast_samples``) is below ``rest_fraction`` of the level learnt while moving (memory
+    ``reference_samples``, the running mean at first), and ``True`` again within a few
+    samples of motion. Before anything has moved it says ``True``.
+    """
+
+    def __init__(self, fast_samples: int = 50, reference_samples: int = 5000, rest_fraction: float = 1e-2) -> None:
+        self.fast_rate = 1.0 / fast_samples
+        self.reference_rate = 1.0 / reference_samples
+        self.rest_fraction = float(rest_fraction)
+        self.fast = 0.0
+        self.level = 0.0
+        self.moving_samples = 0
+        self._last: float | None = None
+
+    def update(self, y: float) -> bool:
+        """The output y(k) of the next scored sample: whether the plant moves now."""
+        last, self._last = self._last, y
+        if last is None:
+            return True
+        step = y - last
+        square = step * step
+        if square != square or square == math.inf:
+            return True
+        fast = self.fast = self.fast + self.fast_rate * (square - self.fast)
+        if fast < self.rest_fraction * self.level:
+            return False
+        count = self.moving_samples = self.moving_samples + 1
+        rate = self.reference_rate if count * self.reference_rate >= 1.0 else 1.0 / count
+        self.level += rate * (fast - self.level)
+        return True

@@ -767,7 +767,7 @@ class Session:
             result.y_hat_std = self._next_std
             spread.update(error)
             if self.config.change_alarm and self.change is not None:
-                event = self.change.update(error, pair.index)
+                event = self.change.update(error, pair.index, float(pair.y))
                 if event:
                     self._say_change(event, pair.index, pair.time)
         if result.y_hat_next is not None:
@@ -823,6 +823,7 @@ class Session:
         errors = y - y_hat
         scored = np.flatnonzero(np.isfinite(errors))
         update = detector.update
+        measured = y.tolist()
         for row, error in zip(scored.tolist(), errors[scored].tolist(), strict=True):
             sample = int(index[row])
             while pending and pending[0].from_index <= sample:
@@ -830,7 +831,7 @@ class Session:
                 watched = bool(values.get("change_alarm", watched))
                 detector.threshold = float(values.get("change_threshold", detector.threshold))
             if watched:
-                event = update(error, sample)
+                event = update(error, sample, measured[row])
                 if event:
                     self._say_change(event, sample, None)
         detector.threshold = self.config.change_threshold

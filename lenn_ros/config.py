@@ -439,28 +439,30 @@ def _per_channel(values: dict[str, Any], name: str, count: int) -> tuple[float, 
         return tuple(listed)
     if len(listed) == 1:
         value = float(values.get(name, 1.0 if name.endswith("scale") else 0.0))
-        if name.endswith("scale") and value == UNSET_SCALE:
-            value = 1.0  # (several channels: no warm-up yet, the range the network is built for, as before)
-        return (value,) * count
+        return (value,) * count  # (a scale left at 0: learnt per channel by the session's warm-up)
     raise ConfigError(f"{name}s has {len(listed)} values for {count} channels: give one per channel, or one")
 
 
 def unlearnt_mimo_scales(values: dict[str, Any]) -> str | None:
-    """Several channels with scales left at 0: what the node says (their warm-up is not implemented yet)."""
-    if not is_mimo(values):
+    """Several channels with scales left at 0 and ``weights_in``: what cannot work (None: nothing).
+
+    The warm-up learns such scales per channel, but weights saved on one scaling mean
+    something else on another: a MIMO weights file needs its scales given.
+    """
+    if not is_mimo(values) or not values.get("weights_in"):
         return None
     unset = [
         side
         for side in ("u", "y")
-        if float(values.get(f"{side}_scale", 1.0)) == UNSET_SCALE and len(values.get(f"{side}_scales", [0.0])) == 1
+        if float(values.get(f"{side}_scale", 1.0)) == UNSET_SCALE
+        and all(float(v) == UNSET_SCALE for v in values.get(f"{side}_scales", [0.0]))
     ]
     if not unset:
         return None
     names = " and ".join(f"{side}_scales" for side in unset)
     return (
-        f"{names} not given: with several channels the scales are not learnt from a warm-up (one channel only, "
-        "so far); each channel is taken as lying in [-1, 1] (scale 1, offset 0), and what leaves that range is "
-        f"clipped (counted clipped_inputs). Give {names} (one per channel) for a plant in other units"
+        f"weights_in with several channels and {names} not given: the weights mean something only on the scaling "
+        f"they were learnt with; give {names} (one per channel; lenn-ros fit writes them)"
     )
 
 
@@ -518,6 +520,9 @@ def _build_mimo(values: dict[str, Any], network: str) -> MimoIdentifier:
             f"{', '.join(unsupported)}: SISO structure options, not supported with several channels (the paper's "
             "examples set them: example:=0 for a model of your own plant)"
         )
+    problem = unlearnt_mimo_scales(values)
+    if problem:
+        raise ConfigError(problem)
     n_u, n_y = len(u_names), len(y_names)
     structure = MimoStructure(
         n_u=n_u,

@@ -61,6 +61,7 @@ def test_robot_vector_topics_from_two_nodes_are_learnt_per_named_joint(domain: i
         "status_period:=0.2",
         "pairing:=sample",
         "sample_period:=0.01",
+        "scale_warm_up:=1.0",  # (no scales: each channel's learnt from the first 100 samples)
         "u_type:=std_msgs/msg/Float64MultiArray",
         "u_field:=data[*]",
         "u_names:=[cmd_shoulder, cmd_elbow]",
@@ -187,6 +188,7 @@ def test_each_channel_on_its_own_topic_from_its_own_node_is_merged_and_a_silent_
         "status_period:=0.2",
         "pairing:=sample",
         "sample_period:=0.01",
+        "scale_warm_up:=1.0",  # (no scales: each channel's learnt from the first 100 samples)
         "u_topics:=[/robot/cmd0, /robot/cmd1]",
         "y_topics:=[/robot/left, /robot/right]",
     )

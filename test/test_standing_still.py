@@ -193,7 +193,7 @@ def test_a_plant_at_rest_from_the_start_is_not_taken_for_a_diverged_one() -> Non
 
 
 @pytest.mark.parametrize("rest", [4_000, 40_000])
-def test_standing_still_then_moving_is_not_a_plant_change(rest: int) -> None:
+def test_standing_still_then_moving_is_not_a_plant_change(rest: int) -> None:  # (+300: the plant settles in 211)
     """The change alarm holds while the plant stands still: resuming motion is not a change.
 
     Without the rest gate the learnt residual level sank to the quantisation level at rest
@@ -209,4 +209,4 @@ def test_standing_still_then_moving_is_not_a_plant_change(rest: int) -> None:
     batched.run_samples(np.arange(1, len(u) + 1), u, y, np.ones(len(u), dtype=bool))
     for session in (stepped, batched):
         assert session.counters["change_alarms"] == 0, [n.text for n in session.take_notices() if n.kind == "change"]
-        assert session.change is not None and session.change.gate.moving_samples < len(u) - rest + 300  # (211: the plant settling)
+        assert session.change is not None and session.change.gate.moving_samples < len(u) - rest + 300

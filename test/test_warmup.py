@@ -123,17 +123,59 @@ def test_weights_need_the_scaling_they_were_learnt_with() -> None:
         build_identifier({**values, "weights_in": "model.npz"}, network)
 
 
-def test_several_channels_say_their_scales_are_not_learnt() -> None:
-    """No warm-up for a MIMO model yet: its unset scales are 1, and the node says so in one line."""
+def mimo_values(**given) -> dict:
     node = {parameter.name: parameter.default for parameter in NODE_PARAMETERS}
-    mimo = {"u_field": "data[*]", "y_field": "data[*]", "u_names": ["u1", "u2"], "y_names": ["y1", "y2"]}
-    values = {**node, **mimo, **resolve(mimo)[0]}
-    text = unlearnt_mimo_scales(values)
-    assert text is not None and text.startswith("u_scales and y_scales not given")
-    assert unlearnt_mimo_scales({**values, "y_scales": [2.0, 1.6]}).startswith("u_scales not given")
+    mimo = {"u_field": "data[*]", "y_field": "data[*]", "u_names": ["u1", "u2"], "y_names": ["y1", "y2"], **given}
+    return {**node, **mimo, **resolve(mimo)[0]}
+
+
+def test_several_channels_learn_their_scales_channel_by_channel() -> None:
+    """A MIMO model without scales: each channel's range from the warm-up, stepped and batched alike.
+
+    The plant in raw units (outputs x 40 and x 0.05, inputs x 3): with the placeholder
+    scale 1 of old, most network inputs were clipped.
+    """
+    from lenn_ros.core.evaluation import simulate_mimo
+    from lenn_ros.core.plants import narendra_mimo_plant
+
+    series = simulate_mimo(narendra_mimo_plant(), -30.0, seed=2, train_samples=3000, test_samples=0)
+    u = series.u * 3.0
+    y = series.y * np.array([40.0, 0.05])
+    n = len(u)
+    config = SessionConfig(pairing="sequence", sample_period=0.01, scale_warm_up=5.0)
+    stepped = Session(build_identifier(mimo_values(), "lenn"), config)
+    assert stepped.status()["scaling"]["state"] == "warming_up"
+    outputs = []
+    for k in range(n):
+        stepped.offer(U, u[k], k * 0.01, sequence=k + 1)
+        outputs += stepped.offer(Y, y[k], k * 0.01, sequence=k + 1)
+    scaling = stepped.status()["scaling"]
+    assert scaling["state"] == "learnt" and scaling["samples"] == 500
+    for name, values in (("y", y[:500]), ("u", u[:500])):
+        low, high = values.min(axis=0), values.max(axis=0)
+        np.testing.assert_allclose(scaling[f"{name}_offsets"], (high + low) / 2, rtol=1e-12)
+        np.testing.assert_allclose(scaling[f"{name}_scales"], (high - low) / 2 * 2.0, rtol=1e-12)  # margin 1
+    assert len(outputs) == n  # every sample held by the warm-up was learnt afterwards
+    clipped = stepped.identifier.counters["clipped"]
+    assert clipped < 0.01 * n * 4  # inputs about within the learnt ranges (placeholder 1: most were clipped)
+    batched = Session(build_identifier(mimo_values(), "lenn"), config)
+    y_hat = batched.run_samples(np.arange(1, n + 1), u, y, np.ones(n, dtype=bool))
+    live = np.array([s.result.y_hat if s.result is not None and s.result.y_hat is not None else [np.nan] * 2
+                     for s in outputs])  # fmt: skip
+    np.testing.assert_array_equal(y_hat, live)
+    assert batched.status()["scaling"] == scaling
+
+
+def test_several_channels_with_weights_need_their_scales() -> None:
+    """weights_in with MIMO scales unset: refused with the fix (weights mean something on one scaling only)."""
+    values = mimo_values(weights_in="model.npz")
+    assert unlearnt_mimo_scales(values).startswith("weights_in with several channels and u_scales and y_scales")
+    assert unlearnt_mimo_scales({**values, "y_scales": [2.0, 1.6]}).endswith("give u_scales (one per channel; "
+                                                                             "lenn-ros fit writes them)")  # fmt: skip
     assert unlearnt_mimo_scales({**values, "u_scale": 1.0, "y_scales": [2.0, 1.6]}) is None
-    assert unlearnt_mimo_scales({**node, **resolve({})[0]}) is None  # one channel: learnt
-    assert build_identifier(values, "lenn").structure.u_scale == (1.0, 1.0)
+    assert unlearnt_mimo_scales(mimo_values()) is None  # no weights: the warm-up learns them
+    with pytest.raises(ConfigError, match="weights_in with several channels"):
+        build_identifier(values, "lenn")
 
 
 def test_leaving_the_learnt_range_is_clipped_counted_and_said() -> None:

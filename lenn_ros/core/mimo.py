@@ -168,9 +168,16 @@ class MimoStructure:
         columns = [[i if kind == "y" else self.n_y + i for kind, i in self.others(j)] for j in range(self.n_y)]
         object.__setattr__(self, "_picks", tuple(np.array(c, dtype=np.intp) for c in columns))
 
+    @property
+    def scaled(self) -> bool:
+        """Whether every channel's scale is known (0: to be learnt by a session's warm-up, core.warmup)."""
+        return all(scale > 0 for scale in (*self.y_scale, *self.u_scale))
+
     def _scale(self, kind: str, index: int) -> tuple[float, float]:
+        """(scale, offset) of a channel; a scale still to be learnt stands in as 1 until the warm-up sets it."""
         scales, offsets = (self.y_scale, self.y_offset) if kind == "y" else (self.u_scale, self.u_offset)
-        return (float(scales[index]) if scales else 1.0), (float(offsets[index]) if offsets else 0.0)
+        scale = float(scales[index]) if scales else 1.0
+        return (scale if scale > 0 else 1.0), (float(offsets[index]) if offsets else 0.0)
 
     def others(self, output: int) -> list[tuple[str, int]]:
         """The channels output ``output`` sees besides itself, in regressor order: (kind, index)."""
@@ -411,6 +418,12 @@ class MimoIdentifier:
         )
         y_model[:] = values[:, : self.structure.n_y]
         return clipped.tolist(), (int(diverged_at) if diverged_at >= 0 else None)
+
+    def set_structure(self, structure: MimoStructure) -> None:
+        """Take learnt scales and offsets (a session's warm-up) before the first sample: every output's channels."""
+        for j, identifier in enumerate(self.outputs):
+            identifier.set_structure(structure.channel(j))
+        self.structure = structure
 
     def skip(self, index: int | None = None) -> None:
         for identifier in self.outputs:

@@ -248,7 +248,7 @@ class Session:
         self.clock_offset: float | None = None  # least lag of y_p minus that of u while it stands, s
         self.shedder = Shedder(config.max_lag, config.queue_depth)
         self.warm_up: ScaleWarmUp | None = None  # scales to learn from the first samples (None: given)
-        if not self.mimo and not self.identifier.structure.scaled:
+        if not self.identifier.structure.scaled:  # (a MIMO model's: per channel)
             samples = warm_up_samples(config.scale_warm_up, config.sample_period)
             self.warm_up = ScaleWarmUp.for_structure(self.identifier.structure, samples)
         self._warming: list[Pair] = []  # pairs held by the warm-up, learnt once it ends
@@ -660,7 +660,7 @@ class Session:
         assert warm_up is not None
         for position, pair in enumerate(pairs):
             self._warming.append(pair)
-            if warm_up.add(float(pair.u), float(pair.y)):
+            if warm_up.add(pair.u, pair.y):
                 self._end_warm_up()
                 held, self._warming = self._warming, []
                 return held + pairs[position + 1 :]
@@ -672,7 +672,6 @@ class Session:
     def _end_warm_up(self) -> None:
         assert self.warm_up is not None
         identifier = self.identifier
-        assert isinstance(identifier, Identifier)
         identifier.set_structure(self.warm_up.structure(identifier.structure))
         self._say("scales", self.warm_up.text(self.config.u_name, self.config.y_name))
 
@@ -694,7 +693,7 @@ class Session:
         assert warm_up is not None
         first = 0
         for row in range(len(y)):
-            if warm_up.add(float(u[row]), float(y[row])):
+            if warm_up.add(u[row], y[row]) if self.mimo else warm_up.add(float(u[row]), float(y[row])):
                 self._end_warm_up()
                 return first
             if row + 1 - first >= MAX_WARM_UP:
@@ -931,13 +930,14 @@ class Session:
         u = np.asarray(u, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
         learn = np.asarray(learn, dtype=bool)
-        if self.warm_up is not None and not self.warm_up.done and not self.mimo:
+        if self.warm_up is not None and not self.warm_up.done:
             first = self._warm_offline(u, y)  # live, the rows before it were discarded by the warm-up
             y_hat = np.full(y.shape, np.nan)
-            std = np.full(y.shape, np.nan)
+            std = np.full(len(y), np.nan)
             if first is not None:
                 y_hat[first:] = self.run_samples(index[first:], u[first:], y[first:], learn[first:], changes)
-                std[first:] = self.last_y_hat_std
+                if not self.mimo:  # (one output's band only)
+                    std[first:] = self.last_y_hat_std
             self.last_y_hat_std = std
             return y_hat
         y_hat = np.full(y.shape, np.nan)

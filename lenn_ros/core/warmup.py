@@ -28,6 +28,10 @@ every learnt signal has moved (a range above zero): a robot standing still at st
 shows nothing of its range. Held pairs are bounded: beyond ``MAX_WARM_UP`` of them the
 warm-up starts over from the next pair (the held ones, a plant at rest, are discarded and
 counted).
+
+Several channels (a MIMO model) are the same warm-up with one range per channel: a side
+(all ``u`` or all ``y`` channels) whose scales were left unset is learnt channel by
+channel, and the warm-up ends once every channel of a learnt side has moved.
 """
 
 from __future__ import annotations
@@ -37,7 +41,6 @@ from dataclasses import dataclass, field, replace
 from typing import Any
 
 from lenn_ros.core.scaling import DEFAULT_MARGIN
-from lenn_ros.core.structure import ModelStructure
 
 #: Pairs held at most while waiting for the signals to move (then they are discarded and it starts over).
 MAX_WARM_UP = 20_000
@@ -81,22 +84,45 @@ class ScaleWarmUp:
 
     ``learn_y`` / ``learn_u``: which signals' scale (and offset) are learnt; a given
     (non-zero) offset of a learnt signal is kept and the half-range taken about it.
+    ``y_offset`` / ``u_offset`` as tuples (one per channel): a MIMO model's warm-up, whose
+    pairs carry vectors and whose result gives tuples.
     """
 
     samples: int
     learn_y: bool = True
     learn_u: bool = True
-    y_offset: float = 0.0
-    u_offset: float = 0.0
+    y_offset: float | tuple[float, ...] = 0.0
+    u_offset: float | tuple[float, ...] = 0.0
     margin: float = DEFAULT_MARGIN
     valid: int = 0
     restarts: int = 0
     discarded: int = 0
     result: dict[str, Any] | None = None
-    _ranges: dict[str, _Range] = field(default_factory=lambda: {"y": _Range(), "u": _Range()})
+    _ranges: dict[str, list[_Range]] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        self.vector = isinstance(self.y_offset, tuple)
+        self._restart_ranges()
+
+    def _offsets(self, name: str) -> tuple[float, ...]:
+        given = self.y_offset if name == "y" else self.u_offset
+        return tuple(given) if isinstance(given, tuple) else (float(given),)
+
+    def _restart_ranges(self) -> None:
+        self._ranges = {name: [_Range() for _ in self._offsets(name)] for name in ("y", "u")}
 
     @classmethod
-    def for_structure(cls, structure: ModelStructure, samples: int, margin: float = DEFAULT_MARGIN) -> ScaleWarmUp:
+    def for_structure(cls, structure: Any, samples: int, margin: float = DEFAULT_MARGIN) -> ScaleWarmUp:
+        """For a :class:`ModelStructure`, or a MIMO ``MimoStructure`` (scales and offsets per channel)."""
+        if isinstance(structure.y_scale, tuple):
+            return cls(
+                samples,
+                learn_y=not all(scale > 0 for scale in structure.y_scale),
+                learn_u=not all(scale > 0 for scale in structure.u_scale),
+                y_offset=tuple(structure.y_offset) or (0.0,) * structure.n_y,
+                u_offset=tuple(structure.u_offset) or (0.0,) * structure.n_u,
+                margin=margin,
+            )
         return cls(
             samples,
             learn_y=structure.y_scale <= 0,
@@ -110,15 +136,23 @@ class ScaleWarmUp:
     def done(self) -> bool:
         return self.result is not None
 
-    def add(self, u: float, y: float) -> bool:
+    def add(self, u: Any, y: Any) -> bool:
         """One paired sample (NaN: refused, held but not counted); True once the scales are known."""
-        if math.isnan(u) or math.isnan(y):
-            return False
+        if self.vector:
+            us, ys = [float(v) for v in u], [float(v) for v in y]
+            if any(math.isnan(v) for v in us) or any(math.isnan(v) for v in ys):
+                return False
+        else:
+            if math.isnan(u) or math.isnan(y):
+                return False
+            us, ys = [u], [y]
         self.valid += 1
-        self._ranges["u"].add(u)
-        self._ranges["y"].add(y)
+        for extent, value in zip(self._ranges["u"], us, strict=True):
+            extent.add(value)
+        for extent, value in zip(self._ranges["y"], ys, strict=True):
+            extent.add(value)
         learnt = [name for name, learn in (("y", self.learn_y), ("u", self.learn_u)) if learn]
-        if self.valid >= self.samples and all(self._ranges[name].moved for name in learnt):
+        if self.valid >= self.samples and all(e.moved for name in learnt for e in self._ranges[name]):
             self.result = self._scales()
             return True
         return False
@@ -128,29 +162,40 @@ class ScaleWarmUp:
         self.restarts += 1
         self.discarded += held
         self.valid = 0
-        self._ranges = {"y": _Range(), "u": _Range()}
+        self._restart_ranges()
 
     def _scales(self) -> dict[str, Any]:
+        """Per side: one entry (a dict) per channel; a single channel's side is its one dict."""
         values: dict[str, Any] = {"samples": self.valid}
-        for name, learn, given in (("y", self.learn_y, self.y_offset), ("u", self.learn_u, self.u_offset)):
-            extent = self._ranges[name]
-            mean = extent.total / self.valid
-            spread = math.sqrt(max(extent.squares / self.valid - mean * mean, 0.0))
-            values[name] = {"low": extent.low, "high": extent.high, "mean": mean, "std": spread, "learnt": learn}
-            if learn:
-                offset = given if given else (extent.high + extent.low) / 2.0
-                half = max(extent.high - offset, offset - extent.low)
-                values[name].update(offset=offset, scale=half * (1.0 + self.margin))
+        for name, learn in (("y", self.learn_y), ("u", self.learn_u)):
+            entries = []
+            for extent, given in zip(self._ranges[name], self._offsets(name), strict=True):
+                mean = extent.total / self.valid
+                spread = math.sqrt(max(extent.squares / self.valid - mean * mean, 0.0))
+                entry = {"low": extent.low, "high": extent.high, "mean": mean, "std": spread, "learnt": learn}
+                if learn:
+                    offset = given if given else (extent.high + extent.low) / 2.0
+                    half = max(extent.high - offset, offset - extent.low)
+                    entry.update(offset=offset, scale=half * (1.0 + self.margin))
+                entries.append(entry)
+            values[name] = entries if self.vector else entries[0]
         return values
 
-    def structure(self, structure: ModelStructure) -> ModelStructure:
-        """``structure`` with the learnt scales and offsets (the given ones kept)."""
+    def _entries(self, name: str) -> list[dict[str, Any]]:
         assert self.result is not None
+        found = self.result[name]
+        return found if self.vector else [found]
+
+    def structure(self, structure: Any) -> Any:
+        """``structure`` with the learnt scales and offsets (the given ones kept); tuples for a MIMO one."""
         changes = {}
         for name in ("y", "u"):
-            if self.result[name]["learnt"]:
-                changes[f"{name}_offset"] = self.result[name]["offset"]
-                changes[f"{name}_scale"] = self.result[name]["scale"]
+            entries = self._entries(name)
+            if entries[0]["learnt"]:
+                offsets = [entry["offset"] for entry in entries]
+                scales = [entry["scale"] for entry in entries]
+                changes[f"{name}_offset"] = tuple(offsets) if self.vector else offsets[0]
+                changes[f"{name}_scale"] = tuple(scales) if self.vector else scales[0]
         return replace(structure, **changes)
 
     def text(self, u_name: str, y_name: str) -> str:
@@ -158,12 +203,14 @@ class ScaleWarmUp:
         assert self.result is not None
         parts = []
         for name, topic in (("u", u_name), ("y", y_name)):
-            entry = self.result[name]
-            if entry["learnt"]:
-                parts.append(
-                    f"{topic}: {name}_offset {entry['offset']:.6g}, {name}_scale {entry['scale']:.6g} (seen "
-                    f"[{entry['low']:.6g}, {entry['high']:.6g}], mean {entry['mean']:.6g}, std {entry['std']:.3g})"
-                )
+            entries = self._entries(name)
+            for channel, entry in enumerate(entries):
+                if entry["learnt"]:
+                    label = f"{topic}[{channel}]" if self.vector else topic
+                    parts.append(
+                        f"{label}: {name}_offset {entry['offset']:.6g}, {name}_scale {entry['scale']:.6g} (seen "
+                        f"[{entry['low']:.6g}, {entry['high']:.6g}], mean {entry['mean']:.6g}, std {entry['std']:.3g})"
+                    )
         return (
             f"scales learnt from the first {self.result['samples']} samples: {'; '.join(parts)}. Margin "
             f"{self.margin:g}: a signal may leave the range seen by {self.margin:g} x its half-width before its "
@@ -171,14 +218,18 @@ class ScaleWarmUp:
         )
 
     def status(self) -> dict[str, Any]:
-        """For the session's status: warming up (how far) or the learnt values."""
+        """For the session's status: warming up (how far) or the learnt values (lists for several channels)."""
         state = {"samples": self.valid, "needed": self.samples, "restarts": self.restarts, "discarded": self.discarded}
         if self.result is None:
             return {"state": "warming_up", **state}
-        learnt = {
-            f"{name}_{what}": self.result[name][what]
-            for name in ("u", "y")
-            if self.result[name]["learnt"]
-            for what in ("offset", "scale")
-        }
+        learnt: dict[str, Any] = {}
+        for name in ("u", "y"):
+            entries = self._entries(name)
+            if entries[0]["learnt"]:
+                for what in ("offset", "scale"):
+                    values = [entry[what] for entry in entries]
+                    if self.vector:
+                        learnt[f"{name}_{what}s"] = values
+                    else:
+                        learnt[f"{name}_{what}"] = values[0]
         return {"state": "learnt", **state, **learnt}

@@ -56,7 +56,6 @@ from lenn_ros.config import (
     is_mimo,
     rls_forgetting,
     side_channels,
-    unlearnt_mimo_scales,
     unmatched_params_files,
 )
 from lenn_ros.core.fields import (
@@ -157,8 +156,6 @@ class IdentifierNode(Node):
         self.mimo = is_mimo(self.values)
         message_types = {channel: self._message_class(channel) for channel in (U, Y)}
         self.identifier = self._build_model()
-        if unlearnt_mimo_scales(self.values):
-            self.get_logger().warning(unlearnt_mimo_scales(self.values))
         self._compile_ahead()
         self.session = Session(self.identifier, self._session_config())
         self._extract = {channel: field_extractor(self.values, channel) for channel in (U, Y)}  # U, Y: 'u', 'y'

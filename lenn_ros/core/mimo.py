@@ -168,6 +168,15 @@ class MimoStructure:
         columns = [[i if kind == "y" else self.n_y + i for kind, i in self.others(j)] for j in range(self.n_y)]
         object.__setattr__(self, "_picks", tuple(np.array(c, dtype=np.intp) for c in columns))
 
+    @property
+    def warm_up(self) -> int:
+        """Samples of history before the first prediction: every output's (their common ``history``).
+
+        So code written for a SISO structure's ``warm_up`` (a free run restarted after each
+        break, a regression masked at gaps) reads a MIMO model's the same way.
+        """
+        return max(self.y_lags, self.u_lags, 1)
+
     def _scale(self, kind: str, index: int) -> tuple[float, float]:
         scales, offsets = (self.y_scale, self.y_offset) if kind == "y" else (self.u_scale, self.u_offset)
         return (float(scales[index]) if scales else 1.0), (float(offsets[index]) if offsets else 0.0)

@@ -204,6 +204,13 @@ def _add_fit(commands: Any) -> None:
         "--y-field", metavar="PATH", help="bag: field of the output message, e.g. position[elbow] (node's y_field)"
     )
     p.add_argument(
+        "--u-names",
+        metavar="A,B",
+        help="bag: the input channels' names, comma-separated (node's u_names): how many a field such as "
+        "data[*] holds, and which joints of a JointState position[*], in this order",
+    )
+    p.add_argument("--y-names", metavar="A,B", help="bag: the output channels' names (node's y_names), as --u-names")
+    p.add_argument(
         "--sample-period",
         type=float,
         metavar="T",

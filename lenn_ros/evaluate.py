@@ -467,8 +467,8 @@ def _last_phase_start(index: np.ndarray, learn: np.ndarray) -> int | None:
     return int(index[changes[-1] + 1]) if changes.size else int(index[0])
 
 
-def _free_run_segments(
-    identifier: Identifier, index: np.ndarray, u: np.ndarray, y: np.ndarray, first: int
+def free_run_segments(
+    identifier: Identifier | MimoIdentifier, index: np.ndarray, u: np.ndarray, y: np.ndarray, first: int
 ) -> tuple[np.ndarray, dict[str, Any]]:
     """The free run over the test part, restarted from the measured outputs after every break.
 
@@ -477,12 +477,14 @@ def _free_run_segments(
     divergence). After a break the next ``warm_up`` measured samples seed the model's
     history again, as at the start of the test part; they are not simulated (NaN) and
     not scored. Without breaks this is one ``free_run`` from ``first``, as before.
+    A MIMO model's rows (u (N, n_u), y (N, n_y)) break where any channel is invalid
+    (``lenn-ros fit``'s MIMO selection and test scores run through here too).
     """
     window = identifier.structure.warm_up
-    valid = np.isfinite(u) & np.isfinite(y)
+    valid = _finite_rows(u) & _finite_rows(y)
     continues = np.r_[False, (np.diff(index) == 1) & valid[1:] & valid[:-1]]
     starts = np.flatnonzero(~continues)
-    y_free = np.full(len(y) - first, np.nan)
+    y_free = np.full((len(y) - first, *np.shape(y)[1:]), np.nan)
     info: dict[str, Any] = {"samples": 0, "clipped_inputs": 0, "diverged": False, "diverged_at": None}
     info["segments"] = 0
     for begin, end in zip(starts, np.r_[starts[1:], len(y)], strict=True):
@@ -502,11 +504,17 @@ def _free_run_segments(
     return y_free, info
 
 
+def _finite_rows(values: np.ndarray) -> np.ndarray:
+    """Per sample, whether every channel of it is a number (one column for a SISO series)."""
+    values = np.asarray(values, dtype=np.float64)
+    return np.isfinite(values.reshape(len(values), -1)).all(axis=1)
+
+
 def _score(identifier: Identifier, index: np.ndarray, u: np.ndarray, y: np.ndarray, y_hat: np.ndarray, start: int):
     test = index >= start
     scored = test & np.isfinite(y_hat)
     first = int(np.argmax(test))
-    y_free, free_run = _free_run_segments(identifier, index, u, y, first)
+    y_free, free_run = free_run_segments(identifier, index, u, y, first)
     y_test = y[test]
     simulated = np.isfinite(y_test) & (np.isfinite(y_free) | free_run["diverged"])
     if not simulated.any():

@@ -67,8 +67,11 @@ RLS_RIDGE = 1e-7
 
 def load_data(
     path: str | Path, u_column: str | None = None, y_column: str | None = None, flags: dict[str, Any] | None = None
-) -> Data:
-    """u and y from a bag (directory or .mcap: :mod:`lenn_ros.fit_bag`) or a CSV file (columns by name or index)."""
+) -> Data | Any:
+    """u and y from a bag (directory or .mcap: :mod:`lenn_ros.fit_bag`) or a CSV file (columns by name or index).
+
+    A bag whose identifier read several channels gives a :class:`~lenn_ros.fit_mimo.MimoData`.
+    """
     path = Path(path)
     if not path.exists():
         raise FitError(f"{path} does not exist (expected a CSV file or a bag directory)")
@@ -677,17 +680,36 @@ def _jsonable(report: dict[str, Any]) -> dict[str, Any]:
     return clean({k: v for k, v in report.items() if not k.endswith(("_test", "_train"))})
 
 
+#: the command line's flags that say how a bag's topics become samples (fit_bag.load_bag)
+BAG_FLAGS = ("u_field", "y_field", "u_names", "y_names", "sample_period", "pairing")
+
+
+def bag_flags(args: Any) -> dict[str, Any]:
+    return {key: getattr(args, key, None) for key in BAG_FLAGS}
+
+
+def test_row(index: np.ndarray | None, given: int | None, recorded: int | None) -> int | None:
+    """The 1-based row ``--test-from`` means: a bag's is a sample index, as the node counts (the row it
+    starts), a CSV's a row; without it, the bag's recorded test start (a row already)."""
+    if given is None:
+        return recorded
+    return given if index is None else int(np.searchsorted(index, given)) + 1
+
+
 def main(args: Any) -> int:
     import sys
 
     u_columns, y_columns = columns(args.u), columns(args.y)
-    flags = {key: getattr(args, key, None) for key in ("u_field", "y_field", "sample_period", "pairing")}
-    data = load_data(args.data, u_columns[0] if u_columns else None, y_columns[0] if y_columns else None, flags)
+    data = load_data(
+        args.data, u_columns[0] if u_columns else None, y_columns[0] if y_columns else None, bag_flags(args)
+    )
+    if not isinstance(data, Data):  # the bag's identifier read several channels
+        from lenn_ros import fit_mimo
+
+        return fit_mimo.run(args, data)
     progress = None if args.json else (lambda text: print(text, file=sys.stderr, flush=True))
     network = getattr(args, "network", "lenn") or "lenn"
-    test_from = data.test_start
-    if args.test_from is not None:  # a bag's is a sample index, as the node counts: the row it starts
-        test_from = args.test_from if data.index is None else int(np.searchsorted(data.index, args.test_from)) + 1
+    test_from = test_row(data.index, args.test_from, data.test_start)
     solver = getattr(args, "solver", "ls") or "ls"
     result = fit(data, test_from, refine=not args.no_refine, network=network, solver=solver, progress=progress)
     report = result["report"]

@@ -60,7 +60,7 @@ from lenn_ros.core.metrics import nmse_db, rmse
 from lenn_ros.core.mimo import MimoIdentifier, MimoStructure, build_mimo_identifier, parse_couplings
 from lenn_ros.core.networks import FunctionalLinkNetwork
 from lenn_ros.core.scaling import DEFAULT_MARGIN
-from lenn_ros.core.selection import PARSIMONY
+from lenn_ros.core.selection import PARSIMONY, Record, runs
 from lenn_ros.fit import (
     MIN_VALIDATION,
     VALIDATION_FRACTION,
@@ -90,7 +90,14 @@ BASIS = "legendre"
 
 @dataclass
 class MimoData:
-    """Paired samples with one column per channel: ``u`` (N, n_u), ``y`` (N, n_y)."""
+    """Paired samples with one column per channel: ``u`` (N, n_u), ``y`` (N, n_y).
+
+    ``index``: the sample indices as the identifier counts them (a robot bag's, from its
+    session; None: rows 1..N, a CSV or an import). Where it skips, the record has a gap,
+    a break of the fit (:attr:`breaks`). ``interpretation``: the node values that say how
+    the bag's topics became these samples (types, fields, names, pairing), written into
+    the params file; empty for a CSV or an ``import-csv`` bag.
+    """
 
     u: np.ndarray
     y: np.ndarray
@@ -98,18 +105,53 @@ class MimoData:
     y_names: tuple[str, ...]
     source: str
     test_start: int | None = None
+    index: np.ndarray | None = None
+    interpretation: dict[str, Any] = field(default_factory=dict)
+
+    def sample_index(self) -> np.ndarray:
+        """The sample indices (1..N when none were recorded)."""
+        return np.arange(1, len(self.y) + 1) if self.index is None else np.asarray(self.index, dtype=np.int64)
+
+    @property
+    def breaks(self) -> list[int]:
+        """0-based rows that start a new contiguous run: never joined across by the fit."""
+        return [int(b) for b in np.flatnonzero(np.diff(self.sample_index()) != 1) + 1]
 
 
-def load_mimo_data(path: str | Path, u_columns: list[str], y_columns: list[str]) -> MimoData:
-    """Several channels from a vector bag (``import-csv`` with several columns) or a CSV file."""
+def load_mimo_data(
+    path: str | Path, u_columns: list[str], y_columns: list[str], flags: dict[str, Any] | None = None
+) -> MimoData:
+    """Several channels from a bag or a CSV file.
+
+    A bag the identifier was recorded beside (its ``identifier_config``), or one whose
+    topics the flags name, is paired by the node's session (:func:`lenn_ros.fit_bag.load_bag`;
+    ``--u`` / ``--y`` are then topics); an ``import-csv`` vector bag (``u`` / ``y_p`` of
+    Float64MultiArray, no configuration) is read by message order, ``--u`` / ``--y``
+    picking its channels by label.
+    """
     path = Path(path)
     if not path.exists():
         raise FitError(f"{path} does not exist (expected a CSV file or a bag directory)")
     if path.is_dir() or path.suffix == ".mcap":
-        return _load_bag(path, u_columns, y_columns)
+        if not _session_bag(path, flags or {}):
+            return _load_bag(path, u_columns, y_columns)
+        from lenn_ros.fit_bag import load_bag
+
+        data = load_bag(path, {**(flags or {}), "u": u_columns, "y": y_columns})
+        if not isinstance(data, MimoData):
+            raise FitError(f"{path}: the topics give one channel each side; drop the repeated --u/--y")
+        return data
     if not u_columns or not y_columns:
         raise FitError(f"{path}: pass --u COL and --y COL, each repeated once per channel (name or 0-based index)")
     return _load_csv(path, u_columns, y_columns)
+
+
+def _session_bag(path: Path, flags: dict[str, Any]) -> bool:
+    """Whether the bag is read by the node's session: an identifier_config, or flags that say how."""
+    from lenn_ros.bag.vectors import is_vector_run
+    from lenn_ros.fit_bag import has_identifier_config
+
+    return has_identifier_config(path) or any(flags.values()) or not is_vector_run(path)
 
 
 def _load_bag(path: Path, u_columns: list[str], y_columns: list[str]) -> MimoData:
@@ -240,13 +282,18 @@ def candidate_grid(scalings: Scalings, couplings: str, n_estimation: int, max_la
 
 
 def _training_features(
-    structure: MimoStructure, output: int, rows: np.ndarray, u: np.ndarray, y: np.ndarray
+    structure: MimoStructure, output: int, rows: np.ndarray, u: np.ndarray, y: np.ndarray, breaks: list[int]
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Output ``output``'s series-parallel least-squares system: (features of each regressor, target)."""
+    """Output ``output``'s series-parallel least-squares system: (features of each regressor, target).
+
+    A regressor whose window crosses a break (a gap in the record) is left out: its lags
+    would join samples that were not adjacent (:meth:`Record.valid_rows`, the SISO fit's rule).
+    """
     channel = structure.channel(output)
     x, linear = channel.regressors(structure.other_values(output, u, y), y[:, output])
     inputs, targets, _ = channel.pairs_from_regressors(x, linear, y[:, output])
-    return term_features(np.clip(inputs, -1.0, 1.0), rows, BASIS), targets
+    valid = Record.of(u, y, breaks).valid_rows(channel.warm_up)
+    return term_features(np.clip(inputs[valid], -1.0, 1.0), rows, BASIS), targets[valid]
 
 
 def least_squares_identifier(
@@ -256,8 +303,9 @@ def least_squares_identifier(
     y: np.ndarray,
     forgetting: float | None = None,
     names: tuple[str, ...] = (),
+    breaks: list[int] | None = None,
 ) -> MimoIdentifier:
-    """Every output's network by least squares on (u, y); frozen (learning off).
+    """Every output's network by least squares on (u, y), never across ``breaks``; frozen (learning off).
 
     ``forgetting=None``: the selection's fast networks (explicit exponent rows); else
     the node's network (``order``/``cross_degree``), RLS-ready with that forgetting.
@@ -266,7 +314,7 @@ def least_squares_identifier(
 
     def make_model(n_inputs: int, output: int) -> FunctionalLinkNetwork:
         rows = full_exponents(n_inputs, order, cross)
-        features, targets = _training_features(structure, output, rows, u, y)
+        features, targets = _training_features(structure, output, rows, u, y, breaks or [])
         network = FunctionalLinkNetwork(
             n_inputs=n_inputs,
             order=order,
@@ -289,15 +337,42 @@ def least_squares_identifier(
     return identifier
 
 
-def judge(candidate: MimoCandidate, identifier: MimoIdentifier, u: np.ndarray, y: np.ndarray, start: int) -> None:
-    """The candidate's held-out joint free run from ``start``: its score, or why it is rejected."""
-    y_free = identifier.free_run(u, y, start)
-    info = identifier.last_free_run
+def segmented_free_run(
+    identifier: MimoIdentifier, u: np.ndarray, y: np.ndarray, start: int, index: np.ndarray
+) -> tuple[np.ndarray, dict[str, Any], np.ndarray]:
+    """The joint free run from ``start``, restarted from the measured outputs after every gap in ``index``.
+
+    (y_free from ``start`` on, its info, which of those rows were simulated.) The
+    evaluate path's (:func:`lenn_ros.evaluate.free_run_segments`): a simulation never
+    crosses a gap; the ``warm_up`` measured samples after one seed it again, unscored.
+    """
+    from lenn_ros.evaluate import free_run_segments
+
+    y_free, info = free_run_segments(identifier, index, u, y, start)
+    return y_free, info, np.isfinite(y_free).all(axis=1)
+
+
+def judge(
+    candidate: MimoCandidate,
+    identifier: MimoIdentifier,
+    u: np.ndarray,
+    y: np.ndarray,
+    start: int,
+    index: np.ndarray | None = None,
+) -> None:
+    """The candidate's held-out joint free run from ``start`` (restarted after gaps): its score, or why it
+    is rejected."""
+    index = np.arange(1, len(y) + 1) if index is None else index
+    y_free, info, simulated = segmented_free_run(identifier, u, y, start, index)
     held_out = y[start:]
     candidate.clipped = int(info["clipped_inputs"])
     if info["diverged"]:
         candidate.rejected = f"held-out free run diverged at sample {info['diverged_at'] + 1}"
         return
+    if not simulated.any():
+        candidate.rejected = "no held-out sample to simulate (gaps closer than the lags)"
+        return
+    held_out, y_free = held_out[simulated], y_free[simulated]
     spread = np.maximum(np.var(held_out, axis=0), 1e-300)
     nmse = np.mean((y_free - held_out) ** 2, axis=0) / spread
     candidate.nmse_db = [float(10.0 * np.log10(max(value, 1e-300))) for value in nmse]
@@ -325,20 +400,26 @@ def select(
     couplings: str,
     names: tuple[str, ...],
     max_lag: int = 10,
+    index: np.ndarray | None = None,
 ) -> tuple[list[MimoCandidate], list[str]]:
     """Every candidate judged, the one to use first; (candidates, warnings). FitError when none simulates.
 
     Per expansion the lags grow from 1 while they help (LAG_PATIENCE), so the judged
-    candidates are those listed, not the whole grid.
+    candidates are those listed, not the whole grid. ``index``: the samples' indices
+    (None: 1..N); where it skips, neither the estimation nor the held-out free run joins.
     """
+    index = np.arange(1, len(y) + 1) if index is None else np.asarray(index, dtype=np.int64)
+    breaks = [int(b) for b in np.flatnonzero(np.diff(index[:validation_start]) != 1) + 1]
     candidates = []
     for row in candidate_grid(scalings, couplings, validation_start, max_lag):
         best, misses = math.inf, 0
         for candidate in row:
             structure = scalings.structure(candidate.lags, couplings)
             expansion = (candidate.order, candidate.cross_degree)
-            identifier = least_squares_identifier(structure, expansion, u[:validation_start], y[:validation_start])
-            judge(candidate, identifier, u, y, validation_start)
+            identifier = least_squares_identifier(
+                structure, expansion, u[:validation_start], y[:validation_start], breaks=breaks
+            )
+            judge(candidate, identifier, u, y, validation_start, index)
             candidates.append(candidate)
             best, misses = (candidate.score, 0) if candidate.score < best else (best, misses + 1)
             if misses == LAG_PATIENCE:
@@ -371,23 +452,39 @@ def _simplest_first(candidates: list[MimoCandidate], usable: list[MimoCandidate]
     return ordered + [c for c in candidates if c not in usable]
 
 
-def score(identifier: MimoIdentifier, u: np.ndarray, y: np.ndarray, start: int) -> dict[str, Any]:
-    """Test-part figures per output of the frozen model: one-step and joint free run from ``start``."""
-    y_hat = identifier.run(u, y, learn=False)[start:]
-    y_free = identifier.free_run(u, y, start)
-    info = dict(identifier.last_free_run)
+def score(
+    identifier: MimoIdentifier, u: np.ndarray, y: np.ndarray, start: int, index: np.ndarray | None = None
+) -> dict[str, Any]:
+    """Test-part figures per output of the frozen model: one-step and joint free run from ``start``.
+
+    Neither crosses a gap in ``index`` (None: none): one step ahead, each contiguous run
+    starts its history afresh, as the node's session does; the free run restarts from
+    the measured outputs after each gap. The samples neither predicts are NaN, unscored.
+    """
+    index = np.arange(1, len(y) + 1) if index is None else np.asarray(index, dtype=np.int64)
+    breaks = np.flatnonzero(np.diff(index) != 1) + 1
+    y_hat = np.full(y.shape, np.nan)
+    for a, b in runs(0, len(y), breaks):
+        if b - a > identifier.structure.warm_up:
+            y_hat[a:b] = identifier.run(u[a:b], y[a:b], learn=False)
+    y_hat = y_hat[start:]
+    y_free, info, simulated = segmented_free_run(identifier, u, y, start, index)
     y_test = y[start:]
+    predicted = np.isfinite(y_hat).all(axis=1)
+    if info["diverged"]:
+        simulated = np.ones(len(y_test), dtype=bool)  # its NaN make the figures NaN, and it is said
     outputs = []
     for j, name in enumerate(identifier.names):
-        finite = bool(np.all(np.isfinite(y_free[:, j])))
+        finite = bool(np.all(np.isfinite(y_free[simulated, j])))
+        scored_free = (y_test[simulated, j], y_free[simulated, j])
         outputs.append(
             {
                 "name": name,
-                "rmse": rmse(y_test[:, j], y_hat[:, j]),
-                "nmse_db": nmse_db(y_test[:, j], y_hat[:, j]),
-                "rmse_free_run": rmse(y_test[:, j], y_free[:, j]) if finite else math.nan,
-                "nmse_free_run_db": nmse_db(y_test[:, j], y_free[:, j]) if finite else math.nan,
-                "warnings": [f"{name}: {text}" for text in free_run_problems(y_test[:, j], y_free[:, j], info)],
+                "rmse": rmse(y_test[predicted, j], y_hat[predicted, j]),
+                "nmse_db": nmse_db(y_test[predicted, j], y_hat[predicted, j]),
+                "rmse_free_run": rmse(*scored_free) if finite else math.nan,
+                "nmse_free_run_db": nmse_db(*scored_free) if finite else math.nan,
+                "warnings": [f"{name}: {text}" for text in free_run_problems(*scored_free, info)],
             }
         )
     return {"per_output": outputs, "free_run": info, "y_test": y_test, "y_hat_test": y_hat, "y_free_test": y_free}
@@ -400,14 +497,21 @@ def fit_couplings(
     u_train, y_train = data.u[:start], data.y[:start]
     scalings = Scalings.from_training(u_train, y_train, (data.u_names, data.y_names))
     validation_start = start - max(MIN_VALIDATION, round(VALIDATION_FRACTION * start))
-    say(f"couplings {couplings}: judging structures by the joint free run on samples {validation_start + 1}..{start}")
-    candidates, warnings = select(u_train, y_train, validation_start, scalings, couplings, data.y_names, max_lag)
+    index, breaks = data.sample_index(), [b for b in data.breaks if b < start]
+    gaps = f" ({len(breaks)} gaps in the training record, not joined)" if breaks else ""
+    say(
+        f"couplings {couplings}: judging structures by the joint free run on samples {validation_start + 1}..{start}"
+        + gaps
+    )
+    candidates, warnings = select(
+        u_train, y_train, validation_start, scalings, couplings, data.y_names, max_lag, index[:start]
+    )
     chosen = candidates[0]
     forgetting = live_forgetting(start)
     structure = scalings.structure(chosen.lags, couplings)
     expansion = (chosen.order, chosen.cross_degree)
-    identifier = least_squares_identifier(structure, expansion, u_train, y_train, forgetting, data.y_names)
-    scored = score(identifier, data.u, data.y, start)
+    identifier = least_squares_identifier(structure, expansion, u_train, y_train, forgetting, data.y_names, breaks)
+    scored = score(identifier, data.u, data.y, start, index)
     model = {
         "couplings": couplings,
         "y_lags": chosen.lags,
@@ -428,6 +532,7 @@ def fit_couplings(
         },
         "estimation_samples": validation_start,
         "validation_samples": start - validation_start,
+        "gaps": len(breaks),
         "candidates": [c.as_dict() for c in candidates],
     }
     scored["warnings"] = warnings + [text for output in scored["per_output"] for text in output.pop("warnings")]
@@ -461,20 +566,32 @@ def fit_mimo(data: MimoData, test_from: int | None, max_lag: int = 10, progress:
     return {"report": report, "identifier": identifier}
 
 
-def params_values(report: dict[str, Any], u: np.ndarray, y: np.ndarray) -> dict[str, Any]:
-    """``ros__parameters`` of the identifier node's MIMO mode (README "Several inputs and outputs")."""
+def params_values(
+    report: dict[str, Any], u: np.ndarray, y: np.ndarray, interpretation: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """``ros__parameters`` of the identifier node's MIMO mode (README "Several inputs and outputs").
+
+    ``interpretation``: how the bag's topics became the samples (types, fields, names,
+    pairing, sample period: :data:`lenn_ros.fit_bag.INTERPRETATION`), so the node reads the
+    robot's own topics the way they were read for the fit; without one (a CSV, an
+    ``import-csv`` bag), u and y_p carry Float64MultiArray samples, channels in the
+    order of u_names / y_names.
+    """
     model = report["model"]
     scaling = model["scaling"]
     limit = float(10.0 ** math.ceil(math.log10(max(1e3, 10.0 * float(max(np.abs(u).max(), np.abs(y).max()))))))
-    return {
-        "example": 0,
-        "network": "lenn",
+    reading = interpretation or {
         "u_type": topics.FLOAT64_ARRAY,
         "y_type": topics.FLOAT64_ARRAY,
         "u_field": "data[*]",
         "y_field": "data[*]",
         "u_names": list(report["inputs"]),
         "y_names": list(report["outputs"]),
+    }
+    return {
+        "example": 0,
+        "network": "lenn",
+        **reading,
         "couplings": model["couplings"],
         "y_lags": int(model["y_lags"]),
         "u_lags": int(model["u_lags"]),
@@ -494,16 +611,28 @@ def params_values(report: dict[str, Any], u: np.ndarray, y: np.ndarray) -> dict[
     }
 
 
-def write_outputs(directory: str | Path, result: dict[str, Any], u: np.ndarray, y: np.ndarray) -> dict[str, str]:
-    """``DIR/params.yaml`` (key ``/**``) and ``DIR/weights.npz``; ``weights_in`` absolute, as in the SISO fit."""
+def write_outputs(
+    directory: str | Path,
+    result: dict[str, Any],
+    u: np.ndarray,
+    y: np.ndarray,
+    interpretation: dict[str, Any] | None = None,
+) -> dict[str, str]:
+    """``DIR/params.yaml`` (key ``/**``) and ``DIR/weights.npz``; ``weights_in`` absolute, as in the SISO fit.
+
+    ``interpretation``: a bag's (see :func:`params_values`): the node started from the
+    file with the bag's remaps reads the same topics the same way.
+    """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     report = result["report"]
     weights = directory / "weights.npz"
     result["identifier"].save_state(weights)
-    values = {**params_values(report, u, y), "weights_in": str(weights.resolve())}
+    values = {**params_values(report, u, y, interpretation), "weights_in": str(weights.resolve())}
     note = (
-        "MIMO: u and y_p carry\n# Float64MultiArray samples, channels in the order of u_names / y_names; "
+        "MIMO: u and y_p read as\n# the bag's topics were (types, fields, names, pairing); weights_in is absolute"
+        if interpretation
+        else "MIMO: u and y_p carry\n# Float64MultiArray samples, channels in the order of u_names / y_names; "
         "weights_in is absolute"
     )
     params = write_params(directory, report, values, note)
@@ -546,7 +675,9 @@ def _choice_lines(title: str, part: dict[str, Any]) -> list[str]:
     lines = [
         f"  {title}: structures judged by the joint free run on training samples "
         f"{m['estimation_samples'] + 1}..{m['estimation_samples'] + m['validation_samples']} "
-        "(mean NMSE over outputs):"
+        "(mean NMSE over outputs)"
+        + (f", {m['gaps']} gaps in the training record, not joined" if m.get("gaps") else "")
+        + ":"
     ]
     for index, c in enumerate(m["candidates"]):
         mark = "->" if index == 0 else "  "
@@ -613,15 +744,24 @@ def plot(path: str | Path, report: dict[str, Any]) -> Path:
 
 def main(args: Any, u_columns: list[str], y_columns: list[str]) -> int:
     """``lenn-ros fit`` with several channels (or a vector bag); the SISO options that do not apply are refused."""
+    from lenn_ros.fit import bag_flags
+
+    return run(args, load_mimo_data(args.data, u_columns, y_columns, bag_flags(args)))
+
+
+def run(args: Any, data: MimoData) -> int:
+    """Fit, write (``-o``), plot and report the loaded channels: what ``main`` does once they are read."""
+    from lenn_ros.fit import test_row
+
     if (getattr(args, "network", "lenn") or "lenn") != "lenn" or (getattr(args, "solver", "ls") or "ls") != "ls":
-        raise FitError("several --u/--y: only the LeNN by least squares is fitted (drop --network/--solver)")
-    data = load_mimo_data(args.data, u_columns, y_columns)
+        raise FitError("several channels: only the LeNN by least squares is fitted (drop --network/--solver)")
     progress = None if args.json else (lambda text: print(text, file=sys.stderr, flush=True))
-    test_from = args.test_from if args.test_from is not None else data.test_start
+    test_from = test_row(data.index, args.test_from, data.test_start)
     result = fit_mimo(data, test_from, progress=progress)
     report = result["report"]
     if args.output:
-        report["files"] = write_outputs(args.output, result, data.u[: report["train_samples"]], data.y)
+        train = data.u[: report["train_samples"]]
+        report["files"] = write_outputs(args.output, result, train, data.y, data.interpretation)
     if args.plot:
         plot(args.plot, report)
     if args.json:

@@ -173,6 +173,15 @@ class MimoStructure:
         """Whether every channel's scale is known (0: to be learnt by a session's warm-up, core.warmup)."""
         return all(scale > 0 for scale in (*self.y_scale, *self.u_scale))
 
+    @property
+    def warm_up(self) -> int:
+        """Samples of history before the first prediction: every output's (their common ``history``).
+
+        So code written for a SISO structure's ``warm_up`` (a free run restarted after each
+        break, a regression masked at gaps) reads a MIMO model's the same way.
+        """
+        return max(self.y_lags, self.u_lags, 1)
+
     def _scale(self, kind: str, index: int) -> tuple[float, float]:
         """(scale, offset) of a channel; a scale still to be learnt stands in as 1 until the warm-up sets it."""
         scales, offsets = (self.y_scale, self.y_offset) if kind == "y" else (self.u_scale, self.u_offset)

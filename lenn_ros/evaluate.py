@@ -48,7 +48,7 @@ from lenn_ros.config import (
     read_params_file,
     resolve,
 )
-from lenn_ros.core.evaluation import Evaluation, free_run_problems
+from lenn_ros.core.evaluation import Evaluation, free_run_problems, free_run_segments
 from lenn_ros.core.fields import stamp_seconds
 from lenn_ros.core.metrics import coverage, nmse_db, rmse
 from lenn_ros.core.mimo import MimoIdentifier
@@ -465,49 +465,6 @@ def _last_phase_start(index: np.ndarray, learn: np.ndarray) -> int | None:
         return None
     changes = np.flatnonzero(learn[:-1] & ~learn[1:])
     return int(index[changes[-1] + 1]) if changes.size else int(index[0])
-
-
-def free_run_segments(
-    identifier: Identifier | MimoIdentifier, index: np.ndarray, u: np.ndarray, y: np.ndarray, first: int
-) -> tuple[np.ndarray, dict[str, Any]]:
-    """The free run over the test part, restarted from the measured outputs after every break.
-
-    A simulation cannot cross a lost sample or a NaN input: it would feed the model a
-    value that does not exist (the whole rest came out NaN and was reported as
-    divergence). After a break the next ``warm_up`` measured samples seed the model's
-    history again, as at the start of the test part; they are not simulated (NaN) and
-    not scored. Without breaks this is one ``free_run`` from ``first``, as before.
-    A MIMO model's rows (u (N, n_u), y (N, n_y)) break where any channel is invalid
-    (``lenn-ros fit``'s MIMO selection and test scores run through here too).
-    """
-    window = identifier.structure.warm_up
-    valid = _finite_rows(u) & _finite_rows(y)
-    continues = np.r_[False, (np.diff(index) == 1) & valid[1:] & valid[:-1]]
-    starts = np.flatnonzero(~continues)
-    y_free = np.full((len(y) - first, *np.shape(y)[1:]), np.nan)
-    info: dict[str, Any] = {"samples": 0, "clipped_inputs": 0, "diverged": False, "diverged_at": None}
-    info["segments"] = 0
-    for begin, end in zip(starts, np.r_[starts[1:], len(y)], strict=True):
-        simulate_from = max(first, begin + window)
-        if end <= first or simulate_from >= end or not valid[begin]:
-            continue
-        y_free[simulate_from - first : end - first] = identifier.free_run(
-            u[begin:end], y[begin:end], simulate_from - begin
-        )
-        part = identifier.last_free_run
-        info["segments"] += 1
-        info["samples"] += part["samples"]
-        info["clipped_inputs"] += part["clipped_inputs"]
-        if part["diverged"] and not info["diverged"]:
-            info["diverged"], info["diverged_at"] = True, begin + part["diverged_at"]
-    info["not_simulated"] = int(len(y_free) - info["samples"])
-    return y_free, info
-
-
-def _finite_rows(values: np.ndarray) -> np.ndarray:
-    """Per sample, whether every channel of it is a number (one column for a SISO series)."""
-    values = np.asarray(values, dtype=np.float64)
-    return np.isfinite(values.reshape(len(values), -1)).all(axis=1)
 
 
 def _score(identifier: Identifier, index: np.ndarray, u: np.ndarray, y: np.ndarray, y_hat: np.ndarray, start: int):

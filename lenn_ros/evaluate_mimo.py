@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from lenn_ros.core.evaluation import free_run_segments
 from lenn_ros.core.metrics import nmse_db, rmse
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.session import Session, describe_gaps, json_safe
@@ -73,7 +74,9 @@ def score_mimo(
     y = y.reshape(len(index), -1)
     y_hat = session.run_samples(index, u, y, learn)
     test = index >= start
-    y_free, free_run = _free_run(identifier, index, u, y, int(np.argmax(test)))
+    first = int(np.argmax(test))
+    y_free = np.full(y.shape, np.nan)  # restarted from the measured outputs after every break, as one channel's
+    y_free[first:], free_run = free_run_segments(identifier, index, u, y, first)
     scored = test & np.isfinite(y_hat).all(axis=1)
     channels = {
         name: _channel_scores(y[:, j], y_hat[:, j], y_free[:, j], scored, test)
@@ -96,26 +99,6 @@ def score_mimo(
         y_free[test],
         describe_gaps(index, session.config.pairing, session.config.sample_period),
     )
-
-
-def _free_run(
-    identifier: MimoIdentifier, index: np.ndarray, u: np.ndarray, y: np.ndarray, first: int
-) -> tuple[np.ndarray, dict[str, Any]]:
-    """The joint free run from the first test sample to the first break (lost or invalid sample) after it."""
-    y_free = np.full((len(y), y.shape[1]), np.nan)
-    valid = np.isfinite(u).all(axis=1) & np.isfinite(y).all(axis=1)
-    continues = np.r_[False, (np.diff(index) == 1) & valid[1:] & valid[:-1]]
-    breaks = np.flatnonzero(~continues[first + 1 :])
-    end = first + 1 + int(breaks[0]) if breaks.size else len(y)
-    begin = first
-    while begin > 0 and continues[begin]:
-        begin -= 1  # the measured history the run starts from
-    if first - begin < identifier.outputs[0].structure.warm_up:
-        return y_free, {"samples": 0, "diverged": False, "not_simulated": int(len(y) - first)}
-    y_free[first:end] = identifier.free_run(u[begin:end], y[begin:end], first - begin)
-    info = dict(identifier.last_free_run)
-    info["not_simulated"] = int(len(y) - end)
-    return y_free, info
 
 
 def _channel_scores(

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import itertools
 import json
 import math
 import time
@@ -36,7 +37,7 @@ import numpy as np
 import yaml
 
 from lenn_ros.bag.csv_import import is_number
-from lenn_ros.core.evaluation import free_run_problems
+from lenn_ros.core.evaluation import free_run_problems, free_run_segments
 from lenn_ros.core.families import INCREMENT_LAGS, pass_through_weights
 from lenn_ros.core.metrics import band_half_width, coverage, nmse_db, rmse
 from lenn_ros.core.networks import FunctionalLinkNetwork
@@ -244,7 +245,7 @@ def _fit(data: Data, test_from: int, refine: bool, network: str, solver: str, pr
         say(f"training the {len(final.exponents)} selected terms by SGD epochs, early-stopped on the held-out tail")
         identifier, epochs = fit_lenn_sgd(final, u_train, y_train, validation_start, chosen.spec.increment)
         described = {**describe_model(final, chosen, forgetting), **describe_sgd(identifier, epochs)}
-    report = score(identifier, u, y, start)
+    report = score(identifier, u, y, start, data.breaks)
     report["warnings"] = selection_warnings + report["warnings"]
     report["intervals"] = fit_intervals(report, identifier, chosen, record, network == "lenn" and solver == "ls")
     report.update(
@@ -348,30 +349,48 @@ def _select(record: Record, scaling: Scaling, say: Any) -> tuple[list[Candidate]
     return candidates, warnings
 
 
-def score(identifier: Identifier, u: np.ndarray, y: np.ndarray, start: int) -> dict[str, Any]:
-    """Test-part figures of the frozen model: one-step and free run from sample ``start``."""
-    y_hat = identifier.run(u, y, learn=False)
-    first = start - identifier.structure.warm_up  # the regressors that predict samples start..N-1
+def score(
+    identifier: Identifier, u: np.ndarray, y: np.ndarray, start: int, breaks: list[int] | tuple[int, ...] = ()
+) -> dict[str, Any]:
+    """Test-part figures of the frozen model: one-step and free run from sample ``start``.
+
+    ``breaks`` (samples that start a new run: gaps in a bag) are never crossed: the
+    one-step pass and the free run restart from the measured outputs after each
+    (:func:`~lenn_ros.core.evaluation.free_run_segments`, as ``evaluate`` does); the samples
+    that seed them are not scored.
+    """
+    cuts = sorted(int(b) for b in breaks if 0 < b < len(y))
+    y_hat = np.full(len(y), np.nan)
+    window = identifier.structure.warm_up
+    for a, b in itertools.pairwise([0, *cuts, len(y)]):
+        if b - a > window:
+            y_hat[a:b] = identifier.run(u[a:b], y[a:b], learn=False)
+    first = start - window  # the regressors that predict samples start..N-1
     x_test, _ = identifier.structure.regressors(u[first:], y[first:])
     test_clipped = int(np.count_nonzero(np.abs(x_test[:-1]) > 1.0))
-    y_free = identifier.free_run(u, y, start)
+    if cuts:
+        index = np.arange(len(y)) + np.searchsorted(cuts, np.arange(len(y)), side="right")  # one lost per break
+        y_free, info = free_run_segments(identifier, index, u, y, start)
+    else:
+        y_free, info = identifier.free_run(u, y, start), identifier.last_free_run
     y_test = y[start:]
-    info = identifier.last_free_run
-    finite = bool(np.all(np.isfinite(y_free)))
+    simulated = np.isfinite(y_free)
+    healthy = not info["diverged"] and bool(simulated.any())
+    predicted = np.isfinite(y_hat[start:])
     structure = identifier.structure
     outside = Scaling(structure.y_offset, structure.y_scale, structure.u_offset, structure.u_scale).outside(
         u[start:], y_test
     )
     return {
         "samples": len(y_test),
-        "rmse": rmse(y_test, y_hat[start:]),
-        "nmse_db": nmse_db(y_test, y_hat[start:]),
-        "rmse_free_run": rmse(y_test, y_free) if finite else math.nan,
-        "nmse_free_run_db": nmse_db(y_test, y_free) if finite else math.nan,
+        "rmse": rmse(y_test[predicted], y_hat[start:][predicted]),
+        "nmse_db": nmse_db(y_test[predicted], y_hat[start:][predicted]),
+        "rmse_free_run": rmse(y_test[simulated], y_free[simulated]) if healthy else math.nan,
+        "nmse_free_run_db": nmse_db(y_test[simulated], y_free[simulated]) if healthy else math.nan,
         "free_run": {**info, "starts_from": f"measured outputs before sample {start + 1}"},
         "clipped_inputs_one_step": test_clipped,
         "test_samples_outside_training_range": outside,
-        "warnings": free_run_problems(y_test, y_free, info),
+        "warnings": free_run_problems(y_test[simulated], y_free[simulated], info),
         "y_test": y_test,
         "y_hat_test": y_hat[start:],
         "y_free_test": y_free,

@@ -343,10 +343,10 @@ def segmented_free_run(
     """The joint free run from ``start``, restarted from the measured outputs after every gap in ``index``.
 
     (y_free from ``start`` on, its info, which of those rows were simulated.) The
-    evaluate path's (:func:`lenn_ros.evaluate.free_run_segments`): a simulation never
+    evaluate path's (:func:`lenn_ros.core.evaluation.free_run_segments`): a simulation never
     crosses a gap; the ``warm_up`` measured samples after one seed it again, unscored.
     """
-    from lenn_ros.evaluate import free_run_segments
+    from lenn_ros.core.evaluation import free_run_segments
 
     y_free, info = free_run_segments(identifier, index, u, y, start)
     return y_free, info, np.isfinite(y_free).all(axis=1)

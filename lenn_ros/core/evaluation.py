@@ -9,6 +9,7 @@ score one-step (series-parallel) and free-run (parallel) over the test samples.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -272,3 +273,45 @@ def free_run_problems(y_test: np.ndarray, y_free: np.ndarray, info: dict | None 
             "scale/offset too small for these signals (lenn-ros fit takes them from the data)"
         )
     return problems
+
+
+def free_run_segments(
+    identifier: Any, index: np.ndarray, u: np.ndarray, y: np.ndarray, first: int
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """The free run over the test part, restarted from the measured outputs after every break.
+
+    A simulation cannot cross a lost sample or a NaN input: it would feed the model a
+    value that does not exist (the whole rest came out NaN and was reported as
+    divergence). After a break the next ``warm_up`` measured samples seed the model's
+    history again, as at the start of the test part; they are not simulated (NaN) and
+    not scored. Without breaks this is one ``free_run`` from ``first``, as before.
+    A MIMO model's rows (u (N, n_u), y (N, n_y)) break where any channel is invalid
+    (``lenn-ros fit``'s MIMO selection and test scores run through here too).
+    """
+    window = identifier.structure.warm_up
+    valid = finite_rows(u) & finite_rows(y)
+    continues = np.r_[False, (np.diff(index) == 1) & valid[1:] & valid[:-1]]
+    starts = np.flatnonzero(~continues)
+    y_free = np.full((len(y) - first, *np.shape(y)[1:]), np.nan)
+    info: dict[str, Any] = {"samples": 0, "clipped_inputs": 0, "diverged": False, "diverged_at": None}
+    info["segments"] = 0
+    for begin, end in zip(starts, np.r_[starts[1:], len(y)], strict=True):
+        simulate_from = max(first, begin + window)
+        if end <= first or simulate_from >= end or not valid[begin]:
+            continue
+        y_free[simulate_from - first : end - first] = identifier.free_run(
+            u[begin:end], y[begin:end], simulate_from - begin
+        )
+        part = identifier.last_free_run
+        info["segments"] += 1
+        info["samples"] += int(part["samples"])
+        info["clipped_inputs"] += int(part["clipped_inputs"])
+        if part["diverged"] and not info["diverged"]:
+            info["diverged"], info["diverged_at"] = True, int(begin + part["diverged_at"])
+    info["not_simulated"] = int(len(y_free) - info["samples"])
+    return y_free, info
+
+
+def finite_rows(values: np.ndarray) -> np.ndarray:
+    """Per sample (row): every channel a number. A 1-D series is one channel."""
+    return np.isfinite(np.asarray(values, dtype=np.float64)).reshape(len(values), -1).all(axis=1)

@@ -149,9 +149,10 @@ def band_half_width(residuals: np.ndarray, level: float = 0.95) -> float:
 
 
 def coverage(measured: np.ndarray, centre: np.ndarray, half_width: float | np.ndarray) -> float:
-    """Fraction of samples within centre ± half_width (NaN centres count as outside)."""
+    """Fraction of the samples with a prediction (finite centre) that lie within centre ± half_width."""
     measured, centre = np.asarray(measured, dtype=np.float64), np.asarray(centre, dtype=np.float64)
-    if measured.size == 0:
+    predicted = np.isfinite(centre)
+    if not predicted.any():
         return math.nan
-    inside = np.abs(measured - centre) <= half_width
-    return float(np.count_nonzero(inside & np.isfinite(centre)) / measured.size)
+    inside = np.abs(measured[predicted] - centre[predicted]) <= np.broadcast_to(half_width, centre.shape)[predicted]
+    return float(np.mean(inside))

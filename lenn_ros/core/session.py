@@ -46,6 +46,7 @@ import numpy as np
 
 from lenn_ros.core.alignment import GridSampler, Pair, StampAligner
 from lenn_ros.core.change import ACCEPTED, DEFAULT_THRESHOLD, RAISED, ChangeDetector
+from lenn_ros.core.evaluation import finite_rows
 from lenn_ros.core.merging import TopicMerger, default_max_age
 from lenn_ros.core.metrics import ChannelsNMSE, RunningNMSE
 from lenn_ros.core.mimo import MimoIdentifier, MimoStepResult
@@ -941,7 +942,7 @@ class Session:
             self.last_y_hat_std = std
             return y_hat
         y_hat = np.full(y.shape, np.nan)
-        valid = _finite_rows(u) & _finite_rows(y)
+        valid = finite_rows(u) & finite_rows(y)
         breaks = np.flatnonzero((np.diff(index) != 1) | ~valid[1:] | ~valid[:-1]) + 1
         # a MIMO identifier's index counters are its outputs' (they count alike): output 0's hold them
         counters = self.identifier.outputs[0].counters if self.mimo else self.identifier.counters
@@ -963,7 +964,7 @@ class Session:
                 self.phase_nmse.reset()
             self.phase_learning = bool(phases[-1])
             last = np.flatnonzero(valid)[changes[-1]] if changes.size else 0
-            scored = valid & _finite_rows(y_hat) & (np.arange(len(y)) >= last)
+            scored = valid & finite_rows(y_hat) & (np.arange(len(y)) >= last)
             self.phase_nmse.extend(y[scored], y_hat[scored])
         if self.identifier.counters["clipped"] > self._seen_clipped:
             self._say_clipped(None)
@@ -1100,11 +1101,6 @@ class Session:
                 self.phase_nmse.names, self.phase_nmse.channels, self.identifier.outputs, strict=True
             )
         }
-
-
-def _finite_rows(values: np.ndarray) -> np.ndarray:
-    """Per sample (row): every channel finite. A 1-D series is one channel."""
-    return np.isfinite(values).reshape(len(values), -1).all(axis=1)
 
 
 def json_safe(value: Any) -> Any:

@@ -327,7 +327,7 @@ def lockstep_reference(log: RobotLog, samples: np.ndarray, period_ns: int) -> tu
 def test_sample_pairing_on_the_robot_matches_lockstep(
     probe: Probe, tmp_path: Path, seed: int, stamp_jitter: float
 ) -> None:
-    """Controller at 40 Hz, driver at 125 Hz with loss and jitter: within 3 dB of lockstep.
+    """Controller at 40 Hz, driver at 125 Hz with loss and jitter: within 2.5 dB of lockstep.
 
     With ``stamp_jitter`` the driver's loop (so its stamps) is ±1 ms off the 8 ms
     grid: the grid must still take every measurement that came, one per period (a
@@ -372,8 +372,10 @@ def test_sample_pairing_on_the_robot_matches_lockstep(
     assert counters["learned"] >= 0.9 * steps * 0.9  # most of the run was learnt (2 % loss, the start)
     assert counters["grid_gaps"] <= lost + 0.01 * steps  # a gap is a lost measurement (or a rare stall)
     assert y_agree == 1.0  # every y_p learnt is the plant's own at the sample's time
-    assert u_agree >= 0.8  # and its command is the one the plant received (or one arriving at t_k)
-    assert abs(live - reference) <= 3.0
+    # bounds just outside what 3 seeds x 2 jitters measured on a loaded 2-core machine (2026-12-03):
+    # |live - lockstep| 0.56-2.28 dB, u agreeing 0.939-0.993
+    assert u_agree >= 0.92  # and its command is the one the plant received (or one arriving at t_k)
+    assert abs(live - reference) <= 2.5
 
 
 @pytest.mark.parametrize("offset", [0.3, 2.0])

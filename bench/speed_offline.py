@@ -208,8 +208,9 @@ def run_kernel(
         done = pick(kernels.functional_link_nlms)(net.weights_, inputs, targets, float(net.nlms_step), 1e-6, learn, y)
     else:
         done = pick(kernels.functional_link_rls)(
-            net.weights_, net.covariance_, inputs, targets, float(net.forgetting), net.trace_bound, learn, y
-        )
+            net.weights_, net.covariance_, inputs, targets, float(net.forgetting), net.trace_bound, learn, y,
+            np.empty(0),  # (no leverage wanted)
+        )  # fmt: skip
     if done != inputs.shape[0]:
         raise FloatingPointError(f"kernel stopped at sample {done} (divergence) during the benchmark")
     return y

@@ -149,24 +149,10 @@ class Model:
 
     # -- shapes ---------------------------------------------------------------------------------
     def _inputs(self, u: Any, name: str) -> np.ndarray:
-        a = np.asarray(u, dtype=np.float64)
-        if a.ndim == 1 and self.n_u == 1:
-            a = a[:, None]
-        if a.ndim != 2 or a.shape[1] != self.n_u:
-            raise ModelError(f"{name} has shape {np.shape(u)}; the model takes {self.n_u} input(s) per sample")
-        if not np.all(np.isfinite(a)):
-            raise ModelError(f"{name} holds {int(np.count_nonzero(~np.isfinite(a)))} NaN/inf values")
-        return a
+        return _samples(u, self.n_u, name, "takes", "input")
 
     def _outputs(self, y: Any, name: str = "y") -> np.ndarray:
-        a = np.asarray(y, dtype=np.float64)
-        if a.ndim == 1 and self.n_y == 1:
-            a = a[:, None]
-        if a.ndim != 2 or a.shape[1] != self.n_y:
-            raise ModelError(f"{name} has shape {np.shape(y)}; the model gives {self.n_y} output(s) per sample")
-        if not np.all(np.isfinite(a)):
-            raise ModelError(f"{name} holds {int(np.count_nonzero(~np.isfinite(a)))} NaN/inf values")
-        return a
+        return _samples(y, self.n_y, name, "gives", "output")
 
     def _history(self, u_initial: Any, y_initial: Any) -> tuple[np.ndarray, np.ndarray]:
         window = self.history
@@ -177,6 +163,18 @@ class Model:
             if len(a) < window:
                 raise ModelError(f"{name} has {len(a)} samples; the model needs the last {window} before the run")
         return u_before[-window:], y_before[-window:]
+
+
+def _samples(values: Any, channels: int, name: str, verb: str, kind: str) -> np.ndarray:
+    """``values`` as (samples, channels) of finite numbers (one channel may come as a flat series), or why not."""
+    a = np.asarray(values, dtype=np.float64)
+    if a.ndim == 1 and channels == 1:
+        a = a[:, None]
+    if a.ndim != 2 or a.shape[1] != channels:
+        raise ModelError(f"{name} has shape {np.shape(values)}; the model {verb} {channels} {kind}(s) per sample")
+    if not np.all(np.isfinite(a)):
+        raise ModelError(f"{name} holds {int(np.count_nonzero(~np.isfinite(a)))} NaN/inf values")
+    return a
 
 
 class Stepper:

@@ -152,9 +152,8 @@ def _drive(domain: int, inputs: np.ndarray, twin) -> list[tuple[list[str], float
     return received
 
 
-@pytest.mark.ros
-def test_twin_publishes_fits_free_run_over_dds(fitted: dict, domain: int, tmp_path: Path) -> None:
-    """Driven by the test part's inputs, the twin publishes fit's free run (1e-9), as the robot's messages."""
+def _run_twin(fitted: dict, domain: int, tmp_path: Path, *params: str) -> tuple[list, str]:
+    """The twin of the robot model from the measured history before the test part, driven by its inputs."""
     from rosutil import start_node, stop
 
     directory = _robot_model(fitted, tmp_path / "robot_model")
@@ -164,11 +163,18 @@ def test_twin_publishes_fits_free_run_over_dds(fitted: dict, domain: int, tmp_pa
         f"y_initial:={list(map(float, y[start - w : start]))}",
         f"u_initial:={list(map(float, u[start - w : start]))}",
     ]
-    twin = start_node("twin", f"model:={directory}", *history)
+    twin = start_node("twin", f"model:={directory}", *params, *history)
     try:
         received = _drive(domain, u[start:], twin)
     finally:
         _, err = stop(twin)
+    return received, err
+
+
+@pytest.mark.ros
+def test_twin_publishes_fits_free_run_over_dds(fitted: dict, domain: int, tmp_path: Path) -> None:
+    """Driven by the test part's inputs, the twin publishes fit's free run (1e-9), as the robot's messages."""
+    received, err = _run_twin(fitted, domain, tmp_path)
     assert all(names == ["elbow"] for names, _ in received)
     published = np.array([value for _, value in received])
     assert np.max(np.abs(published - fitted["report"]["y_free_test"])) <= 1e-9
@@ -178,20 +184,7 @@ def test_twin_publishes_fits_free_run_over_dds(fitted: dict, domain: int, tmp_pa
 @pytest.mark.ros
 def test_twin_noise_has_the_fits_residual_std(fitted: dict, domain: int, tmp_path: Path) -> None:
     """noise:=true adds Gaussian noise of fit.json's one-step std to what is published, not to the model's state."""
-    from rosutil import start_node, stop
-
-    directory = _robot_model(fitted, tmp_path / "robot_model")
-    u, y, start = fitted["u"], fitted["y"], fitted["start"]
-    w = lenn_ros.load_model(directory).history
-    history = [
-        f"y_initial:={list(map(float, y[start - w : start]))}",
-        f"u_initial:={list(map(float, u[start - w : start]))}",
-    ]
-    twin = start_node("twin", f"model:={directory}", "noise:=true", "seed:=3", *history)
-    try:
-        received = _drive(domain, u[start:], twin)
-    finally:
-        _, err = stop(twin)
+    received, err = _run_twin(fitted, domain, tmp_path, "noise:=true", "seed:=3")
     noise = np.array([value for _, value in received]) - fitted["report"]["y_free_test"]
     std = fitted["report"]["intervals"]["one_step"]["std"]
     # 341 draws: the sample std within 4 standard errors of the std, and no drift (the state is noise-free)

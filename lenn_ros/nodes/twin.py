@@ -31,7 +31,6 @@ import time
 from typing import Any
 
 import numpy as np
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor
 from rclpy.node import Node
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from std_msgs.msg import String
@@ -41,19 +40,11 @@ from lenn_ros.config import ConfigError, field_extractor, side_channels
 from lenn_ros.core.fields import FieldError, compose, has_header
 from lenn_ros.model import ModelError, load_model
 from lenn_ros.nodes import run_node
+from lenn_ros.nodes.robot_controller import describe
 
 #: s between two lines about the same kind of trouble (the counts go on in status)
 WARN_PERIOD = 5.0
 STEP_ON = ("input", "timer")
-
-
-def _describe(text: str, low: float | None = None, high: float | None = None) -> ParameterDescriptor:
-    descriptor = ParameterDescriptor(description=text, read_only=True)
-    if isinstance(low, int) and isinstance(high, int):
-        descriptor.integer_range = [IntegerRange(from_value=low, to_value=high, step=1)]
-    elif low is not None and high is not None:
-        descriptor.floating_point_range = [FloatingPointRange(from_value=float(low), to_value=float(high))]
-    return descriptor
 
 
 class Twin(Node):
@@ -62,16 +53,16 @@ class Twin(Node):
     def __init__(self) -> None:
         super().__init__("twin")
         declare = self.declare_parameter
-        declare("model", "", _describe("model directory written by lenn-ros fit -o DIR (or its params.yaml)"))
-        declare("step_on", "input", _describe("input: one step per command message; timer: every sample_period"))
+        declare("model", "", describe("model directory written by lenn-ros fit -o DIR (or its params.yaml)"))
+        declare("step_on", "input", describe("input: one step per command message; timer: every sample_period"))
         declare(
-            "sample_period", 0.0, _describe("step_on timer: s per step (0 = the model's sample_period)", 0.0, 3600.0)
+            "sample_period", 0.0, describe("step_on timer: s per step (0 = the model's sample_period)", 0.0, 3600.0)
         )
-        declare("y_initial", [0.0], _describe("outputs before the run, oldest first ([0.0] alone: at rest)"))
-        declare("u_initial", [0.0], _describe("inputs before the run, oldest first ([0.0] alone: at rest)"))
-        declare("noise", False, _describe("add Gaussian noise of the fit's one-step residual std to the output"))
-        declare("noise_std", 0.0, _describe("noise: its std (0 = the fit's one-step residual std)", 0.0, 1e12))
-        declare("seed", 0, _describe("seed of the noise", 0, 2**31 - 1))
+        declare("y_initial", [0.0], describe("outputs before the run, oldest first ([0.0] alone: at rest)"))
+        declare("u_initial", [0.0], describe("inputs before the run, oldest first ([0.0] alone: at rest)"))
+        declare("noise", False, describe("add Gaussian noise of the fit's one-step residual std to the output"))
+        declare("noise_std", 0.0, describe("noise: its std (0 = the fit's one-step residual std)", 0.0, 1e12))
+        declare("seed", 0, describe("seed of the noise", 0, 2**31 - 1))
         p = self.get_parameter
         self.step_on = str(p("step_on").value)
         if self.step_on not in STEP_ON:

@@ -42,7 +42,12 @@ def _fit(args: argparse.Namespace) -> int:
         from lenn_ros import fit_mimo  # several channels: one MISO model per output
 
         return fit_mimo.main(args, u_columns, y_columns)
-    return fit.main(args)
+    data = fit.load_for(args)
+    if not isinstance(data, fit.Data):  # a robot bag whose identifier read several channels
+        from lenn_ros import fit_mimo
+
+        return fit_mimo.run(args, data)
+    return fit.main(args, data)
 
 
 def _import_csv(args: argparse.Namespace) -> int:

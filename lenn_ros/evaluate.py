@@ -58,6 +58,7 @@ from lenn_ros.core.spread import Z95
 from lenn_ros.core.structure import Identifier
 from lenn_ros.evaluate_mimo import MimoBagEvaluation, score_mimo
 from lenn_ros.evaluate_mimo import report as report_mimo
+from lenn_ros.fit_data import REPORT_FILE
 
 _NODE_DEFAULTS = {parameter.name: parameter.default for parameter in NODE_PARAMETERS}
 RESOLVED_TOPICS = topics.RESOLVED_TOPICS
@@ -403,8 +404,6 @@ def fit_band_coverage(weights_in: str, evaluation: Evaluation) -> dict[str, Any]
     went on learning from the bag's training phase, so the coverage says how well the
     fit's uncertainty carries over to this recording. Empty without a fit report.
     """
-    from lenn_ros.model import REPORT_FILE
-
     report = Path(weights_in).parent / REPORT_FILE if weights_in else None
     if report is None or not report.is_file():
         return {}

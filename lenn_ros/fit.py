@@ -56,7 +56,7 @@ from lenn_ros.core.selection import (
     select_structure,
 )
 from lenn_ros.core.structure import Identifier
-from lenn_ros.fit_data import Data, FitError
+from lenn_ros.fit_data import REPORT_FILE, Data, FitError
 
 #: share of the training samples the epochs of an MLP / SGD fit are early-stopped on
 VALIDATION_FRACTION = 0.2
@@ -664,8 +664,6 @@ def write_report(directory: Path, report: dict[str, Any]) -> Path:
     :func:`lenn_ros.load_model` and the twin node read it for the residual statistics
     (the bands, the twin's noise) and for what the model is.
     """
-    from lenn_ros.model import REPORT_FILE
-
     path = directory / REPORT_FILE
     path.write_text(json.dumps(_jsonable(report), indent=1, allow_nan=False))
     return path
@@ -715,17 +713,19 @@ def test_row(index: np.ndarray | None, given: int | None, recorded: int | None) 
     return given if index is None else int(np.searchsorted(index, given)) + 1
 
 
-def main(args: Any) -> int:
-    import sys
-
+def load_for(args: Any) -> Any:
+    """What ``lenn-ros fit DATA`` reads: a :class:`Data`, or a ``MimoData`` where the bag's identifier read
+    several channels (then ``cli`` hands it to :func:`lenn_ros.fit_mimo.run`)."""
     u_columns, y_columns = columns(args.u), columns(args.y)
-    data = load_data(
+    return load_data(
         args.data, u_columns[0] if u_columns else None, y_columns[0] if y_columns else None, bag_flags(args)
     )
-    if not isinstance(data, Data):  # the bag's identifier read several channels
-        from lenn_ros import fit_mimo
 
-        return fit_mimo.run(args, data)
+
+def main(args: Any, data: Data | None = None) -> int:
+    import sys
+
+    data = load_for(args) if data is None else data
     progress = None if args.json else (lambda text: print(text, file=sys.stderr, flush=True))
     network = getattr(args, "network", "lenn") or "lenn"
     test_from = test_row(data.index, args.test_from, data.test_start)

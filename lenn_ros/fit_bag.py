@@ -27,16 +27,13 @@ same way, by the same session: its vectors come back as :class:`~lenn_ros.fit_mi
 from __future__ import annotations
 
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 
 from lenn_ros import bag as bags
 from lenn_ros import topics
-from lenn_ros.fit_data import Data, FitError
-
-if TYPE_CHECKING:
-    from lenn_ros.fit_mimo import MimoData
+from lenn_ros.fit_data import Data, FitError, MimoData
 
 #: node parameters that say how the input topics become samples: copied into the fitted params file
 INTERPRETATION = (
@@ -130,7 +127,6 @@ def _vectors(
     """The paired vectors as the MIMO fit takes them, each channel named as the node names it."""
     from lenn_ros.config import side_channels
     from lenn_ros.core.fields import FieldError
-    from lenn_ros.fit_mimo import MimoData
 
     try:
         u_names, y_names = side_channels(values, "u")[0], side_channels(values, "y")[0]

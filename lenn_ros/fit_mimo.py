@@ -74,6 +74,7 @@ from lenn_ros.fit import (
     write_params,
     write_report,
 )
+from lenn_ros.fit_data import MimoData
 
 #: (order, cross_degree) tried, linear ARX first: a nonlinear expansion must beat it in simulation
 EXPANSIONS = ((1, 0), (2, 2), (3, 3), (4, 3))
@@ -86,36 +87,6 @@ MAX_WEIGHTS = 400
 #: the fallback's bound on clipped free-run inputs (the strict rule allows none), as in selection
 LOOSE_CLIPPED_FRACTION = 0.01
 BASIS = "legendre"
-
-
-@dataclass
-class MimoData:
-    """Paired samples with one column per channel: ``u`` (N, n_u), ``y`` (N, n_y).
-
-    ``index``: the sample indices as the identifier counts them (a robot bag's, from its
-    session; None: rows 1..N, a CSV or an import). Where it skips, the record has a gap,
-    a break of the fit (:attr:`breaks`). ``interpretation``: the node values that say how
-    the bag's topics became these samples (types, fields, names, pairing), written into
-    the params file; empty for a CSV or an ``import-csv`` bag.
-    """
-
-    u: np.ndarray
-    y: np.ndarray
-    u_names: tuple[str, ...]
-    y_names: tuple[str, ...]
-    source: str
-    test_start: int | None = None
-    index: np.ndarray | None = None
-    interpretation: dict[str, Any] = field(default_factory=dict)
-
-    def sample_index(self) -> np.ndarray:
-        """The sample indices (1..N when none were recorded)."""
-        return np.arange(1, len(self.y) + 1) if self.index is None else np.asarray(self.index, dtype=np.int64)
-
-    @property
-    def breaks(self) -> list[int]:
-        """0-based rows that start a new contiguous run: never joined across by the fit."""
-        return [int(b) for b in np.flatnonzero(np.diff(self.sample_index()) != 1) + 1]
 
 
 def load_mimo_data(

@@ -33,9 +33,7 @@ import numpy as np
 
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.structure import Identifier
-
-#: what ``fit -o DIR`` writes besides params.yaml and weights.npz: the report (no series)
-REPORT_FILE = "fit.json"
+from lenn_ros.fit_data import REPORT_FILE
 
 
 class ModelError(ValueError):

@@ -226,7 +226,7 @@ def test_each_channel_on_its_own_topic_from_its_own_node_is_merged_and_a_silent_
     }
     assert final["counters"]["u_merged"] > 300 and final["counters"]["y_merged"] > 300
     assert final["counters"]["learned"] < learned + 2 * 60  # the silent topic stops learning (2 outputs)
-    assert "/robot/right is older than" in err and "no sample formed" in err
+    assert "/robot/right is older than" in err and "no sample formed" in err, err
 
 
 def test_the_node_refuses_a_mimo_setting_that_cannot_work_in_one_line(domain: int) -> None:

@@ -181,10 +181,15 @@ class ParameterChange:
 
 @dataclass(frozen=True)
 class Notice:
-    """Something the user must hear about, in one line; ``kind`` selects its throttle."""
+    """Something the user must hear about, in one line; ``kind`` (and ``subject``) select its throttle.
+
+    ``subject``: what the notice is about where one kind concerns several things (a topic):
+    a stale /robot/cmd1 at start-up must not silence a stale /robot/right seconds later.
+    """
 
     kind: str
     text: str
+    subject: str = ""
 
 
 @dataclass
@@ -503,6 +508,7 @@ class Session:
             count = merger.counters[kind]
             if count <= seen[kind]:
                 continue
+            topic = ""
             if kind == "merge_stale" and merger.stale_part is not None:
                 topic = names[merger.stale_part] if merger.stale_part < len(names) else f"part {merger.stale_part}"
                 text = (f"{topic} is older than {merger.max_age:.3f} s when the other topics of its side arrive: "
@@ -510,7 +516,7 @@ class Session:
             else:
                 text = (f"{count - seen[kind]} {'u' if channel == U else 'y_p'} message(s) found no partner on the "
                         f"side's other topics ({', '.join(names)}) and were dropped ({count} so far)")  # fmt: skip
-            self._say(kind, text)
+            self._say(kind, text, topic)
             seen[kind] = count
 
     def _say_stale(self, faults: int) -> None:
@@ -1033,8 +1039,8 @@ class Session:
             self._clipped_said_at = time
 
     # -- reporting -----------------------------------------------------------------------------
-    def _say(self, kind: str, text: str) -> None:
-        self._notices.append(Notice(kind, text))
+    def _say(self, kind: str, text: str, subject: str = "") -> None:
+        self._notices.append(Notice(kind, text, subject))
         if len(self._notices) > 1000:  # nobody is reading: keep the newest
             del self._notices[:500]
 

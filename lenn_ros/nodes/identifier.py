@@ -149,7 +149,7 @@ class IdentifierNode(Node):
         self.u_name = "+".join(self.resolve_topic_name(name) for channel, _, name in self.inputs if channel == U)
         self.y_name = "+".join(self.resolve_topic_name(name) for channel, _, name in self.inputs if channel == Y)
         self._loggers: dict[str, Any] = {}
-        self._logged_at: dict[str, float] = {}  # monotonic time each kind of warning was last said
+        self._logged_at: dict[tuple[str, str], float] = {}  # monotonic time each (kind, subject) was last said
         self.node_counters = {"type_mismatch": 0, "qos_incompatible": 0, "unknown_parameters": 0}
         self._warn_unknown_parameters()
         self._warn_unmatched_params_files()
@@ -726,9 +726,9 @@ class IdentifierNode(Node):
         if logger is None:
             logger = self._loggers[notice.kind] = self.get_logger().get_child(notice.kind)
         self._warned_kinds.add(notice.kind)
-        now = time.monotonic()
-        if now - self._logged_at.get(notice.kind, -math.inf) >= self.values["warn_period"]:
-            self._logged_at[notice.kind] = now
+        now, key = time.monotonic(), (notice.kind, notice.subject)
+        if now - self._logged_at.get(key, -math.inf) >= self.values["warn_period"]:
+            self._logged_at[key] = now
             logger.warning(notice.text)
 
     def status(self) -> dict[str, Any]:

@@ -196,8 +196,11 @@ class IdentifierNode(Node):
         self._alias_qos_overrides()
         self._subscribe(message_types)
         self._warn_unknown_qos_overrides()
-        self._test_start_subscription = self.create_subscription(
-            Int64, topics.TEST_START, self._on_test_start, topics.latched_qos()
+        # on the inputs' participant: matched with the data, so a lockstep publisher's latched
+        # test_start is in before its samples (a participant of its own matched it seconds later)
+        owner = self.companions[0] if self.companions else self
+        self._test_start_subscription = owner.create_subscription(
+            Int64, self.resolve_topic_name(topics.TEST_START), self._on_test_start, topics.latched_qos()
         )
         self.create_timer(self.values["status_period"], self._on_status_timer)
         if self.values["pairing"] != "sequence":

@@ -144,9 +144,7 @@ def test_compiled_kernels_equal_their_pure_python_run(tmp_path) -> None:
 
     reference = tmp_path / "python.npz"
     env = {**os.environ, "NUMBA_DISABLE_JIT": "1", "PYTHONPATH": os.pathsep.join(sys.path)}
-    subprocess.run(
-        [sys.executable, kernel_reference.__file__, str(reference)], env=env, check=True, timeout=120
-    )
+    subprocess.run([sys.executable, kernel_reference.__file__, str(reference)], env=env, check=True, timeout=120)
     python = np.load(reference)
     for solver in kernel_reference.SOLVERS:
         weights, y = kernel_reference.run(solver)

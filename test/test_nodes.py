@@ -138,8 +138,10 @@ def check_lost_and_reordered_messages(bag: Path, tmp_path: Path, params: Path, l
     assert repaired.source == "u/y_p by sequence" and repaired.missing == len(dropped)
     assert repaired.counters["unpaired"] == len(dropped)  # their y_p halves, never mispaired
     assert abs(repaired.evaluation.nmse_db - live["phase_nmse_db"]) < 1.0
-    print(f"live {live['phase_nmse_db']:.4f} dB, damaged bag {offline.evaluation.nmse_db:.4f} dB from samples, "
-          f"{repaired.evaluation.nmse_db:.4f} dB re-paired from raw topics ({repaired.missing} missing)")
+    print(
+        f"live {live['phase_nmse_db']:.4f} dB, damaged bag {offline.evaluation.nmse_db:.4f} dB from samples, "
+        f"{repaired.evaluation.nmse_db:.4f} dB re-paired from raw topics ({repaired.missing} missing)"
+    )
 
 
 def test_live_parameters_are_validated_and_applied(tmp_path: Path, domain: int) -> None:

@@ -365,7 +365,7 @@ def test_qos_overrides_take_durability_and_name_typos(graph: Graph) -> None:
         deadline = time.monotonic() + 20
         infos: list = []
         while not infos and time.monotonic() < deadline:
-            infos = [i for i in probe.get_subscriptions_info_by_topic("/u") if i.node_name == "identifier_inputs"]
+            infos = [i for i in probe.get_subscriptions_info_by_topic("/u") if i.node_name == "identifier"]
             time.sleep(0.1)
         assert infos, "the identifier's /u subscription never showed up"
         assert infos[0].qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
@@ -392,9 +392,7 @@ def test_qos_overrides_by_the_name_before_remapping_apply_to_the_remapped_topic(
         deadline = time.monotonic() + 20
         infos: list = []
         while not infos and time.monotonic() < deadline:
-            infos = [
-                i for i in probe.get_subscriptions_info_by_topic("/robot/cmd") if i.node_name == "identifier_inputs"
-            ]
+            infos = [i for i in probe.get_subscriptions_info_by_topic("/robot/cmd") if i.node_name == "identifier"]
             time.sleep(0.1)
         assert infos, "the identifier's /robot/cmd subscription never showed up"
         assert infos[0].qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL

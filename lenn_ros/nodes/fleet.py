@@ -63,9 +63,7 @@ class FleetNode(Node):
 
 def make_fleet() -> list[Node]:
     fleet = FleetNode()
-    identifiers = [
-        IdentifierNode(namespace=ns, sibling_parameters=("plants",), separate_inputs=False) for ns in fleet.namespaces
-    ]
+    identifiers = [IdentifierNode(namespace=ns, sibling_parameters=("plants",)) for ns in fleet.namespaces]
     fleet.get_logger().info(f"{len(identifiers)} identifiers: {', '.join(fleet.namespaces)}")
     return [fleet, *identifiers]
 

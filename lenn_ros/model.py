@@ -69,9 +69,8 @@ class Model:
 
     @property
     def history(self) -> int:
-        """Samples of (u, y) a run needs before it: the longest lag of any regressor."""
-        if self.mimo:
-            return max(each.structure.warm_up for each in self.identifier.outputs)
+        """Samples of (u, y) a run needs before it: the longest lag of any regressor (a MIMO structure's
+        ``warm_up`` is every output's common one)."""
         return self.identifier.structure.warm_up
 
     @property

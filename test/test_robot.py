@@ -327,11 +327,12 @@ def lockstep_reference(log: RobotLog, samples: np.ndarray, period_ns: int) -> tu
     u_agree = np.mean(arrays["u"][step[valid]] == samples[valid, 2]) * valid.mean()
     y_agree = np.mean(arrays["y_measured"][step[valid]] == samples[valid, 3]) * valid.mean()
     start, end = t0 + step[valid].min() * period_ns, t0 + step[valid].max() * period_ns
-    ideal = lockstep_nmse(build_identifier(*resolve({"example": 1, "network": "lenn"})), log, start, end)
     u_paired = arrays["u"].copy()
     u_paired[step[valid]] = samples[valid, 2]
-    paired = dataclasses.replace(log, u=u_paired.tolist())
-    as_paired = lockstep_nmse(build_identifier(*resolve({"example": 1, "network": "lenn"})), paired, start, end)
+    ideal, as_paired = (
+        lockstep_nmse(build_identifier(*resolve({"example": 1, "network": "lenn"})), series, start, end)
+        for series in (log, dataclasses.replace(log, u=u_paired.tolist()))
+    )
     return ideal, as_paired, float(u_agree), float(y_agree)
 
 

@@ -482,7 +482,7 @@ def _scaling_of_weights(structure: ModelStructure, weights_in: str) -> ModelStru
     try:
         header, _ = read_weights_file(path)
     except (ModelFileError, OSError, ValueError):
-        header = {}  # (the node's load reports a missing or broken file with its own line)
+        return structure  # a missing or broken file: the load (node, evaluate) says so in its own line
     scaling = header.get("scaling") if isinstance(header, dict) else None
     if isinstance(scaling, dict) and all(isinstance(scaling.get(k), int | float) for k in SCALING_KEYS):
         return dataclasses.replace(structure, **{k: float(scaling[k]) for k in SCALING_KEYS})

@@ -164,9 +164,13 @@ def _as_node_builds_it(identifier: Identifier, values: dict[str, Any], source: s
     return identifier
 
 
-def configuration(path: str, params: str | None, node: str = "/identifier") -> tuple[Identifier, dict[str, Any]]:
+def configuration(
+    path: str, params: str | None, node: str = "/identifier", weights: bool = True
+) -> tuple[Identifier, dict[str, Any]]:
     """The identifier and node values a recording is read with: the params file given (``node``'s sections of
-    it, by rcl's rules), else its identifier_config."""
+    it, by rcl's rules), else its identifier_config. ``weights=False``: the recorded configuration without the
+    weights learning started from (``weights_in``), which pairing a record does not need (fit builds its own
+    model; the file may have stayed on the robot)."""
     if params:
         return identifier_from_params(params, node)
     recorded = [message for message in bags.iter_messages(path, [topics.IDENTIFIER_CONFIG])]
@@ -178,6 +182,8 @@ def configuration(path: str, params: str | None, node: str = "/identifier") -> t
     values = json.loads(recorded[-1].message.data)
     values.pop(topics.PARAMETER_CHANGES, None)  # (recorded_changes reads them: the values are the starting ones)
     values.setdefault("resume_after", 0)  # recorded before learning resumed by itself: it never did live
+    if not weights:
+        values["weights_in"] = ""
     network = values.pop("network", "lenn")
     resolved_topics = values.pop(RESOLVED_TOPICS, {})
     model_values, _ = resolve({**{k: v for k, v in values.items() if k not in _NODE_DEFAULTS}, "network": network})

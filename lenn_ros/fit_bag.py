@@ -77,7 +77,7 @@ def load_bag(path: Path, flags: dict[str, Any]) -> Data | MimoData:
             f"--y TOPIC --y-field PATH (and --sample-period T for topics from separate nodes); topics: {listed}"
         )
     try:
-        identifier, values = configuration(str(path), None) if configured else (None, _defaults())
+        identifier, values = configuration(str(path), None, weights=False) if configured else (None, _defaults())
         given = _with_flags(values, flags, types, path)
         if identifier is None or any(given.get(key) != values.get(key) for key in _CHANNELS):
             identifier = _default_identifier(given)  # as many channels as the flags name

@@ -61,8 +61,9 @@ def command(value: float) -> object:
     return message("std_msgs/msg/Float64MultiArray", layout=layout, data=np.array([value, 0.0]))
 
 
-def write_robot_bag(path: Path, configured: bool) -> np.ndarray:
-    """The bag; returns the angles the driver measured (index k: sample k + 1 of the grid)."""
+def write_robot_bag(path: Path, configured: bool, weights_in: str = "") -> np.ndarray:
+    """The bag; returns the angles the driver measured (index k: sample k + 1 of the grid).
+    ``weights_in``: the weights the recorded identifier started from (in its identifier_config)."""
     excitation = Excitation(3, "steps")
     torques = np.array([2.0 * excitation.sample(k // COMMAND_EVERY)[0] for k in range(SAMPLES)])
     angles = FrictionJoint(period=PERIOD).run(torques)[:SAMPLES]
@@ -74,7 +75,7 @@ def write_robot_bag(path: Path, configured: bool) -> np.ndarray:
         if configured:
             bag.add_topic("/identifier_config", "std_msgs/msg/String")
             resolved = {"u": "/arm/cmd", "y_p": "/arm/joint_states"}
-            values = {**INTERPRETATION, "network": "lenn", topics.RESOLVED_TOPICS: resolved}
+            values = {**INTERPRETATION, "network": "lenn", topics.RESOLVED_TOPICS: resolved, "weights_in": weights_in}
             bag.write_message("/identifier_config", message("std_msgs/msg/String", data=json.dumps(values)), t0)
         for k in range(SAMPLES):
             t_ns = t0 + round(k * PERIOD * 1e9)
@@ -138,3 +139,22 @@ def test_a_bag_without_configuration_or_flags_says_what_to_pass(tmp_path: Path) 
     )  # fmt: skip
     assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1
     assert "--u TOPIC --u-field PATH --y TOPIC --y-field PATH" in done.stderr and "/arm/cmd" in done.stderr
+
+
+def test_a_bag_whose_start_weights_are_elsewhere_is_fitted_and_evaluate_says_what_it_lacks(tmp_path: Path) -> None:
+    """The identifier that was recorded started from a weights file this machine does not have: fit needs
+    only the record's meaning (it builds its own model) and pairs it as without one; evaluate, which relearns
+    from those weights, refuses in one line naming the file."""
+    from lenn_ros.evaluate import EvaluateError, evaluate_bag
+    from lenn_ros.fit_bag import load_bag
+
+    elsewhere = str(tmp_path / "on_the_robot" / "weights.npz")  # never written
+    with_weights, without = tmp_path / "started_from_weights", tmp_path / "fresh"
+    write_robot_bag(with_weights, configured=True, weights_in=elsewhere)
+    write_robot_bag(without, configured=True)
+    data, reference = load_bag(with_weights, {}), load_bag(without, {})
+    assert np.array_equal(data.index, reference.index) and len(data.index) >= SAMPLES - len(LOST) - 5
+    assert np.array_equal(data.u, reference.u) and np.array_equal(data.y, reference.y)
+    assert data.breaks == reference.breaks and data.interpretation == reference.interpretation
+    with pytest.raises(EvaluateError, match=r"weights_in .*on_the_robot/weights\.npz.* does not exist"):
+        evaluate_bag(str(with_weights))

@@ -349,6 +349,12 @@ def test_params_file_for_another_node_name_is_said(graph: Graph) -> None:
     assert final_status(err)["counters"]["unknown_parameters"] >= 1
 
 
+def _name(info: object) -> str:
+    """The fully qualified name of the node behind a topic endpoint's info."""
+    namespace = info.node_namespace.rstrip("/")
+    return f"{namespace}/{info.node_name}"
+
+
 def test_qos_overrides_take_durability_and_name_typos(graph: Graph) -> None:
     from rclpy.qos import DurabilityPolicy
 
@@ -360,12 +366,14 @@ def test_qos_overrides_take_durability_and_name_typos(graph: Graph) -> None:
         "qos_overrides./uu.subscription.reliability:=best_effort",
     )
     probe = graph.node("probe")
+    graph.listen()
     graph.spin()
     try:
+        owner = graph.wait(lambda s: True)["inputs_node"]  # the node that holds the inputs, as the identifier says
         deadline = time.monotonic() + 20
         infos: list = []
         while not infos and time.monotonic() < deadline:
-            infos = [i for i in probe.get_subscriptions_info_by_topic("/u") if i.node_name == "identifier"]
+            infos = [i for i in probe.get_subscriptions_info_by_topic("/u") if _name(i) == owner]
             time.sleep(0.1)
         assert infos, "the identifier's /u subscription never showed up"
         assert infos[0].qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL
@@ -387,12 +395,14 @@ def test_qos_overrides_by_the_name_before_remapping_apply_to_the_remapped_topic(
         ros_args=("-r", "u:=/robot/cmd"),
     )
     probe = graph.node("probe")
+    graph.listen()
     graph.spin()
     try:
+        owner = graph.wait(lambda s: True)["inputs_node"]  # the node that holds the inputs, as the identifier says
         deadline = time.monotonic() + 20
         infos: list = []
         while not infos and time.monotonic() < deadline:
-            infos = [i for i in probe.get_subscriptions_info_by_topic("/robot/cmd") if i.node_name == "identifier"]
+            infos = [i for i in probe.get_subscriptions_info_by_topic("/robot/cmd") if _name(i) == owner]
             time.sleep(0.1)
         assert infos, "the identifier's /robot/cmd subscription never showed up"
         assert infos[0].qos_profile.durability == DurabilityPolicy.TRANSIENT_LOCAL

@@ -440,6 +440,7 @@ class IdentifierNode(Node):
             self._data_subscriptions[channel, part] = subscription
         if inputs is not None:
             self.companions = (inputs,)
+        self._inputs_node_name = (inputs or self).get_fully_qualified_name()
         # (after the overrides: what the queues really hold; KEEP_ALL has no depth to overflow)
         kept = [s.qos_profile for s in self._data_subscriptions.values()]
         keep_last = all(qos.history != HistoryPolicy.KEEP_ALL for qos in kept)
@@ -740,6 +741,7 @@ class IdentifierNode(Node):
         status["network"] = self.network
         status["counters"].update(self.node_counters)
         status["topics"] = {"u": self.u_name, "y_p": self.y_name}
+        status["inputs_node"] = self._inputs_node_name  # whom `ros2 topic info -v` names as u's and y_p's subscriber
         status["readers"] = self._readers()
         status["held"] = self.session.held
         status["acknowledged"] = self._outputs_acknowledged()
@@ -851,8 +853,8 @@ def main(args: list[str] | None = None, exit_process: bool = True) -> int:
     """The node's program; ``exit_process=False`` returns instead of ending the process (see run_node)."""
 
     def nodes() -> list[Node]:
-        # opt-in until the last messages of a lockstep run are shown never to be lost with it (2 of 3
-        # full test runs lost 3-10 final y_p): LENN_ROS_INPUTS_PARTICIPANT=1
+        # opt-in (LENN_ROS_INPUTS_PARTICIPANT=1): with it on, test_hosts lost 130 of 2300 y_p over the
+        # network namespaces (2026-12-03), not only the last ones at exit
         node = IdentifierNode(separate_inputs=os.environ.get("LENN_ROS_INPUTS_PARTICIPANT") == "1")
         return [node, *node.companions]
 

@@ -117,10 +117,16 @@ def test_rls_forgetting_is_a_memory_of_minutes() -> None:
     assert resolve({"example": 1})[0]["forgetting"] == 1.0  # the paper's examples as the paper has them
 
 
-def test_weights_need_the_scaling_they_were_learnt_with() -> None:
+def test_weights_need_the_scaling_they_were_learnt_with(tmp_path) -> None:
+    """A weights file saved without its scales cannot be started from with scales to learn; a missing file
+    is not taken for one without scales (the load says it is missing, in its own line)."""
     values, network = resolve({})
+    saved = tmp_path / "model.npz"
+    given, _ = resolve({"y_scale": 2.0, "u_scale": 1.0})
+    build_identifier(given, network).model.save(saved)  # (no scaling= : an older save)
     with pytest.raises(ConfigError, match="weights_in with y_scale/u_scale 0"):
-        build_identifier({**values, "weights_in": "model.npz"}, network)
+        build_identifier({**values, "weights_in": str(saved)}, network)
+    build_identifier({**values, "weights_in": str(tmp_path / "missing.npz")}, network)
 
 
 def mimo_values(**given) -> dict:

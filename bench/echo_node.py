@@ -39,20 +39,18 @@ class EchoNode(Node):
 
     def spin_waitset(self) -> None:
         """Echo without an executor until the context shuts down (SIGINT)."""
-        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+        from lenn_ros.nodes import rclpy_internals
 
-        u, y, publish = self.u_subscription.handle, self.y_subscription.handle, self.publisher.handle.publish_raw
-        context = self.context
-        with u, y, context.handle:
-            wait_set = _rclpy.WaitSet(2, 0, 0, 0, 0, 0, context.handle)
-            while context.ok():
-                wait_set.clear_entities()
-                wait_set.add_subscription(u)
-                wait_set.add_subscription(y)
+        if not rclpy_internals.available():
+            raise SystemExit(f"echo_node --waitset: {rclpy_internals.unavailable()}")
+        u, y, take = self.u_subscription, self.y_subscription, rclpy_internals.take
+        publish = self.publisher.publish  # bytes: published raw
+        with rclpy_internals.WaitSet(self.context, [u, y]) as wait_set:
+            while self.context.ok():
                 wait_set.wait(100_000_000)
-                while u.take_message(Float64, True) is not None:
+                while take(u) is not None:
                     pass
-                while (taken := y.take_message(Float64, True)) is not None:
+                while (taken := take(y)) is not None:
                     publish(taken[0])
 
     def spin_events(self) -> None:

@@ -210,7 +210,6 @@ class Driver:
         self.publisher_y = self.node.create_publisher(Float64, topics.Y_P, qos)
         self.replies_sub = self.node.create_subscription(Float64, topics.Y_HAT, _ignore, qos, raw=True)
         self.status_sub = self.node.create_subscription(String, topics.STATUS, _ignore, qos)
-        self._float64, self._string = Float64, String
         self.payload_u, self.payload_y = payload
         self.send_ns = np.zeros(capacity, dtype=np.int64)  # by sample (0-based)
         self.reply_ns = np.zeros(capacity, dtype=np.int64)  # by reply sequence number - 1
@@ -245,21 +244,16 @@ class Driver:
         self.node.destroy_node()
 
     def _receive(self) -> None:
-        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+        from lenn_ros.nodes import rclpy_internals
 
-        replies, status = self.replies_sub.handle, self.status_sub.handle
+        replies_sub, status_sub, take = self.replies_sub, self.status_sub, rclpy_internals.take
         reply_ns, capacity = self.reply_ns, len(self.reply_ns)
-        float64, string = self._float64, self._string
         clock = time.perf_counter_ns
-        with replies, status, self.context.handle:
-            wait_set = _rclpy.WaitSet(2, 0, 0, 0, 0, 0, self.context.handle)
+        with rclpy_internals.WaitSet(self.context, [replies_sub, status_sub]) as wait_set:
             while not self._stop.is_set():
-                wait_set.clear_entities()
-                wait_set.add_subscription(replies)
-                wait_set.add_subscription(status)
                 wait_set.wait(20_000_000)
                 while True:
-                    taken = replies.take_message(float64, True)
+                    taken = take(replies_sub)
                     if taken is None:
                         break
                     now = clock()
@@ -273,7 +267,7 @@ class Driver:
                         self.replies += 1
                         self.last_reply_ns = now
                 while True:
-                    taken = status.take_message(string, False)
+                    taken = take(status_sub, raw=False)
                     if taken is None:
                         break
                     with contextlib.suppress(ValueError):
@@ -285,7 +279,7 @@ class Driver:
 
         Late samples go out at once (bursts), like the plant simulator catching up.
         """
-        publish_u, publish_y = self.publisher_u.handle.publish_raw, self.publisher_y.handle.publish_raw
+        publish_u, publish_y = self.publisher_u.publish, self.publisher_y.publish  # bytes: published raw
         payload_u, payload_y, pool = self.payload_u, self.payload_y, len(self.payload_u)
         send_ns, clock = self.send_ns, time.perf_counter_ns
         period = 1e9 / rate

@@ -24,7 +24,7 @@ from rosutil import ParameterClient, final_status, start_node, stop
 
 from lenn_ros import topics
 from lenn_ros.core.examples import EXAMPLES
-from lenn_ros.nodes import EXECUTOR_VARIABLE, EXECUTORS, _MessageInfoCallback
+from lenn_ros.nodes import EXECUTOR_VARIABLE, EXECUTORS, rclpy_internals
 
 PAIRS = 400
 AFTER = 20  # pairs sent after learning is switched off
@@ -101,9 +101,13 @@ def _check_outputs(outputs: Outputs) -> None:
     assert {stamp for stamp, _ in errors} <= sample_times
 
 
-@pytest.mark.parametrize("loop", EXECUTORS)
+#: "public": the wait-set loop asked for where rclpy's internals cannot be used (forced off):
+#: the single-threaded executor runs instead, the drains take nothing directly, and it is said
+@pytest.mark.parametrize("loop", [*EXECUTORS, "public"])
 def test_identifier_under_each_loop(tmp_path: Path, domain: int, talker, monkeypatch, loop: str) -> None:
-    monkeypatch.setenv(EXECUTOR_VARIABLE, loop)
+    monkeypatch.setenv(EXECUTOR_VARIABLE, "waitset" if loop == "public" else loop)
+    if loop == "public":
+        monkeypatch.setenv(rclpy_internals.VARIABLE, "0")
     weights = tmp_path / "weights.npz"
     identifier = start_node(
         "identifier", "example:=1", "status_period:=0.2", f"weights_out:={weights}", "autosave_period:=30.0"
@@ -129,6 +133,8 @@ def test_identifier_under_each_loop(tmp_path: Path, domain: int, talker, monkeyp
         _, err = stop(identifier, signal.SIGINT)
     assert identifier.returncode == 0, err[-3000:]
     assert "Traceback" not in err, err[-3000:]
+    fallback = "the wait-set loop needs rclpy internals (LENN_ROS_RCLPY_INTERNALS=0): running rclpy's single-threaded"
+    assert (fallback in err) == (loop == "public"), err[:2000]
     final = final_status(err)
     assert final["counters"]["paired"] == PAIRS + AFTER
     assert final["counters"]["lost"] == 0 and final["counters"]["duplicates"] == 0
@@ -149,8 +155,34 @@ def test_message_info_callback_takes_both_calling_forms() -> None:
     import inspect
 
     calls = []
-    wrapped = _MessageInfoCallback(lambda message, info: calls.append((message, info)))
+    wrapped = rclpy_internals.MessageInfoCallback(lambda message, info: calls.append((message, info)))
     assert len(inspect.signature(wrapped).parameters) == 2  # so rclpy hands it the message info
     wrapped(("m", {"publication_sequence_number": 1}))
     wrapped("m", {"publication_sequence_number": 2})
     assert calls == [("m", {"publication_sequence_number": 1}), ("m", {"publication_sequence_number": 2})]
+
+
+def test_public_fallback_reads_the_callback_as_rclpy_does(domain: int, monkeypatch) -> None:
+    """Without the internals: the same (message, info) decision as rclpy's own, and nothing taken."""
+    from std_msgs.msg import Float64
+
+    context = Context()
+    rclpy.init(context=context, domain_id=domain)
+    try:
+        node = rclpy.create_node("test_fallback", context=context)
+        qos = topics.data_qos()
+        callbacks = [lambda m: None, lambda m, info: None, rclpy_internals.MessageInfoCallback(lambda m, i: None)]
+        subscriptions = [node.create_subscription(Float64, "/x", callback, qos) for callback in callbacks]
+        rclpy_internals.unavailable.cache_clear()
+        assert rclpy_internals.available(), rclpy_internals.unavailable()
+        with_internals = [rclpy_internals.takes_info(s) for s in subscriptions]
+        monkeypatch.setenv(rclpy_internals.VARIABLE, "0")
+        rclpy_internals.unavailable.cache_clear()
+        assert rclpy_internals.unavailable() == "LENN_ROS_RCLPY_INTERNALS=0"
+        assert [rclpy_internals.takes_info(s) for s in subscriptions] == with_internals == [False, True, True]
+        assert rclpy_internals.take(subscriptions[0]) is None
+        node.destroy_node()
+    finally:
+        monkeypatch.delenv(rclpy_internals.VARIABLE)
+        rclpy_internals.unavailable.cache_clear()
+        context.try_shutdown()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import ast
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -69,6 +70,32 @@ def test_no_import_cycles_in_the_package() -> None:
     for name in sorted(graph):
         if name not in state:
             visit(name, [name])
+
+
+#: rclpy's non-public API as the code would spell it: the native module, the C handles, its private fields
+_RCLPY_INTERNALS = (
+    "implementation_singleton",
+    r"rclpy\.impl",
+    r"\.handle\b",
+    "take_message",
+    "publish_raw",
+    "_callback_type",
+)
+
+
+def test_rclpy_internals_are_used_in_one_module_only() -> None:
+    """Package, benchmarks and tests go through lenn_ros.nodes.rclpy_internals (version check, fallback)."""
+    allowed = PACKAGE / "nodes" / "rclpy_internals.py"
+    offenders = []
+    for folder in (PACKAGE, REPO / "bench", REPO / "test"):
+        for path in folder.rglob("*.py"):
+            if path == allowed or path == Path(__file__).resolve():
+                continue
+            for number, line in enumerate(path.read_text().splitlines(), 1):
+                code = line.split("#", 1)[0]
+                offenders += [f"{path.relative_to(REPO)}:{number}: {w}" for w in _RCLPY_INTERNALS if re.search(w, code)]
+    assert not offenders, "\n".join(offenders)
+    assert all(re.search(word, allowed.read_text()) for word in _RCLPY_INTERNALS[:-2])  # it looks for real words
 
 
 def test_benchmarks_live_outside_the_installed_package() -> None:

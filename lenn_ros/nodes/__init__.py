@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import contextlib
 import gc
-import inspect
 import os
 import signal
 import sys
@@ -15,11 +13,11 @@ from typing import Any
 
 import rclpy
 from rclpy.context import Context
-from rclpy.exceptions import InvalidHandle
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor, TimeoutException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
-from rclpy.subscription import Subscription
+
+from lenn_ros.nodes import rclpy_internals
 
 #: The loops :func:`run_node` can spin a node with (see its docstring).
 EXECUTORS = ("single", "events", "waitset")
@@ -87,7 +85,9 @@ def run_node(
     - ``"waitset"``: this module's loop: one wait set of the node's subscriptions,
       timers and services, built once; messages taken and dispatched directly, and
       the single-threaded executor run only when a timer or service is ready (and
-      every ``_TURN_SECONDS``, for QoS events and entities added since).
+      every ``_TURN_SECONDS``, for QoS events and entities added since). It needs rclpy
+      internals (:mod:`lenn_ros.nodes.rclpy_internals`); where they cannot be used the
+      single-threaded executor runs instead, said in one line.
 
     All three run timers, parameter services and the ``drain`` / ``shutdown`` hooks
     the same way; the choice changes the cost per message, not the behaviour.
@@ -99,8 +99,8 @@ def run_node(
     second for the middleware's receiving threads, and the exit must come within 2 s of
     SIGINT (issue 18: 1.0-1.3 s with it, 2.2-3.4 s without, on 2 loaded cores).
     """
-    if executor not in EXECUTORS:
-        print(f"{name}: cannot start: unknown executor {executor!r} (one of: {', '.join(EXECUTORS)})", file=sys.stderr)
+    executor = _loop_to_run(name, executor)
+    if not executor:
         return 2
     try:
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
@@ -137,6 +137,21 @@ def run_node(
     return _end(code, exit_process)
 
 
+def _loop_to_run(name: str, executor: str) -> str:
+    """The loop ``run_node`` runs for the one asked (see there), or "" when none can (said in one line)."""
+    if executor not in EXECUTORS:
+        print(f"{name}: cannot start: unknown executor {executor!r} (one of: {', '.join(EXECUTORS)})", file=sys.stderr)
+        return ""
+    if executor == "waitset" and not rclpy_internals.available():
+        print(
+            f"{name}: the wait-set loop needs rclpy internals ({rclpy_internals.unavailable()}): "
+            "running rclpy's single-threaded executor instead (same behaviour, more CPU per message)",
+            file=sys.stderr,
+        )
+        return "single"
+    return executor
+
+
 def _freeze_start_up_objects() -> None:
     """Keep the garbage collector's full passes off everything start-up built (``gc.freeze``).
 
@@ -170,38 +185,6 @@ def _new_executor(kind: str) -> Any:
     return SingleThreadedExecutor()
 
 
-class _MessageInfoCallback:
-    """A (message, info) callback as rclpy 7.1.6's events executor can call it.
-
-    That executor hands a callback that takes the message info one tuple
-    ``(message, info)`` instead of two arguments (the callback fails with a
-    ``TypeError``, surfacing as ``SystemError: null argument to internal routine``).
-    rclpy picks the calling convention from the signature, so this wrapper declares
-    two parameters and accepts either form: it keeps working once the executor
-    passes two arguments.
-    """
-
-    __signature__ = inspect.Signature(
-        [inspect.Parameter(name, inspect.Parameter.POSITIONAL_ONLY) for name in ("message", "info")]
-    )
-
-    def __init__(self, callback: Callable[[Any, Any], Any]) -> None:
-        self.callback = callback
-
-    def __call__(self, *arguments: Any) -> Any:
-        if len(arguments) == 1:
-            return self.callback(*arguments[0])
-        return self.callback(*arguments)
-
-
-def _pass_message_info(node: Node) -> None:
-    """Wrap the node's (message, info) subscription callbacks for the events executor (see above)."""
-    with_info = Subscription.CallbackType.WithMessageInfo
-    for subscription in node.subscriptions:
-        if subscription._callback_type is with_info and not isinstance(subscription.callback, _MessageInfoCallback):
-            subscription.callback = _MessageInfoCallback(subscription.callback)
-
-
 def _spin(nodes: list[Node], executor: Any, kind: str, stop: threading.Event) -> None:
     """Hand messages and timer ticks to ``node`` until a stop is requested or the context ends.
 
@@ -210,136 +193,14 @@ def _spin(nodes: list[Node], executor: Any, kind: str, stop: threading.Event) ->
     cannot drive it); with a timeout it runs one event per call.
     """
     if kind == "waitset":
-        _WaitSetLoop(nodes, executor).spin(stop)
+        rclpy_internals.WaitSetLoop(nodes, executor, _TURN_SECONDS, DRAIN_SECONDS).spin(stop)
         return
     if kind == "events":
         for node in nodes:
-            _pass_message_info(node)  # subscriptions created later (none in the identifier) are not wrapped
+            rclpy_internals.pass_message_info(node)  # subscriptions created later (none here) are not wrapped
     ok, spin_once = nodes[0].context.ok, executor.spin_once
     while not stop.is_set() and ok():
         spin_once(timeout_sec=_TURN_SECONDS)
-
-
-class _WaitSetLoop:
-    """Messages straight from the subscriptions; the executor only for timers, services and QoS events.
-
-    The single-threaded executor's cost is rebuilding its wait set (every entity,
-    entered through an ExitStack, every QoS event handler) for each callback. Here the
-    wait set's handles are entered once and only re-added per turn; messages are taken
-    until none is left and passed to the subscription's callback as the executor would
-    (with or without the message info). Services, timers and waitables still go
-    through ``executor`` (``wait_for_ready_callbacks(0)``, all that is ready), so
-    their behaviour is rclpy's own.
-    """
-
-    def __init__(self, nodes: list[Node], executor: SingleThreadedExecutor) -> None:
-        self.nodes, self.executor = nodes, executor
-        for node in nodes:
-            node.loop_takes_messages = True  # a callback need not take what waits: this loop does (_take_all)
-        self._stack = contextlib.ExitStack()
-        self._snapshot: tuple[tuple[Any, ...], ...] = ()
-        self._subscriptions: list[tuple[Any, Any, Any, bool, bool]] = []
-        self._handles: tuple[list[Any], list[Any], list[Any]] = ([], [], [])
-        self._wait_set: Any = None
-
-    def spin(self, stop: threading.Event) -> None:
-        """Until a stop is requested or the context ends; the executor runs at least every ``_TURN_SECONDS``."""
-        context = self.nodes[0].context
-        period_ns = int(_TURN_SECONDS * 1e9)
-        try:
-            self._refresh()
-            next_turn = time.monotonic_ns()
-            while not stop.is_set() and context.ok():
-                now = time.monotonic_ns()
-                others_ready = self._wait(max(0, min(period_ns, next_turn - now)))
-                self._take_all()
-                if others_ready or time.monotonic_ns() >= next_turn:
-                    self._run_executor()
-                    self._refresh()
-                    next_turn = time.monotonic_ns() + period_ns
-        finally:
-            self._stack.close()
-
-    def _refresh(self) -> None:
-        """Enter the handles of the nodes' current entities (again, if any was added or destroyed)."""
-        nodes = self.nodes
-        snapshot = (
-            tuple(s for node in nodes for s in node.subscriptions),
-            tuple(t for node in nodes for t in node.timers),
-            tuple(s for node in nodes for s in node.services),
-        )
-        if snapshot == self._snapshot:
-            return
-        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
-
-        self._stack.close()
-        self._stack = contextlib.ExitStack()
-        self._snapshot = snapshot
-        alive: tuple[list[Any], list[Any], list[Any]] = ([], [], [])
-        for group, entities in zip(snapshot, alive, strict=True):
-            for entity in group:
-                with contextlib.suppress(InvalidHandle):  # destroyed meanwhile
-                    self._stack.enter_context(entity.handle)
-                    entities.append(entity)
-        self._handles = ([s.handle for s in alive[0]], [t.handle for t in alive[1]], [s.handle for s in alive[2]])
-        message_only = Subscription.CallbackType.MessageOnly
-        self._subscriptions = [
-            (s.handle, s.msg_type, s.callback, s.raw, s._callback_type is message_only) for s in alive[0]
-        ]
-        context = nodes[0].context
-        self._stack.enter_context(context.handle)
-        counts = [len(handles) for handles in self._handles]
-        self._wait_set = _rclpy.WaitSet(counts[0], 0, counts[1], 0, counts[2], 0, context.handle)
-
-    def _wait(self, timeout_ns: int) -> bool:
-        """Wait for a message, a timer or a service request; whether a timer or service is ready."""
-        wait_set = self._wait_set
-        subscriptions, timers, services = self._handles
-        wait_set.clear_entities()
-        for handle in subscriptions:
-            wait_set.add_subscription(handle)
-        for handle in timers:
-            wait_set.add_timer(handle)
-        for handle in services:
-            wait_set.add_service(handle)
-        wait_set.wait(timeout_ns)
-        return bool(wait_set.get_ready_entities("timer") or wait_set.get_ready_entities("service"))
-
-    def _take_all(self) -> None:
-        """Every message waiting on every subscription, each to its callback, until none is left or
-        ``DRAIN_SECONDS`` have passed (then the timers, services and the stop request have their turn)."""
-        taken = True
-        deadline = time.monotonic() + DRAIN_SECONDS
-        while taken and time.monotonic() < deadline:
-            taken = False
-            for handle, msg_type, callback, raw, message_only in self._subscriptions:
-                waiting = handle.take_message(msg_type, raw)
-                if waiting is None:
-                    continue
-                taken = True
-                if message_only:
-                    callback(waiting[0])
-                else:
-                    callback(waiting[0], waiting[1])
-
-    def _run_executor(self) -> None:
-        """What the executor finds ready now (timers, services, QoS events), then back to the data.
-
-        Also bounded by ``DRAIN_SECONDS``: the executor sees the data subscriptions too, and
-        under a flood they are always ready. Its handlers come one wait's ready list at a
-        time, kept across calls, so a service or timer behind them is reached next turn.
-        """
-        executor = self.executor
-        deadline = time.monotonic() + DRAIN_SECONDS
-        while time.monotonic() < deadline:
-            try:
-                handler, _, _ = executor.wait_for_ready_callbacks(timeout_sec=0)
-            except TimeoutException:
-                return
-            handler()
-            if handler.exception() is not None:
-                raise handler.exception()
-            handler.result()
 
 
 class InputsNode(Node):

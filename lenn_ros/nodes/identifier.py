@@ -36,6 +36,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.executors import TimeoutException
 from rclpy.node import Node
 from rclpy.parameter import Parameter as RosParameter
 from rclpy.qos import HistoryPolicy, QoSPolicyKind, QoSProfile, ReliabilityPolicy
@@ -69,7 +70,7 @@ from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.networks import ModelFileError
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.session import Notice, Sample, Session, SessionConfig, json_safe
-from lenn_ros.nodes import DRAIN_SECONDS, InputsNode, executor_choice, run_node
+from lenn_ros.nodes import DRAIN_SECONDS, InputsNode, executor_choice, rclpy_internals, run_node
 from lenn_ros.nodes.identifier_outputs import IdentifierOutputs
 
 #: Parameters set by rclpy itself or by the QoS override mechanism: not unknown.
@@ -512,13 +513,15 @@ class IdentifierNode(Node):
             self._drain()
         self._emit_notices()
 
-    def drain(self, _executor: Any = None) -> None:
+    def drain(self, executor: Any = None) -> None:
         """On the way out (run_node): learn from the messages still queued, such as a replay's last
-        window, within the exit budget; not when overloaded (the newest are gone already)."""
+        window, within the exit budget; not when overloaded (the newest are gone already). Without
+        rclpy's internals nothing can be taken directly: the executor hands them over instead."""
         if self.session.shedder.behind:
             return
         start = time.monotonic()
-        while time.monotonic() - start < self._EXIT_BUDGET - self._ACK_FLOOR and self._drain():
+        take = self._drain if rclpy_internals.available() or executor is None else lambda: _executor_turn(executor)
+        while time.monotonic() - start < self._EXIT_BUDGET - self._ACK_FLOOR and take():
             pass
         self._publish(self.session.poll(self._paired_until()))
         self._drained_for = time.monotonic() - start
@@ -535,13 +538,11 @@ class IdentifierNode(Node):
         deadline = time.monotonic() + DRAIN_SECONDS
         while taken and time.monotonic() < deadline:
             taken = False
-            with self._test_start_subscription.handle:  # the phase must switch before its sample
-                latched = self._test_start_subscription.handle.take_message(Int64, False)
+            latched = rclpy_internals.take(self._test_start_subscription, raw=False)  # the phase switches first
             if latched is not None:
                 self._on_test_start(latched[0])
             for (other, part), subscription in self._data_subscriptions.items():
-                with subscription.handle:
-                    waiting = subscription.handle.take_message(subscription.msg_type, True)
+                waiting = rclpy_internals.take(subscription)
                 if waiting is not None:
                     self._offer(other, waiting[0], waiting[1], part)
                     taken = True
@@ -840,6 +841,17 @@ class IdentifierNode(Node):
         for subscription in self._data_subscriptions.values():
             (self.companions[0] if self.companions else self).destroy_subscription(subscription)
         self._data_subscriptions = {}
+
+
+def _executor_turn(executor: Any) -> int:
+    """One callback the executor has ready (a message, most likely) run now; 0 when none was ready."""
+    try:
+        handler, _, _ = executor.wait_for_ready_callbacks(timeout_sec=0)
+    except TimeoutException:
+        return 0
+    handler()
+    handler.result()
+    return 1
 
 
 #: The loop the identifier runs under unless ``LENN_ROS_EXECUTOR`` says otherwise (see ``run_node``).

@@ -60,7 +60,7 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from lenn_ros import topics
 from lenn_ros.bag import DEFAULT_CHUNK_SIZE, BagError, BagWriter
 from lenn_ros.bag.writer import SEQUENCE_UNSUPPORTED
-from lenn_ros.nodes import run_node
+from lenn_ros.nodes import rclpy_internals, run_node
 
 #: The identifier's inputs: any type, QoS chosen from the graph, sequence gaps counted.
 _INPUTS = {topics.U: "u_type", topics.Y_P: "y_type"}
@@ -312,8 +312,7 @@ class Recorder(Node):
                 name = self._name_of.get(id(subscription))
                 if name is None:
                     continue
-                with subscription.handle:
-                    waiting = subscription.handle.take_message(subscription.msg_type, True)
+                waiting = rclpy_internals.take(subscription)
                 if waiting is not None:
                     self._on_message(name, waiting[0], waiting[1])
                     taken = True

@@ -256,7 +256,7 @@ def test_a_mimo_configuration_that_cannot_work_is_one_clear_error(change: dict, 
     ],
 )
 def test_the_compiled_mimo_step_equals_the_python_step(monkeypatch, settings: dict) -> None:
-    """channel_step: each output's compiled step gives the Python step's numbers bit for bit."""
+    """The one compiled step with several channels: each output gives the Python step's numbers bit for bit."""
     from lenn_ros.core import kernels, structure
 
     if not kernels.JIT:

@@ -429,6 +429,88 @@ def _univariate_row(x: float, top: int, basis: int, out: np.ndarray) -> None:
 
 
 @njit(cache=True, nogil=True)
+def free_run(
+    values: np.ndarray,
+    start: int,
+    n_y: int,
+    input_start: np.ndarray,
+    input_source: np.ndarray,
+    input_lag: np.ndarray,
+    input_offset: np.ndarray,
+    input_scale: np.ndarray,
+    known_start: np.ndarray,
+    known_source: np.ndarray,
+    known_lag: np.ndarray,
+    known_weight: np.ndarray,
+    term_start: np.ndarray,
+    exponents: np.ndarray,
+    factors: np.ndarray,
+    weights: np.ndarray,
+    feature_branch: np.ndarray,
+    n_branches: int,
+    tanh_output: np.ndarray,
+    output_scale: np.ndarray,
+    constant: np.ndarray,
+    y_offset: np.ndarray,
+    y_scale: np.ndarray,
+    basis: int,
+    divergence_bound: float,
+    clipped: np.ndarray,
+) -> int:
+    """The free run (simulation) of a functional-link model of any number of outputs: the only one.
+
+    ``values`` (N, n_y + n_u) holds [y, u] per sample; its outputs before ``start`` seed
+    the history and the rest are overwritten with the model's, each fed back as the next
+    input of every output that reads it. Output j's network inputs are entries
+    ``input_start[j]..input_start[j+1]`` (a column of ``values``, a lag, an offset and a
+    scale each), its terms rows ``term_start[j]..term_start[j+1]`` of ``exponents`` /
+    ``weights`` (``feature_branch``: each term's branch, fewer than ``n_branches``), its
+    known linear part entries ``known_start[j]..known_start[j+1]`` (a column, a lag and a
+    weight each, added after the network's output). Network inputs outside [-1, 1] are
+    clipped (the polynomials are only bounded there) and counted per output in
+    ``clipped``. Returns the first diverged sample, or -1: an output that is non-finite
+    or further than ``divergence_bound`` scale units from its offset ends the run (every
+    output after it is nan), so an unstable model is flagged instead of printed as a
+    number. ``factors``: the terms' factor rows, or none (0 rows) when every term is
+    polynomials only. Each input's polynomials are computed once per sample and shared by
+    all the output's terms, so a sample costs one pass over the terms.
+    """
+    n = values.shape[0]
+    plan = _sparse_terms(exponents, factors)
+    need = plan[6]
+    table = np.empty((exponents.shape[1], max(1, _top_degree(exponents)) + 1))
+    sums = np.zeros(n_branches)
+    for k in range(start - 1, n - 1):
+        for j in range(n_y):
+            first, last = input_start[j], input_start[j + 1]
+            clips = 0
+            for i in range(last - first):
+                entry = first + i
+                x = (values[k - input_lag[entry], input_source[entry]] - input_offset[entry]) / input_scale[entry]
+                if x > 1.0:
+                    x = 1.0
+                    clips += 1
+                elif x < -1.0:
+                    x = -1.0
+                    clips += 1
+                _univariate_row(x, need[i], basis, table[i])
+            clipped[j] += clips
+            out = constant[j] + _term_network_output(
+                table, plan, factors, term_start[j], term_start[j + 1], weights, feature_branch, tanh_output[j],
+                output_scale[j], sums,
+            )  # fmt: skip
+            for entry in range(known_start[j], known_start[j + 1]):
+                out += known_weight[entry] * values[k - known_lag[entry], known_source[entry]]
+            if not math.isfinite(out) or abs(out - y_offset[j]) > divergence_bound * y_scale[j]:
+                for later in range(k + 1, n):
+                    for c in range(n_y):
+                        values[later, c] = np.nan
+                return k + 1
+            values[k + 1, j] = out
+    return -1
+
+
+@njit(cache=True, nogil=True)
 def free_run_functional_link(
     u: np.ndarray,
     y: np.ndarray,
@@ -453,102 +535,44 @@ def free_run_functional_link(
     divergence_bound: float,
     y_out: np.ndarray,
 ) -> tuple[int, int]:
-    """Parallel (free-run) simulation of a functional-link model from sample ``start``.
+    """:func:`free_run` of one output from one input, described by its lag counts (no loop of its own).
 
-    ``y_out`` holds the measured y; its entries before ``start`` seed the history and
-    the rest are overwritten with the model's outputs, each fed back as the next input.
-    Network inputs outside [-1, 1] are clipped (the polynomials are only bounded
-    there) and counted. Returns (clipped inputs, first diverged sample or -1): a
-    sample whose output is non-finite or further than ``divergence_bound`` scale
-    units from the offset ends the run (the rest is nan), so an unstable model is
-    flagged instead of printed as a number. ``factors``: the terms' factor rows, or none
-    (0 rows) when every term is polynomials only.
+    The inputs are y(k), ..., y(k - y_lags + 1), then u(k), ..., u(k - u_lags + 1), and
+    the known linear part sum(a_i y(k - i)) + sum(b_i u(k - i)). ``y_out`` holds the
+    measured y; its entries from ``start`` on are overwritten with the model's outputs.
+    Returns (clipped inputs, first diverged sample or -1).
     """
     n = len(u)
-    plan = _sparse_terms(exponents, factors)
-    need = plan[6]
-    table = np.empty((y_lags + u_lags, max(1, _top_degree(exponents)) + 1))
-    sums = np.zeros(n_branches)
-    clipped = 0
-    for k in range(start - 1, n - 1):
-        clipped += _polynomial_table(u, y_out, k, y_lags, u_lags, y_offset, y_scale, u_offset, u_scale, basis, need,
-                                     table)  # fmt: skip
-        out = constant + _term_network_output(table, plan, factors, 0, exponents.shape[0], weights, feature_branch,
-                                              tanh_output, output_scale, sums)  # fmt: skip
-        for i in range(len(known_a)):
-            out += known_a[i] * y_out[k - i]
-        for i in range(len(known_b)):
-            out += known_b[i] * u[k - i]
-        if not math.isfinite(out) or abs(out - y_offset) > divergence_bound * y_scale:
-            for j in range(k + 1, n):
-                y_out[j] = np.nan
-            return clipped, k + 1
-        y_out[k + 1] = out
-    return clipped, -1
-
-
-@njit(cache=True, nogil=True)
-def free_run_functional_link_mimo(
-    values: np.ndarray,
-    start: int,
-    n_y: int,
-    input_start: np.ndarray,
-    input_source: np.ndarray,
-    input_lag: np.ndarray,
-    input_offset: np.ndarray,
-    input_scale: np.ndarray,
-    term_start: np.ndarray,
-    exponents: np.ndarray,
-    factors: np.ndarray,
-    weights: np.ndarray,
-    feature_branch: np.ndarray,
-    tanh_output: np.ndarray,
-    output_scale: np.ndarray,
-    constant: np.ndarray,
-    y_offset: np.ndarray,
-    y_scale: np.ndarray,
-    basis: int,
-    divergence_bound: float,
-    clipped: np.ndarray,
-) -> int:
-    """The joint free run of a MIMO model: :func:`free_run_functional_link` for every output at once.
-
-    ``values`` (N, n_y + n_u) holds [y, u] per sample; outputs from ``start`` on are
-    overwritten with the model's, each fed back to every output that sees it. Output
-    j's network inputs are entries ``input_start[j]..input_start[j+1]`` (a column of
-    ``values``, a lag, an offset and a scale each), its terms rows
-    ``term_start[j]..term_start[j+1]`` of ``exponents`` / ``weights``. Clipped inputs
-    are counted per output in ``clipped``; returns the first diverged sample, or -1.
-    """
-    n = values.shape[0]
-    plan = _sparse_terms(exponents, factors)
-    need = plan[6]
-    table = np.empty((exponents.shape[1], max(1, _top_degree(exponents)) + 1))
-    sums = np.zeros(int(feature_branch.max()) + 1 if feature_branch.size else 1)
-    for k in range(start - 1, n - 1):
-        for j in range(n_y):
-            first, last = input_start[j], input_start[j + 1]
-            for i in range(last - first):
-                entry = first + i
-                x = (values[k - input_lag[entry], input_source[entry]] - input_offset[entry]) / input_scale[entry]
-                if x > 1.0:
-                    x = 1.0
-                    clipped[j] += 1
-                elif x < -1.0:
-                    x = -1.0
-                    clipped[j] += 1
-                _univariate_row(x, need[i], basis, table[i])
-            out = constant[j] + _term_network_output(
-                table, plan, factors, term_start[j], term_start[j + 1], weights, feature_branch, tanh_output[j],
-                output_scale[j], sums,
-            )  # fmt: skip
-            if not math.isfinite(out) or abs(out - y_offset[j]) > divergence_bound * y_scale[j]:
-                for later in range(k + 1, n):
-                    for c in range(n_y):
-                        values[later, c] = np.nan
-                return k + 1
-            values[k + 1, j] = out
-    return -1
+    values = np.empty((n, 2))
+    values[:, 0] = y_out
+    values[:, 1] = u
+    inputs = y_lags + u_lags
+    source = np.zeros(inputs, dtype=np.int64)
+    lag = np.empty(inputs, dtype=np.int64)
+    offset = np.full(inputs, y_offset)
+    scale = np.full(inputs, y_scale)
+    for i in range(inputs):
+        lag[i] = i if i < y_lags else i - y_lags
+        if i >= y_lags:
+            source[i], offset[i], scale[i] = 1, u_offset, u_scale
+    known = len(known_a) + len(known_b)
+    known_source = np.zeros(known, dtype=np.int64)
+    known_lag = np.empty(known, dtype=np.int64)
+    known_weight = np.empty(known)
+    for i in range(known):
+        a = i < len(known_a)
+        known_source[i] = 0 if a else 1
+        known_lag[i] = i if a else i - len(known_a)
+        known_weight[i] = known_a[i] if a else known_b[i - len(known_a)]
+    clipped = np.zeros(1, dtype=np.int64)
+    diverged_at = free_run(
+        values, start, 1, np.array([0, inputs]), source, lag, offset, scale, np.array([0, known]), known_source,
+        known_lag, known_weight, np.array([0, exponents.shape[0]]), exponents, factors, weights, feature_branch,
+        n_branches, np.array([tanh_output]), np.array([output_scale]), np.array([constant]), np.array([y_offset]),
+        np.array([y_scale]), basis, divergence_bound, clipped,
+    )  # fmt: skip
+    y_out[:] = values[:, 0]
+    return clipped[0], diverged_at
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -70,7 +70,7 @@ class ChannelStructure:
     """Output j's regressor: its own lags, then the lags of each other channel it sees.
 
     Stands in for :class:`~lenn_ros.core.structure.ModelStructure` where the Identifier uses
-    one (regressors, warm-up; the compiled step's plan is ``channel_step``'s): the
+    one (regressors, warm-up; the compiled step is ``functional_link_step`` with these channels): the
     network input is (value - offset) / scale per channel and lag; ``u`` handed to
     :meth:`regressors` is the matrix of the other channels (one column each), ``y``
     output j itself. ``history`` is the MIMO model's common warm-up, so every output
@@ -402,7 +402,9 @@ class MimoIdentifier:
         flat = [entry for rows in entries for entry in rows]
         values = np.ascontiguousarray(np.concatenate((y_model, u), axis=1))
         clipped = np.zeros(len(models), dtype=np.int64)
-        diverged_at = kernels.free_run_functional_link_mimo(
+        branches = np.concatenate([t[1] for t in terms]).astype(np.int64)
+        no_known = np.zeros(0, dtype=np.int64)
+        diverged_at = kernels.free_run(
             values,
             int(start),
             self.structure.n_y,
@@ -411,11 +413,16 @@ class MimoIdentifier:
             np.array([entry[1] for entry in flat], dtype=np.int64),
             np.array([entry[2] for entry in flat], dtype=np.float64),
             np.array([entry[3] for entry in flat], dtype=np.float64),
+            np.zeros(self.structure.n_y + 1, dtype=np.int64),  # no known linear parts (the MIMO node refuses them)
+            no_known,
+            no_known,
+            np.zeros(0),
             np.cumsum([0] + [len(t[0]) for t in terms]).astype(np.int64),
             exponents,
             factors,
             np.ascontiguousarray(np.concatenate([m.weights_.reshape(-1) for m in models]), dtype=np.float64),
-            np.concatenate([t[1] for t in terms]).astype(np.int64),
+            branches,
+            int(branches.max(initial=0)) + 1,
             np.array([m.output == "tanh" for m in models]),
             np.array([float(m.output_scale) for m in models]),
             np.array([i.structure.output_offset for i in self.outputs], dtype=np.float64),

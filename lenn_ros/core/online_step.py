@@ -57,12 +57,14 @@ class StepState:
     phi: np.ndarray
     scratch: np.ndarray
     out: np.ndarray
+    u_now: np.ndarray
 
     @classmethod
-    def empty(cls, window: int, n_inputs: int, n_features: int, channels: int = 0) -> StepState:
-        """``channels`` > 0: a MIMO output's step, whose "u" history holds the other channels, one column each."""
+    def empty(cls, window: int, n_inputs: int, n_features: int, channels: int = 1) -> StepState:
+        """``channels``: the input channels the output sees (u for a single-channel model; the other
+        channels for one output of a several-channel model), one column of the u history each."""
         return cls(
-            u_history=np.zeros((window, channels)) if channels else np.zeros(window),
+            u_history=np.zeros((window, channels)),
             y_history=np.zeros(window),
             counts=np.zeros(2, dtype=np.int64),
             linear=np.zeros(1),
@@ -70,6 +72,7 @@ class StepState:
             phi=np.zeros((1, n_features)),
             scratch=np.zeros(2),
             out=np.zeros(6),
+            u_now=np.zeros(channels),
         )
 
     def restart(self) -> None:
@@ -104,14 +107,17 @@ def _rule(
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _push(u_history: np.ndarray, y_history: np.ndarray, counts: np.ndarray, u: float, y: float) -> bool:
-    """Newest first, as ``Identifier._push``; True once the history is full."""
+def _push(u_history: np.ndarray, y_history: np.ndarray, counts: np.ndarray, u: np.ndarray, y: float) -> bool:
+    """Newest first, as ``Identifier._push``; the channels' history is a matrix, one column each. True once full."""
     window = len(y_history)
+    channels = len(u)
     for i in range(window - 1, 0, -1):
         y_history[i] = y_history[i - 1]
-        u_history[i] = u_history[i - 1]
+        for c in range(channels):
+            u_history[i, c] = u_history[i - 1, c]
     y_history[0] = y
-    u_history[0] = u
+    for c in range(channels):
+        u_history[0, c] = u[c]
     if counts[0] < window:
         counts[0] += 1
     return counts[0] >= window
@@ -127,19 +133,29 @@ def _regressor(
     known_a: np.ndarray,
     known_b: np.ndarray,
 ) -> tuple[float, int]:
-    """x(k) clipped into [-1, 1] and lin(k), as ``ModelStructure.regressor_row``; (lin, clipped or -1 if non-finite)."""
-    y_lags, u_lags = lags[0], lags[1]
-    for i in range(y_lags):
-        x[0, i] = (y_history[i] - geometry[0]) / geometry[1]
-    for i in range(u_lags):
-        x[0, y_lags + i] = (u_history[i] - geometry[2]) / geometry[3]
-    linear = geometry[4]
+    """x(k) clipped into [-1, 1] and lin(k), as the structure's ``regressor_row``; (lin, clipped or -1 if non-finite).
+
+    ``geometry`` = y_offset, y_scale, output_offset, then offset and scale of each input
+    channel; ``lags`` = the output's own lags, then each channel's. The known linear part is
+    output_offset + sum_i a_i y(k - i) + sum_c sum_i b_ci u_c(k - i) (``known_b``: one row per channel).
+    """
+    column = 0
+    for i in range(lags[0]):
+        x[0, column] = (y_history[i] - geometry[0]) / geometry[1]
+        column += 1
+    for c in range(len(lags) - 1):
+        offset, scale = geometry[3 + 2 * c], geometry[4 + 2 * c]
+        for i in range(lags[c + 1]):
+            x[0, column] = (u_history[i, c] - offset) / scale
+            column += 1
+    linear = geometry[2]
     for i in range(len(known_a)):
         linear = linear + known_a[i] * y_history[i]
-    for i in range(len(known_b)):
-        linear = linear + known_b[i] * u_history[i]
+    for c in range(known_b.shape[0]):
+        for i in range(known_b.shape[1]):
+            linear = linear + known_b[c, i] * u_history[i, c]
     clipped = 0
-    for i in range(y_lags + u_lags):
+    for i in range(column):
         value = x[0, i]
         if not math.isfinite(value):
             return linear, -1
@@ -151,7 +167,7 @@ def _regressor(
 
 @njit(cache=True, nogil=True)
 def functional_link_step(
-    u: float,
+    u: np.ndarray,
     y: float,
     learn: bool,
     score: bool,
@@ -179,15 +195,16 @@ def functional_link_step(
     tanh_output: bool,
     out: np.ndarray,
 ) -> None:
-    """The pair (u(k), y_p(k)): learn from y^(k)'s error, then predict y^(k+1).
+    """The pair (u(k), y_p(k)): learn from y^(k)'s error, then predict y^(k+1): the only compiled step.
 
-    ``geometry`` = y_offset, y_scale, u_offset, u_scale, output_offset; ``lags`` =
-    y_lags, u_lags. With ``score`` the pending prediction is scored (and learnt from
-    if ``learn``); a learning step that would make the model non-finite stops the
-    call there with STATUS DIVERGED and nothing pushed, so the caller can roll the
-    model back and call again without ``score``. ``out`` gets PRIOR (the network's
-    part of y^(k), nan if none), Y_HAT_NEXT (nan until the history is full),
-    CLIPPED (network inputs outside [-1, 1]), STATUS and LINEAR_PREVIOUS.
+    ``u`` holds the input channels the output sees (one for a single-channel model, the
+    other channels for one output of a several-channel model); ``geometry``, ``lags`` and
+    the known parts are :func:`_regressor`'s. With ``score`` the pending prediction is
+    scored (and learnt from if ``learn``); a learning step that would make the model
+    non-finite stops the call there with STATUS DIVERGED and nothing pushed, so the
+    caller can roll the model back and call again without ``score``. ``out`` gets PRIOR
+    (the network's part of y^(k), nan if none), Y_HAT_NEXT (nan until the history is
+    full), CLIPPED (network inputs outside [-1, 1]), STATUS and LINEAR_PREVIOUS.
     """
     if not _score(y, learn, score, counts, linear_pending, phi, scratch, solver, weights, momentum, covariance,
                   feature_branch, n_branches, rule, tanh_output, out):  # fmt: skip
@@ -289,95 +306,15 @@ def _predict(
     counts[1] = 1
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _push_channels(others: np.ndarray, y_history: np.ndarray, counts: np.ndarray, u: np.ndarray, y: float) -> bool:
-    """:func:`_push` for a MIMO output: the other channels' history is a matrix, one column each."""
-    window = len(y_history)
-    for i in range(window - 1, 0, -1):
-        y_history[i] = y_history[i - 1]
-        others[i, :] = others[i - 1, :]
-    y_history[0] = y
-    others[0, :] = u
-    if counts[0] < window:
-        counts[0] += 1
-    return counts[0] >= window
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _channel_regressor(
-    x: np.ndarray, others: np.ndarray, y_history: np.ndarray, geometry: np.ndarray, lags: np.ndarray
-) -> tuple[float, int]:
-    """x(k) of a MIMO output, as ``ChannelStructure.regressor_row``, clipped; (lin, clipped or -1).
-
-    ``geometry`` = y_offset, y_scale, output_offset, then offset and scale of each other
-    channel; ``lags`` = own lags, then each other channel's.
-    """
-    column = 0
-    for i in range(lags[0]):
-        x[0, column] = (y_history[i] - geometry[0]) / geometry[1]
-        column += 1
-    for c in range(len(lags) - 1):
-        offset, scale = geometry[3 + 2 * c], geometry[4 + 2 * c]
-        for i in range(lags[c + 1]):
-            x[0, column] = (others[i, c] - offset) / scale
-            column += 1
-    clipped = 0
-    for i in range(column):
-        value = x[0, i]
-        if not math.isfinite(value):
-            return geometry[2], -1
-        if value > 1.0 or value < -1.0:
-            x[0, i] = min(1.0, max(-1.0, value))
-            clipped += 1
-    return geometry[2], clipped
-
-
-@njit(cache=True, nogil=True)
-def channel_step(
-    u: np.ndarray,
-    y: float,
-    learn: bool,
-    score: bool,
-    u_history: np.ndarray,
-    y_history: np.ndarray,
-    counts: np.ndarray,
-    linear_pending: np.ndarray,
-    x: np.ndarray,
-    phi: np.ndarray,
-    scratch: np.ndarray,
-    geometry: np.ndarray,
-    lags: np.ndarray,
-    exponents: np.ndarray,
-    factors: np.ndarray,
-    basis: int,
-    solver: int,
-    weights: np.ndarray,
-    momentum: np.ndarray,
-    covariance: np.ndarray,
-    feature_branch: np.ndarray,
-    n_branches: int,
-    rule: np.ndarray,
-    tanh_output: bool,
-    out: np.ndarray,
-) -> None:
-    """:func:`functional_link_step` for one output of a MIMO model: ``u`` holds the other channels it sees."""
-    if not _score(y, learn, score, counts, linear_pending, phi, scratch, solver, weights, momentum, covariance,
-                  feature_branch, n_branches, rule, tanh_output, out):  # fmt: skip
-        return
-    if not _push_channels(u_history, y_history, counts, u, y):
-        return
-    linear, clipped = _channel_regressor(x, u_history, y_history, geometry, lags)
-    _predict(linear, clipped, x, exponents, factors, basis, counts, linear_pending, phi, scratch, solver, weights,
-             momentum, covariance, feature_branch, n_branches, rule, tanh_output, out)  # fmt: skip
-
-
 @dataclass
 class StepPlan:
     """What :func:`functional_link_step` needs of one model and structure, fixed while the model lives.
 
     The learned arrays and the rule's hyper-parameters are read from the model on every
     call: a rollback replaces the arrays, and alpha or the forgetting factor may be
-    changed live.
+    changed live. One plan for any structure: a single-channel ``ModelStructure`` is the
+    case of one input channel, with its known linear parts; a ``ChannelStructure`` (one
+    output of a several-channel model) sees the other channels.
     """
 
     state: StepState
@@ -391,7 +328,6 @@ class StepPlan:
     solver: int
     tanh_output: bool
     n_branches: int
-    channels: int = 0  # > 0: one output of a MIMO model, seeing this many other channels (channel_step)
 
     @classmethod
     def for_model(cls, model: object, structure: object) -> StepPlan | None:
@@ -411,17 +347,21 @@ class StepPlan:
         if not model.is_initialised:
             model._initialise()
         exponents, _branch_of = term_exponents()
-        if hasattr(structure, "other_lags"):
-            return cls._for_channel(model, structure, exponents)
+        if hasattr(structure, "other_lags"):  # one output of a several-channel model: the other channels
+            offsets, scales, lags = structure.other_offsets, structure.other_scales, structure.other_lags
+            known_a, known_b = np.zeros(0), np.zeros((len(lags), 0))
+        else:
+            offsets, scales, lags = [structure.u_offset], [structure.u_scale], [structure.u_lags]
+            known_a, known_b = structure.known_a, np.asarray(structure.known_b, dtype=np.float64).reshape(1, -1)
+        geometry = [structure.y_offset, structure.y_scale, structure.output_offset]
+        for offset, scale in zip(offsets, scales, strict=True):
+            geometry += [offset, scale]
         return cls(
-            state=StepState.empty(structure.warm_up, structure.n_inputs, exponents.shape[0]),
-            geometry=np.array(
-                [structure.y_offset, structure.y_scale, structure.u_offset, structure.u_scale, structure.output_offset],
-                dtype=np.float64,
-            ),
-            lags=np.array([structure.y_lags, structure.u_lags], dtype=np.int64),
-            known_a=np.asarray(structure.known_a, dtype=np.float64),
-            known_b=np.asarray(structure.known_b, dtype=np.float64),
+            state=StepState.empty(structure.warm_up, structure.n_inputs, exponents.shape[0], channels=len(lags)),
+            geometry=np.array(geometry, dtype=np.float64),
+            lags=np.array([structure.y_lags, *lags], dtype=np.int64),
+            known_a=np.asarray(known_a, dtype=np.float64),
+            known_b=np.ascontiguousarray(known_b, dtype=np.float64),
             exponents=np.ascontiguousarray(exponents, dtype=np.int64),
             factors=model.term_factors(),
             basis=kernels.BASIS_CODES[model.basis],
@@ -430,77 +370,20 @@ class StepPlan:
             n_branches=int(model.feature_branch_.max(initial=0)) + 1,
         )
 
-    @classmethod
-    def _for_channel(cls, model: object, structure: object, exponents: np.ndarray) -> StepPlan:
-        """The plan of one output of a MIMO model (a ``ChannelStructure``: own lags, then the other channels)."""
-        geometry = [structure.y_offset, structure.y_scale, structure.output_offset]
-        for offset, scale in zip(structure.other_offsets, structure.other_scales, strict=True):
-            geometry += [offset, scale]
-        channels = len(structure.other_lags)
-        return cls(
-            state=StepState.empty(structure.warm_up, structure.n_inputs, exponents.shape[0], channels=channels),
-            geometry=np.array(geometry, dtype=np.float64),
-            lags=np.array([structure.y_lags, *structure.other_lags], dtype=np.int64),
-            known_a=np.zeros(0),
-            known_b=np.zeros(0),
-            exponents=np.ascontiguousarray(exponents, dtype=np.int64),
-            factors=model.term_factors(),
-            basis=_basis_code(model.basis),
-            solver=SOLVER_CODES[model.solver],
-            tanh_output=model.output == "tanh",
-            n_branches=int(model.feature_branch_.max(initial=0)) + 1,
-            channels=channels,
-        )
-
     def run(self, model: object, u: float | np.ndarray, y: float, learn: bool, score: bool) -> np.ndarray:
-        """One :func:`functional_link_step` (:func:`channel_step`: MIMO); returns its ``out`` (read it at once)."""
+        """One :func:`functional_link_step`; returns its ``out`` (read it at once).
+
+        ``u``: the one input of a single-channel model, or the channels one output of a
+        several-channel model sees (an array).
+        """
         state = self.state
         rule = np.array(
             [model.alpha, model.beta, model.output_scale, model.nlms_step, model.forgetting, model.trace_bound],
             dtype=np.float64,
         )
-        if self.channels:
-            self._run_channel(model, u, y, learn, score, rule)
-        else:
-            self._run_single(model, float(u), y, learn, score, rule)
-        if learn and score and state.out[STATUS] != DIVERGED and not math.isnan(state.out[PRIOR]):
-            model.n_samples_seen_ += 1
-        return state.out
-
-    def _run_channel(self, model: object, u: np.ndarray, y: float, learn: bool, score: bool, rule: np.ndarray) -> None:
-        state = self.state
-        channel_step(
-            np.asarray(u, dtype=np.float64),
-            float(y),
-            bool(learn),
-            bool(score),
-            state.u_history,
-            state.y_history,
-            state.counts,
-            state.linear,
-            state.x,
-            state.phi,
-            state.scratch,
-            self.geometry,
-            self.lags,
-            self.exponents,
-            self.factors,
-            self.basis,
-            self.solver,
-            model.weights_,
-            model.momentum_,
-            model.covariance_,
-            model.feature_branch_,
-            self.n_branches,
-            rule,
-            self.tanh_output,
-            state.out,
-        )
-
-    def _run_single(self, model: object, u: float, y: float, learn: bool, score: bool, rule: np.ndarray) -> None:
-        state = self.state
+        state.u_now[:] = u
         functional_link_step(
-            float(u),
+            state.u_now,
             float(y),
             bool(learn),
             bool(score),
@@ -528,9 +411,6 @@ class StepPlan:
             self.tanh_output,
             state.out,
         )
-
-
-def _basis_code(basis: str) -> int:
-    from lenn_ros.core import kernels
-
-    return kernels.BASIS_CODES[basis]
+        if learn and score and state.out[STATUS] != DIVERGED and not math.isnan(state.out[PRIOR]):
+            model.n_samples_seen_ += 1
+        return state.out

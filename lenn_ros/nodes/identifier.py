@@ -36,7 +36,6 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, SetParametersResult
 from rclpy.event_handler import SubscriptionEventCallbacks
-from rclpy.executors import TimeoutException
 from rclpy.node import Node
 from rclpy.parameter import Parameter as RosParameter
 from rclpy.qos import HistoryPolicy, QoSPolicyKind, QoSProfile, ReliabilityPolicy
@@ -520,7 +519,11 @@ class IdentifierNode(Node):
         if self.session.shedder.behind:
             return
         start = time.monotonic()
-        take = self._drain if rclpy_internals.available() or executor is None else lambda: _executor_turn(executor)
+        take = (
+            self._drain
+            if rclpy_internals.available() or executor is None
+            else lambda: rclpy_internals.run_ready(executor)
+        )
         while time.monotonic() - start < self._EXIT_BUDGET - self._ACK_FLOOR and take():
             pass
         self._publish(self.session.poll(self._paired_until()))
@@ -841,17 +844,6 @@ class IdentifierNode(Node):
         for subscription in self._data_subscriptions.values():
             (self.companions[0] if self.companions else self).destroy_subscription(subscription)
         self._data_subscriptions = {}
-
-
-def _executor_turn(executor: Any) -> int:
-    """One callback the executor has ready (a message, most likely) run now; 0 when none was ready."""
-    try:
-        handler, _, _ = executor.wait_for_ready_callbacks(timeout_sec=0)
-    except TimeoutException:
-        return 0
-    handler()
-    handler.result()
-    return 1
 
 
 #: The loop the identifier runs under unless ``LENN_ROS_EXECUTOR`` says otherwise (see ``run_node``).

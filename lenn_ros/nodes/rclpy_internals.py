@@ -135,35 +135,69 @@ def pass_message_info(node: Node) -> None:
 
 
 class WaitSet:
-    """A native wait set over fixed subscriptions, entered once (for the benchmarks' own receivers).
+    """A native wait set over fixed subscriptions, timers and services, their handles entered once.
 
-    Use as a context manager; :meth:`wait` blocks until one of them has a message, then
-    :func:`take` them. Needs the internals (:func:`available`).
+    Use as a context manager; :meth:`wait` blocks until one of them is ready. Entities
+    destroyed before it is entered are left out (``entities`` holds those kept). Used by
+    :class:`WaitSetLoop` and the benchmarks' own receivers. Needs the internals (:func:`available`).
     """
 
-    def __init__(self, context: Any, subscriptions: list[Subscription]) -> None:
-        self.context, self.subscriptions = context, subscriptions
+    def __init__(self, context: Any, subscriptions: Any, timers: Any = (), services: Any = ()) -> None:
+        self.context = context
+        self.entities: tuple[list[Any], list[Any], list[Any]] = (list(subscriptions), list(timers), list(services))
         self._stack = contextlib.ExitStack()
         self._native: Any = None
+        self._handles: tuple[list[Any], list[Any], list[Any]] = ([], [], [])
 
     def __enter__(self) -> WaitSet:
         from rclpy.impl.implementation_singleton import rclpy_implementation as native
 
-        for subscription in self.subscriptions:
-            self._stack.enter_context(subscription.handle)
+        alive: tuple[list[Any], list[Any], list[Any]] = ([], [], [])
+        for group, kept in zip(self.entities, alive, strict=True):
+            for entity in group:
+                with contextlib.suppress(InvalidHandle):  # destroyed meanwhile
+                    self._stack.enter_context(entity.handle)
+                    kept.append(entity)
+        self.entities = alive
+        self._handles = ([s.handle for s in alive[0]], [t.handle for t in alive[1]], [s.handle for s in alive[2]])
         self._stack.enter_context(self.context.handle)
-        self._native = native.WaitSet(len(self.subscriptions), 0, 0, 0, 0, 0, self.context.handle)
+        counts = [len(handles) for handles in self._handles]
+        self._native = native.WaitSet(counts[0], 0, counts[1], 0, counts[2], 0, self.context.handle)
         return self
 
     def __exit__(self, *_: Any) -> None:
         self._stack.close()
 
-    def wait(self, timeout_ns: int) -> None:
+    def wait(self, timeout_ns: int) -> bool:
+        """Until a message, a timer or a service request is ready; whether a timer or service is."""
         native = self._native
+        subscriptions, timers, services = self._handles
         native.clear_entities()
-        for subscription in self.subscriptions:
-            native.add_subscription(subscription.handle)
+        for handle in subscriptions:
+            native.add_subscription(handle)
+        for handle in timers:
+            native.add_timer(handle)
+        for handle in services:
+            native.add_service(handle)
         native.wait(timeout_ns)
+        return bool(native.get_ready_entities("timer") or native.get_ready_entities("service"))
+
+
+def run_ready(executor: Any) -> bool:
+    """One callback the executor has ready now, run (its exception raised); False when none was ready.
+
+    Public API (``wait_for_ready_callbacks``): what the wait-set loop hands the executor, and
+    what the identifier's exit drain does where the internals cannot be used.
+    """
+    try:
+        handler, _, _ = executor.wait_for_ready_callbacks(timeout_sec=0)
+    except TimeoutException:
+        return False
+    handler()
+    if handler.exception() is not None:
+        raise handler.exception()
+    handler.result()
+    return True
 
 
 class WaitSetLoop:
@@ -189,11 +223,9 @@ class WaitSetLoop:
         self.turn_seconds, self.drain_seconds = turn_seconds, drain_seconds
         for node in nodes:
             node.loop_takes_messages = True  # a callback need not take what waits: this loop does (_take_all)
-        self._stack = contextlib.ExitStack()
         self._snapshot: tuple[tuple[Any, ...], ...] = ()
         self._subscriptions: list[tuple[Any, Any, Any, bool, bool]] = []
-        self._handles: tuple[list[Any], list[Any], list[Any]] = ([], [], [])
-        self._wait_set: Any = None
+        self._wait_set: WaitSet | None = None
 
     def spin(self, stop: threading.Event) -> None:
         """Until a stop is requested or the context ends; the executor runs at least every ``turn_seconds``."""
@@ -204,14 +236,15 @@ class WaitSetLoop:
             next_turn = time.monotonic_ns()
             while not stop.is_set() and context.ok():
                 now = time.monotonic_ns()
-                others_ready = self._wait(max(0, min(period_ns, next_turn - now)))
+                others_ready = self._wait_set.wait(max(0, min(period_ns, next_turn - now)))
                 self._take_all()
                 if others_ready or time.monotonic_ns() >= next_turn:
                     self._run_executor()
                     self._refresh()
                     next_turn = time.monotonic_ns() + period_ns
         finally:
-            self._stack.close()
+            if self._wait_set is not None:
+                self._wait_set.__exit__()
 
     def _refresh(self) -> None:
         """Enter the handles of the nodes' current entities (again, if any was added or destroyed)."""
@@ -223,37 +256,13 @@ class WaitSetLoop:
         )
         if snapshot == self._snapshot:
             return
-        from rclpy.impl.implementation_singleton import rclpy_implementation as native
-
-        self._stack.close()
-        self._stack = contextlib.ExitStack()
+        if self._wait_set is not None:
+            self._wait_set.__exit__()
         self._snapshot = snapshot
-        alive: tuple[list[Any], list[Any], list[Any]] = ([], [], [])
-        for group, entities in zip(snapshot, alive, strict=True):
-            for entity in group:
-                with contextlib.suppress(InvalidHandle):  # destroyed meanwhile
-                    self._stack.enter_context(entity.handle)
-                    entities.append(entity)
-        self._handles = ([s.handle for s in alive[0]], [t.handle for t in alive[1]], [s.handle for s in alive[2]])
-        self._subscriptions = [(s.handle, s.msg_type, s.callback, s.raw, not takes_info(s)) for s in alive[0]]
-        context = nodes[0].context
-        self._stack.enter_context(context.handle)
-        counts = [len(handles) for handles in self._handles]
-        self._wait_set = native.WaitSet(counts[0], 0, counts[1], 0, counts[2], 0, context.handle)
-
-    def _wait(self, timeout_ns: int) -> bool:
-        """Wait for a message, a timer or a service request; whether a timer or service is ready."""
-        wait_set = self._wait_set
-        subscriptions, timers, services = self._handles
-        wait_set.clear_entities()
-        for handle in subscriptions:
-            wait_set.add_subscription(handle)
-        for handle in timers:
-            wait_set.add_timer(handle)
-        for handle in services:
-            wait_set.add_service(handle)
-        wait_set.wait(timeout_ns)
-        return bool(wait_set.get_ready_entities("timer") or wait_set.get_ready_entities("service"))
+        self._wait_set = WaitSet(nodes[0].context, *snapshot).__enter__()
+        self._subscriptions = [
+            (s.handle, s.msg_type, s.callback, s.raw, not takes_info(s)) for s in self._wait_set.entities[0]
+        ]
 
     def _take_all(self) -> None:
         """Every message waiting on every subscription, each to its callback, until none is left or
@@ -279,14 +288,6 @@ class WaitSetLoop:
         under a flood they are always ready. Its handlers come one wait's ready list at a
         time, kept across calls, so a service or timer behind them is reached next turn.
         """
-        executor = self.executor
         deadline = time.monotonic() + self.drain_seconds
-        while time.monotonic() < deadline:
-            try:
-                handler, _, _ = executor.wait_for_ready_callbacks(timeout_sec=0)
-            except TimeoutException:
-                return
-            handler()
-            if handler.exception() is not None:
-                raise handler.exception()
-            handler.result()
+        while time.monotonic() < deadline and run_ready(self.executor):
+            pass

@@ -6,7 +6,7 @@ from setuptools import find_packages, setup
 
 PACKAGE = "lenn_ros"
 # Optional features, each its own extra; the code says which extra to install when one is missing
-# (lenn_ros.errors.require_extra for plots, lenn_ros.experiments.report.progress for bars).
+# (lenn_ros.errors.require_extra for plots, lenn_ros.paper.experiments.report.progress for bars).
 PLOT = ["matplotlib>=3.8"]  # --plot, the demo's figure (lenn_ros.plotting)
 PROGRESS = ["tqdm>=4.66"]  # progress bars of reproduce / reproduce-mimo / --beyond
 DOCS = ["mkdocs==1.6.1"]  # the site in docs/ (make docs: mkdocs build --strict)

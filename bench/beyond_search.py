@@ -1,12 +1,12 @@
 """Choose the "beyond the paper" configuration of each example on calibration seeds.
 
-Every candidate of :func:`lenn_ros.experiments.candidates.candidates` (RLS / NLMS, Legendre /
+Every candidate of :func:`lenn_ros.paper.experiments.candidates.candidates` (RLS / NLMS, Legendre /
 Chebyshev / trigonometric, with and without cross terms) runs the paper's protocol
 (50 000 training samples, 600 test samples) on seeds 100-102, which are never among
 the reported seeds 0..K-1. The score is the worse of the mean one-step and the mean
 free-run NMSE: a model is only as good as its weaker test mode, and one-step alone
 would reward a model whose free run is unstable. The winner of each example is what
-``lenn_ros.experiments.candidates.WINNERS`` records.
+``lenn_ros.paper.experiments.candidates.WINNERS`` records.
 
     PYTHONPATH=. python bench/beyond_search.py > bench/beyond-search-latest.md   # ~4 min on 2 cores
 """
@@ -18,10 +18,10 @@ import time
 
 import numpy as np
 
-from lenn_ros.core.evaluation import least_squares_floor, simulate, train_and_test
-from lenn_ros.core.examples import EXAMPLES
 from lenn_ros.core.structure import Identifier
-from lenn_ros.experiments.candidates import CALIBRATION_SEEDS, candidates
+from lenn_ros.paper.evaluation import least_squares_floor, simulate, train_and_test
+from lenn_ros.paper.examples import EXAMPLES
+from lenn_ros.paper.experiments.candidates import CALIBRATION_SEEDS, candidates
 
 
 def _score(one_step: list[float], free_run: list[float]) -> float:

@@ -18,9 +18,9 @@ import sys
 
 import numpy as np
 
-from lenn_ros.core.evaluation import simulate, train_and_test
-from lenn_ros.core.examples import EXAMPLES
 from lenn_ros.core.structure import Identifier
+from lenn_ros.paper.evaluation import simulate, train_and_test
+from lenn_ros.paper.examples import EXAMPLES
 
 SEEDS = (100, 101, 102, 103, 104)
 

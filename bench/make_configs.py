@@ -1,4 +1,4 @@
-"""Write config/exampleN_{lenn,mlp}.yaml from the presets in lenn_ros/core/examples.py,
+"""Write config/exampleN_{lenn,mlp}.yaml from the presets in lenn_ros/paper/examples.py,
 and config/narendra2x2_lenn.yaml (the MIMO plant; ``bench/mimo_live.py`` runs it).
 
 The params files are generated, not hand-edited, so they cannot drift from the
@@ -12,7 +12,7 @@ from pathlib import Path
 import yaml
 
 from lenn_ros.config import MIMO_PARAMETERS, identifier_parameters
-from lenn_ros.core.examples import EXAMPLES
+from lenn_ros.paper.examples import EXAMPLES
 
 LENN_ONLY = {"order", "basis", "cross_degree", "solver", "forgetting", "nlms_step"}
 MIMO_ONLY = {parameter.name for parameter in MIMO_PARAMETERS}  # (defaults: one channel)

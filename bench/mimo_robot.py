@@ -9,7 +9,7 @@ What an identifier meets on a robot with several channels, as a real process ove
   ``data`` = [u1, u2], no header, RELIABLE: the plant here takes every command at once,
   so one lost on its way to the identifier would pair a measurement with the command
   before; over BEST_EFFORT 0.4-2 % of the samples were so): u(k) is i.i.d. uniform on
-  [-amplitude, amplitude] per channel (:class:`~lenn_ros.core.signals.Excitation` channel i,
+  [-amplitude, amplitude] per channel (:class:`~lenn_ros.paper.signals.Excitation` channel i,
   signal ``uniform``, scaled);
 - node ``driver`` publishes ``/robot/joint_states`` (``sensor_msgs/msg/JointState``,
   BEST_EFFORT, ``header.stamp`` = the step's time) with the joints listed as
@@ -44,8 +44,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from lenn_ros.core.plants import MIMO_PLANTS
-from lenn_ros.core.signals import Excitation
+from lenn_ros.paper.plants import MIMO_PLANTS
+from lenn_ros.paper.signals import Excitation
 
 CMD, JOINT_STATES = "/robot/cmd", "/robot/joint_states"
 #: The driver's joint order: not the identifier's, and one joint it does not model

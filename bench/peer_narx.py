@@ -383,8 +383,8 @@ def mimo_table(rows: list[dict]) -> str:
 
 def free_run_speed(steps: int = 1_000_000) -> dict:
     """Free-run steps per second of the paper's Example-1 LeNN: compiled kernel vs the per-sample loop."""
-    from lenn_ros.core.examples import get_example
     from lenn_ros.core.structure import Identifier
+    from lenn_ros.paper.examples import get_example
 
     example = get_example(1)
     identifier = Identifier(example.structure, example.make_network("lenn", 0))

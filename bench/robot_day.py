@@ -6,7 +6,7 @@
 
 Real processes over DDS, all started from here:
 - the **driver** (this script, ``--driver``): a pendulum joint with viscous and Coulomb
-  friction and stiction (:class:`~lenn_ros.core.physical.FrictionJoint`) stepped at 1 kHz,
+  friction and stiction (:class:`~lenn_ros.paper.physical.FrictionJoint`) stepped at 1 kHz,
   its angle quantised to 1e-4 rad like an encoder, published as stamped BEST_EFFORT
   ``sensor_msgs/JointState`` with the joints in another order (``[wrist, joint1, base]``);
   the latest command is held (zero-order hold);
@@ -105,7 +105,7 @@ def run_driver(phases: list[dict]) -> None:
     from sensor_msgs.msg import JointState
     from std_msgs.msg import Float64MultiArray
 
-    from lenn_ros.core.physical import FrictionJoint
+    from lenn_ros.paper.physical import FrictionJoint
 
     rclpy.init()
     node = rclpy.create_node("robot_day_driver")

@@ -3,7 +3,7 @@
     python bench/robot_defaults.py                  # 100 Hz
     python bench/robot_defaults.py --period 0.005   # 200 Hz
 
-A pendulum joint in radians (``core.physical.FrictionJoint``) under torque steps of
+A pendulum joint in radians (``paper.physical.FrictionJoint``) under torque steps of
 +-2 N m (commands at 50 Hz, levels held 0.2-1.2 s), measured with 0.2 mrad noise, fed
 through the Session the node runs (sequence pairing here: the model and the warm-up
 are what is measured, not the transport). 120 s of learning, then 30 s frozen (the test
@@ -22,9 +22,9 @@ from typing import Any
 import numpy as np
 
 from lenn_ros.config import NODE_PARAMETERS, build_identifier, resolve
-from lenn_ros.core.physical import FrictionJoint
 from lenn_ros.core.session import Session, SessionConfig
-from lenn_ros.core.signals import Excitation
+from lenn_ros.paper.physical import FrictionJoint
+from lenn_ros.paper.signals import Excitation
 
 
 def joint(period: float, seconds: float, seed: int = 1, change_at: float | None = None) -> tuple[np.ndarray, ...]:

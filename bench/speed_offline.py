@@ -33,10 +33,10 @@ from typing import Any
 import numpy as np
 
 from lenn_ros.core import kernels
-from lenn_ros.core.evaluation import simulate
-from lenn_ros.core.examples import EXAMPLES, PaperExample
 from lenn_ros.core.networks import MLP, FunctionalLinkNetwork, OnlineRegressor
 from lenn_ros.core.structure import Identifier
+from lenn_ros.paper.evaluation import simulate
+from lenn_ros.paper.examples import EXAMPLES, PaperExample
 
 #: Samples simulated per example; longer series repeat this one (simulating the plant
 #: in Python costs ~30 us a sample, far more than what is being measured).

@@ -56,7 +56,7 @@ import numpy as np
 from speed_offline import example_series
 
 from lenn_ros import topics
-from lenn_ros.core.examples import EXAMPLES
+from lenn_ros.paper.examples import EXAMPLES
 
 RATE_MIN = 500.0
 RATE_MAX = 20_000.0

@@ -14,15 +14,15 @@ import sys
 from collections.abc import Sequence
 from typing import Any
 
-from lenn_ros.core.examples import PARAMETER_SETS, TRAIN_SAMPLES
 from lenn_ros.errors import user_error_types
+from lenn_ros.paper.examples import PARAMETER_SETS, TRAIN_SAMPLES
 
 
 def _reproduce(args: argparse.Namespace) -> int:
-    from lenn_ros import reproduce
+    from lenn_ros.paper import reproduce
 
     if args.beyond:
-        from lenn_ros import beyond
+        from lenn_ros.paper import beyond
 
         return beyond.main(args)
     return reproduce.main(args)
@@ -118,13 +118,13 @@ def _add_reproduce(commands: Any) -> None:
 
 
 def _reproduce_mimo(args: argparse.Namespace) -> int:
-    from lenn_ros.experiments import mimo
+    from lenn_ros.paper.experiments import mimo
 
     return mimo.main(args)
 
 
 def _add_reproduce_mimo(commands: Any) -> None:
-    from lenn_ros.experiments.mimo import NOISE_DB, SEEDS, TEST_SAMPLES, TRAIN_SAMPLES
+    from lenn_ros.paper.experiments.mimo import NOISE_DB, SEEDS, TEST_SAMPLES, TRAIN_SAMPLES
 
     p = commands.add_parser(
         "reproduce-mimo",

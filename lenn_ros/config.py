@@ -23,12 +23,12 @@ from typing import Any
 import yaml
 
 from lenn_ros.core.change import DEFAULT_THRESHOLD
-from lenn_ros.core.examples import PARAMETER_SETS, get_example
 from lenn_ros.core.expansions import parse_terms
 from lenn_ros.core.fields import FieldError, channel_names, compile_path, compile_vector, is_vector
 from lenn_ros.core.mimo import MimoIdentifier, MimoStructure, build_mimo_identifier, parse_couplings
 from lenn_ros.core.networks import OUTPUTS, SOLVERS
 from lenn_ros.core.structure import Identifier, ModelStructure
+from lenn_ros.paper.examples import PARAMETER_SETS, get_example
 
 
 class ConfigError(ValueError):

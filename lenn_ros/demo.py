@@ -20,8 +20,8 @@ from datetime import datetime
 from pathlib import Path
 from typing import Any
 
-from lenn_ros.core.examples import get_example
 from lenn_ros.errors import UserError
+from lenn_ros.paper.examples import get_example
 
 
 def _node(module: str, parameters: dict, env: dict, log: Path) -> subprocess.Popen:

@@ -43,7 +43,7 @@ LAYER_ERRORS = (
     ("lenn_ros.evaluate", "EvaluateError"),
     ("lenn_ros.fit", "FitError"),
     ("lenn_ros.core.networks", "ModelFileError"),
-    ("lenn_ros.core.expression", "ExpressionError"),
+    ("lenn_ros.paper.expression", "ExpressionError"),
     ("lenn_ros.core.fields", "FieldError"),
 )
 

@@ -15,13 +15,13 @@ import numpy as np
 import pytest
 
 from lenn_ros.core import kernels
-from lenn_ros.core.evaluation import simulate, train_and_test
-from lenn_ros.core.examples import EXAMPLES
 from lenn_ros.core.expansions import expand
-from lenn_ros.core.plants import example4_f
-from lenn_ros.core.signals import noise_std
 from lenn_ros.core.structure import Identifier
-from lenn_ros.experiments import candidates, convergence, tracking
+from lenn_ros.paper.evaluation import simulate, train_and_test
+from lenn_ros.paper.examples import EXAMPLES
+from lenn_ros.paper.experiments import candidates, convergence, tracking
+from lenn_ros.paper.plants import example4_f
+from lenn_ros.paper.signals import noise_std
 
 CHUNK = 100_000
 

@@ -10,11 +10,11 @@ from __future__ import annotations
 import pytest
 
 from lenn_ros.core.alignment import MAX_QUEUE
-from lenn_ros.core.examples import EXAMPLES
 from lenn_ros.core.merging import TopicMerger
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.session import MAX_HELD, Session, SessionConfig
 from lenn_ros.core.structure import Identifier
+from lenn_ros.paper.examples import EXAMPLES
 
 RATE = 1000.0
 

@@ -17,7 +17,7 @@ import pytest
 from lenn_ros.config import build_identifier, resolve
 from lenn_ros.core.change import DEFAULT_THRESHOLD, RAISED, ChangeDetector
 from lenn_ros.core.session import Session, SessionConfig
-from lenn_ros.experiments.tracking import simulate_change
+from lenn_ros.paper.experiments.tracking import simulate_change
 
 RATE = 100.0  # Hz: "within 2 s at 100 Hz"
 WITHIN = 200  # samples

@@ -10,7 +10,7 @@ from pathlib import Path
 import pytest
 
 from lenn_ros.config import read_params_file, resolve
-from lenn_ros.core.examples import EXAMPLES
+from lenn_ros.paper.examples import EXAMPLES
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -96,7 +96,7 @@ def test_user_errors_are_one_line(arguments: list[str], message: str) -> None:
 
 
 def test_import_csv_then_evaluate(tmp_path: Path) -> None:
-    from lenn_ros.core.evaluation import simulate
+    from lenn_ros.paper.evaluation import simulate
 
     series = simulate(EXAMPLES[4].plant(), -20.0, seed=2, train_samples=3000, test_samples=600)
     csv = tmp_path / "log.csv"
@@ -126,8 +126,8 @@ def test_import_csv_then_evaluate(tmp_path: Path) -> None:
     params = REPO / "config" / "example4_lenn.yaml"
     result = lenn_ros("evaluate", str(bag), "--params", str(params), "--json")
     assert result.returncode == 0, result.stderr
-    from lenn_ros.core.evaluation import train_and_test
     from lenn_ros.evaluate import identifier_from_params
+    from lenn_ros.paper.evaluation import train_and_test
 
     expected = train_and_test(identifier_from_params(str(params))[0], series)
     assert json.loads(result.stdout)["nmse_db"] == pytest.approx(expected.nmse_db, abs=1e-9)

@@ -13,17 +13,17 @@ import pytest
 from numpy.polynomial import chebyshev, legendre
 
 from lenn_ros.core import kernels
-from lenn_ros.core.complexity import lenn_complexity, mlp_complexity
-from lenn_ros.core.evaluation import run_example, simulate
-from lenn_ros.core.examples import EXAMPLES, get_example
 from lenn_ros.core.expansions import cross_term_exponents, expand, feature_count, legendre_features
-from lenn_ros.core.expression import ExpressionError, compile_expression
 from lenn_ros.core.metrics import RunningNMSE, nmse, nmse_db
 from lenn_ros.core.networks import MLP, FunctionalLinkNetwork, LeNN, ModelFileError, OnlineRegressor
-from lenn_ros.core.plants import Plant, example_plant, plant_from_expressions
-from lenn_ros.core.signals import Excitation, noise_std
-from lenn_ros.core.signals import test_sinusoid as eq11_sinusoid
 from lenn_ros.core.structure import Identifier, ModelStructure
+from lenn_ros.paper.complexity import lenn_complexity, mlp_complexity
+from lenn_ros.paper.evaluation import run_example, simulate
+from lenn_ros.paper.examples import EXAMPLES, get_example
+from lenn_ros.paper.expression import ExpressionError, compile_expression
+from lenn_ros.paper.plants import Plant, example_plant, plant_from_expressions
+from lenn_ros.paper.signals import Excitation, noise_std
+from lenn_ros.paper.signals import test_sinusoid as eq11_sinusoid
 
 X = np.linspace(-1.0, 1.0, 201)
 

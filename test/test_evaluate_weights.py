@@ -22,9 +22,9 @@ from test_fit import cubic_plant
 from lenn_ros import topics
 from lenn_ros.bag.writer import BagWriter
 from lenn_ros.config import NODE_PARAMETERS, build_identifier, read_params_file, resolve
-from lenn_ros.core.evaluation import Series, train_and_test
 from lenn_ros.evaluate import EvaluateError, evaluate_bag
 from lenn_ros.fit import Data, fit, write_outputs
+from lenn_ros.paper.evaluation import Series, train_and_test
 
 REPO = Path(__file__).resolve().parents[1]
 TRAIN = 2000

@@ -23,8 +23,8 @@ from rclpy.executors import SingleThreadedExecutor
 from rosutil import ParameterClient, final_status, start_node, stop
 
 from lenn_ros import topics
-from lenn_ros.core.examples import EXAMPLES
 from lenn_ros.nodes import EXECUTOR_VARIABLE, EXECUTORS, rclpy_internals
+from lenn_ros.paper.examples import EXAMPLES
 
 PAIRS = 400
 AFTER = 20  # pairs sent after learning is switched off

@@ -7,8 +7,8 @@ import sys
 
 import pytest
 
-from lenn_ros.core.expression import ExpressionError, compile_expression
-from lenn_ros.core.plants import plant_from_expressions
+from lenn_ros.paper.expression import ExpressionError, compile_expression
+from lenn_ros.paper.plants import plant_from_expressions
 
 
 def test_division_by_zero_at_rest_names_the_formula_and_its_inputs() -> None:

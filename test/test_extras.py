@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from lenn_ros.experiments import report
+from lenn_ros.paper.experiments import report
 
 REPO = Path(__file__).resolve().parents[1]
 #: ROS packages come from apt or the ``ros`` extra's wheels; package.xml declares each

@@ -23,9 +23,9 @@ from rosutil import Listener, final_status, start_node, stop  # noqa: E402
 from std_msgs.msg import Float64  # noqa: E402
 
 from lenn_ros import topics  # noqa: E402
-from lenn_ros.core.evaluation import simulate  # noqa: E402
-from lenn_ros.core.examples import EXAMPLES  # noqa: E402
 from lenn_ros.core.networks import OnlineRegressor  # noqa: E402
+from lenn_ros.paper.evaluation import simulate  # noqa: E402
+from lenn_ros.paper.examples import EXAMPLES  # noqa: E402
 
 CLEAN = 400
 

@@ -18,7 +18,6 @@ import yaml
 
 from lenn_ros.config import ConfigError, build_identifier, read_params_file, resolve
 from lenn_ros.core.evaluation import free_run_problems
-from lenn_ros.core.examples import get_example
 from lenn_ros.core.expansions import format_terms, parse_terms
 from lenn_ros.core.families import Spec
 from lenn_ros.core.scaling import Scaling
@@ -37,6 +36,7 @@ from lenn_ros.core.selection import (
 )
 from lenn_ros.core.structure import Identifier
 from lenn_ros.fit import Data, fit
+from lenn_ros.paper.examples import get_example
 
 SILVERBOX = Path(__file__).resolve().parents[2] / "shared" / "data" / "silverbox_multisine.csv"
 BALL_AND_BEAM = SILVERBOX.parent / "daisy_ball-and-beam.csv"

@@ -23,9 +23,9 @@ from lenn_ros import topics
 from lenn_ros.bag.msgtypes import TYPESTORE
 from lenn_ros.bag.writer import BagWriter
 from lenn_ros.config import build_identifier, read_params_file, resolve
-from lenn_ros.core.physical import FrictionJoint
-from lenn_ros.core.signals import Excitation
 from lenn_ros.evaluate import make_session, pair_raw
+from lenn_ros.paper.physical import FrictionJoint
+from lenn_ros.paper.signals import Excitation
 
 PERIOD, COMMAND_EVERY, SAMPLES = 0.005, 4, 8000  # 200 Hz driver, 50 Hz controller, 40 s
 LOST = range(3000, 3040)  # driver messages never recorded (0.2 s)

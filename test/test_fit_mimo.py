@@ -15,11 +15,11 @@ from mcap_ros2.decoder import DecoderFactory
 
 from lenn_ros.bag import BagError, import_csv, read_run
 from lenn_ros.config import build_identifier, read_params_file, resolve
-from lenn_ros.core.evaluation import simulate_mimo
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.networks import ModelFileError
-from lenn_ros.core.plants import narendra_mimo_plant
 from lenn_ros.fit_mimo import fit_mimo, load_mimo_data, write_outputs
+from lenn_ros.paper.evaluation import simulate_mimo
+from lenn_ros.paper.plants import narendra_mimo_plant
 
 REPO = Path(__file__).resolve().parents[1]
 TRAIN, TEST = 2000, 400
@@ -193,8 +193,8 @@ def test_a_gap_in_a_vector_record_is_a_break_of_the_mimo_fit() -> None:
     started afresh on that run.
     """
     from lenn_ros.core.expansions import full_exponents
-    from lenn_ros.core.signals import noise_std
     from lenn_ros.fit_mimo import MimoData, Scalings, _training_features, least_squares_identifier
+    from lenn_ros.paper.signals import noise_std
 
     rng = np.random.default_rng(3)
     pieces, cuts = [], (700, 1800, 2000)

@@ -18,8 +18,8 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from rosutil import start_node, stop  # noqa: E402
 
 from lenn_ros import topics  # noqa: E402
-from lenn_ros.core.evaluation import simulate  # noqa: E402
-from lenn_ros.core.examples import EXAMPLES  # noqa: E402
+from lenn_ros.paper.evaluation import simulate  # noqa: E402
+from lenn_ros.paper.examples import EXAMPLES  # noqa: E402
 
 PLANTS = ("line1/press", "line2/oven", "idle")
 

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lenn_ros.core.examples import EXAMPLES
+from lenn_ros.paper.examples import EXAMPLES
 
 REPO = Path(__file__).resolve().parents[1]
 PACKAGE = REPO / "lenn_ros"

@@ -7,11 +7,11 @@ import re
 import numpy as np
 import pytest
 
-from lenn_ros.core.evaluation import simulate_mimo
 from lenn_ros.core.metrics import nmse_db
 from lenn_ros.core.mimo import MimoStructure, build_mimo_identifier, parse_couplings
 from lenn_ros.core.networks import FunctionalLinkNetwork
-from lenn_ros.core.plants import narendra_mimo_plant
+from lenn_ros.paper.evaluation import simulate_mimo
+from lenn_ros.paper.plants import narendra_mimo_plant
 
 
 def _identifier(couplings: str = "full", seed: int = 0, scales=(2.0, 1.6)):

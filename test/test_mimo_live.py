@@ -249,9 +249,9 @@ def test_replay_of_a_vector_bag_feeds_a_mimo_identifier_the_recorded_samples(tmp
     from test_replay_pairs import run_replay
 
     from lenn_ros.bag.csv_import import import_csv
-    from lenn_ros.core.evaluation import simulate_mimo
-    from lenn_ros.core.plants import narendra_mimo_plant
     from lenn_ros.evaluate import evaluate_bag
+    from lenn_ros.paper.evaluation import simulate_mimo
+    from lenn_ros.paper.plants import narendra_mimo_plant
 
     series = simulate_mimo(narendra_mimo_plant(), -20.0, 6, 1500, 300)
     csv = tmp_path / "log.csv"

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lenn_ros.core.evaluation import simulate_mimo
-from lenn_ros.core.plants import narendra_mimo_plant
 from lenn_ros.core.scaling import DEFAULT_MARGIN
-from lenn_ros.experiments import mimo
+from lenn_ros.paper.evaluation import simulate_mimo
+from lenn_ros.paper.experiments import mimo
+from lenn_ros.paper.plants import narendra_mimo_plant
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -13,9 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from lenn_ros.core import evaluation, kernels
-from lenn_ros.core.evaluation import least_squares_floor, least_squares_weights, least_squares_weights_reference
-from lenn_ros.core.examples import EXAMPLES
+from lenn_ros.core import kernels
 from lenn_ros.core.expansions import (
     dictionary_exponents,
     expand,
@@ -25,6 +23,9 @@ from lenn_ros.core.expansions import (
 )
 from lenn_ros.core.metrics import nmse_db
 from lenn_ros.core.structure import Identifier
+from lenn_ros.paper import evaluation
+from lenn_ros.paper.evaluation import least_squares_floor, least_squares_weights, least_squares_weights_reference
+from lenn_ros.paper.examples import EXAMPLES
 
 pytestmark = pytest.mark.skipif(not kernels.JIT, reason="numba does not compile here: the references run anyway")
 

@@ -5,12 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lenn_ros.core import plants
-from lenn_ros.core.examples import EXAMPLES
-from lenn_ros.core.expression import ExpressionError
 from lenn_ros.core.kernels import COMPILED
-from lenn_ros.core.plants import Plant, example_plant, plant_from_expressions
-from lenn_ros.core.signals import Excitation
+from lenn_ros.paper import plants
+from lenn_ros.paper.examples import EXAMPLES
+from lenn_ros.paper.expression import ExpressionError
+from lenn_ros.paper.plants import Plant, example_plant, plant_from_expressions
+from lenn_ros.paper.signals import Excitation
 
 pytestmark = pytest.mark.skipif(not COMPILED, reason="numba is not installed: Plant.run is the reference itself")
 

@@ -11,11 +11,11 @@ import pytest
 
 from lenn_ros.config import build_identifier, resolve
 from lenn_ros.core.alignment import GridSampler, StampAligner
-from lenn_ros.core.evaluation import simulate
-from lenn_ros.core.examples import get_example
 from lenn_ros.core.fields import FieldError, check_path, compile_path, stamp_seconds
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.session import Session, SessionConfig
+from lenn_ros.paper.evaluation import simulate
+from lenn_ros.paper.examples import get_example
 
 # -- field paths ------------------------------------------------------------------------------
 

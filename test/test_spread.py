@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from lenn_ros.config import build_identifier, resolve
-from lenn_ros.core.evaluation import simulate
-from lenn_ros.core.examples import get_example
 from lenn_ros.core.session import Session, SessionConfig
 from lenn_ros.core.spread import Z95
+from lenn_ros.paper.evaluation import simulate
+from lenn_ros.paper.examples import get_example
 
 
 def stepped(preset: int, series, samples: int) -> tuple[Session, list]:

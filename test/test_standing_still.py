@@ -12,11 +12,11 @@ import pytest
 
 from lenn_ros.config import build_identifier, resolve
 from lenn_ros.core import kernels
-from lenn_ros.core.evaluation import simulate
-from lenn_ros.core.examples import EXAMPLES, get_example
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.session import Session, SessionConfig
 from lenn_ros.core.structure import Identifier
+from lenn_ros.paper.evaluation import simulate
+from lenn_ros.paper.examples import EXAMPLES, get_example
 
 README_ROBOT = {
     "example": 0, "y_lags": 2, "u_lags": 2, "solver": "rls", "output": "linear", "y_scale": 3.2, "u_scale": 3.2,

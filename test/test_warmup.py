@@ -17,9 +17,9 @@ from lenn_ros.config import (
 )
 from lenn_ros.core import session as session_module
 from lenn_ros.core.pairing import U, Y
-from lenn_ros.core.physical import FrictionJoint
 from lenn_ros.core.session import Session, SessionConfig
-from lenn_ros.core.signals import Excitation
+from lenn_ros.paper.physical import FrictionJoint
+from lenn_ros.paper.signals import Excitation
 
 PERIOD = 0.01
 
@@ -141,8 +141,8 @@ def test_several_channels_learn_their_scales_channel_by_channel() -> None:
     The plant in raw units (outputs x 40 and x 0.05, inputs x 3): with the placeholder
     scale 1 of old, most network inputs were clipped.
     """
-    from lenn_ros.core.evaluation import simulate_mimo
-    from lenn_ros.core.plants import narendra_mimo_plant
+    from lenn_ros.paper.evaluation import simulate_mimo
+    from lenn_ros.paper.plants import narendra_mimo_plant
 
     series = simulate_mimo(narendra_mimo_plant(), -30.0, seed=2, train_samples=3000, test_samples=0)
     u = series.u * 3.0

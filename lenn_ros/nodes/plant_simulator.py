@@ -22,11 +22,11 @@ from rclpy.node import Node
 from std_msgs.msg import Float64, Float64MultiArray, Int64
 
 from lenn_ros import topics
-from lenn_ros.core.examples import get_example
-from lenn_ros.core.expression import ExpressionError
-from lenn_ros.core.plants import MIMO_PLANTS, MimoPlant, Plant, plant_from_expressions
-from lenn_ros.core.signals import SIGNALS, Excitation
 from lenn_ros.nodes import run_node
+from lenn_ros.paper.examples import get_example
+from lenn_ros.paper.expression import ExpressionError
+from lenn_ros.paper.plants import MIMO_PLANTS, MimoPlant, Plant, plant_from_expressions
+from lenn_ros.paper.signals import SIGNALS, Excitation
 
 
 def _describe(text: str, low: float | None = None, high: float | None = None, read_only: bool = True):

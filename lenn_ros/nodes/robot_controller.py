@@ -3,7 +3,7 @@
 Publishes the command u on ``cmd`` as ``std_msgs/msg/Float64MultiArray`` (the value in
 ``data[0]``, like the forward command controller's ``commands`` topic), BEST_EFFORT,
 without a header: a receiver can only time it by its arrival. The values are the
-paper's excitation (:class:`~lenn_ros.core.signals.Excitation`, seeded): uniform on
+paper's excitation (:class:`~lenn_ros.paper.signals.Excitation`, seeded): uniform on
 [-1, 1], then optionally the eq. 11 test sinusoid. One value per tick at
 ``rate_hz``, its own clock, unrelated to the driver's: a late tick is not caught up
 (a controller sends the command that is current, not a backlog).
@@ -20,8 +20,8 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from std_msgs.msg import Float64MultiArray
 
-from lenn_ros.core.signals import SIGNALS, Excitation
 from lenn_ros.nodes import run_node
+from lenn_ros.paper.signals import SIGNALS, Excitation
 
 #: Default topic of the command (relative: remap with -r cmd:=/robot/commands).
 CMD = "cmd"

@@ -21,7 +21,7 @@ another one, e.g. ``robot_controller``):
   another machine's, unsynchronised);
 - stops after ``steps`` steps or ``duration`` s (0 and 0: until stopped) and writes the
   plant's own series to ``log`` (.npz: stamp_ns, u applied and when it was received,
-  noise, y, y_measured, published; see :class:`~lenn_ros.core.robot.RobotLog`): the lockstep reference.
+  noise, y, y_measured, published; see :class:`~lenn_ros.paper.robot.RobotLog`): the lockstep reference.
 
 QoS of both topics can be set by parameters (``qos_overrides./cmd.subscription.*``,
 ``qos_overrides./joint_states.publisher.*``). Times are the ROS clock's.
@@ -39,11 +39,11 @@ from rclpy.qos_overriding_options import QoSOverridingOptions
 from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64MultiArray
 
-from lenn_ros.core.examples import get_example
-from lenn_ros.core.physical import physical_plant
-from lenn_ros.core.robot import CommandHold, SimulatedRobot
 from lenn_ros.nodes import run_node
 from lenn_ros.nodes.robot_controller import CMD, describe
+from lenn_ros.paper.examples import get_example
+from lenn_ros.paper.physical import physical_plant
+from lenn_ros.paper.robot import CommandHold, SimulatedRobot
 
 #: Default topic of the measurements (relative: remap with -r joint_states:=/robot/joint_states).
 JOINT_STATES = "joint_states"

@@ -11,11 +11,11 @@ expansion. Two things limit it, and each has a standard remedy:
   cannot represent Ex. 2's y1*y2 or Ex. 4's products of inputs; tensor-product cross
   terms (or another basis) can.
 
-For every example the experiments (:mod:`lenn_ros.experiments`) evaluate a small set of
+For every example the experiments (:mod:`lenn_ros.paper.experiments`) evaluate a small set of
 such configurations with the paper's protocol (50 000 training and 600 test samples)
 and report the best one next to the paper's LeNN and MLP, with how fast each learns
-(:mod:`~lenn_ros.experiments.convergence`) and how it tracks a plant that changes
-(:mod:`~lenn_ros.experiments.tracking`). This module runs them and prints the tables.
+(:mod:`~lenn_ros.paper.experiments.convergence`) and how it tracks a plant that changes
+(:mod:`~lenn_ros.paper.experiments.tracking`). This module runs them and prints the tables.
 """
 
 from __future__ import annotations
@@ -24,11 +24,11 @@ import json
 import sys
 from pathlib import Path
 
-from lenn_ros.core.examples import EXAMPLES, TEST_SAMPLES, TRAIN_SAMPLES
-from lenn_ros.experiments.candidates import CALIBRATION_SEEDS
-from lenn_ros.experiments.convergence import WITHIN_DB, checkpoints
-from lenn_ros.experiments.identification import Row, format_identification, identification
-from lenn_ros.experiments.tracking import (
+from lenn_ros.paper.examples import EXAMPLES, TEST_SAMPLES, TRAIN_SAMPLES
+from lenn_ros.paper.experiments.candidates import CALIBRATION_SEEDS
+from lenn_ros.paper.experiments.convergence import WITHIN_DB, checkpoints
+from lenn_ros.paper.experiments.identification import Row, format_identification, identification
+from lenn_ros.paper.experiments.tracking import (
     GAIN_AFTER_CHANGE,
     REFERENCE_SAMPLES,
     SMOOTHING_WINDOW,

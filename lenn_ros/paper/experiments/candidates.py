@@ -10,8 +10,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Any
 
-from lenn_ros.core.examples import EXAMPLES, PaperExample
 from lenn_ros.core.networks import OnlineRegressor
+from lenn_ros.paper.examples import EXAMPLES, PaperExample
 
 #: seeds the candidates are scored on; the reported results use seeds 0..K-1
 CALIBRATION_SEEDS = (100, 101, 102)

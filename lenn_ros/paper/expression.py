@@ -121,7 +121,7 @@ class Expression:
     """A checked formula: callable on floats, and convertible to source text for numba.
 
     Calling it is the reference evaluation (a tree walk, a few microseconds); the
-    compiled whole-run simulation in :mod:`lenn_ros.core.plants` must equal it.
+    compiled whole-run simulation in :mod:`lenn_ros.paper.plants` must equal it.
     """
 
     def __init__(self, text: str, variables: tuple[str, ...], tree: ast.expr, name: str) -> None:

@@ -14,10 +14,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from lenn_ros.core.evaluation import Evaluation, least_squares_floor, simulate, train_and_test
-from lenn_ros.core.examples import EXAMPLES, TEST_SAMPLES, TRAIN_SAMPLES, get_example
+from lenn_ros.core.evaluation import Evaluation
 from lenn_ros.core.structure import Identifier
-from lenn_ros.experiments import report
+from lenn_ros.paper.evaluation import least_squares_floor, simulate, train_and_test
+from lenn_ros.paper.examples import EXAMPLES, TEST_SAMPLES, TRAIN_SAMPLES, get_example
+from lenn_ros.paper.experiments import report
 
 
 @dataclass

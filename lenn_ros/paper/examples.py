@@ -11,10 +11,10 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 from typing import Any
 
-from lenn_ros.core.complexity import Complexity, lenn_complexity, mlp_complexity
 from lenn_ros.core.networks import OnlineRegressor, make_network
-from lenn_ros.core.plants import Plant, example_plant
 from lenn_ros.core.structure import ModelStructure
+from lenn_ros.paper.complexity import Complexity, lenn_complexity, mlp_complexity
+from lenn_ros.paper.plants import Plant, example_plant
 
 TRAIN_SAMPLES = 50_000
 TEST_SAMPLES = 600

@@ -13,10 +13,10 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from lenn_ros.core.evaluation import Series
 from lenn_ros.core.metrics import nmse_db
 from lenn_ros.core.networks import DivergenceError, OnlineRegressor
 from lenn_ros.core.structure import ModelStructure
+from lenn_ros.paper.evaluation import Series
 
 FIRST_CHECKPOINT = 250
 WITHIN_DB = 1.0

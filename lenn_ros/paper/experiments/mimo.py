@@ -4,7 +4,7 @@ The question a MIMO identifier has to answer offline is whether giving each outp
 *other* channels' lags buys anything over one SISO model per output, and whether it
 still holds in the parallel (free-run) model, where every output is fed the model's
 own other outputs. So one series per seed (the paper's protocol on
-:func:`~lenn_ros.core.plants.narendra_mimo_plant`: uniform training input with noise
+:func:`~lenn_ros.paper.plants.narendra_mimo_plant`: uniform training input with noise
 on the plant input, then the eq. 11 test sinusoid) is shared by three models:
 
 - the MIMO LeNN (couplings ``full``: every output sees every channel);
@@ -28,13 +28,13 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from lenn_ros.core.evaluation import Series, simulate_mimo
 from lenn_ros.core.metrics import nmse_db
 from lenn_ros.core.mimo import MimoIdentifier, MimoStructure, build_mimo_identifier, parse_couplings
 from lenn_ros.core.networks import MLP, FunctionalLinkNetwork, OnlineRegressor
-from lenn_ros.core.plants import MIMO_PLANTS
 from lenn_ros.core.scaling import DEFAULT_MARGIN, Scaling
-from lenn_ros.experiments import report
+from lenn_ros.paper.evaluation import Series, simulate_mimo
+from lenn_ros.paper.experiments import report
+from lenn_ros.paper.plants import MIMO_PLANTS
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure

@@ -23,9 +23,9 @@ from pathlib import Path
 import numpy as np
 
 from lenn_ros.core.metrics import nmse_db
-from lenn_ros.core.plants import Plant
-from lenn_ros.core.signals import noise_std
 from lenn_ros.core.structure import Identifier
+from lenn_ros.paper.plants import Plant
+from lenn_ros.paper.signals import noise_std
 
 #: Arrays of a saved log, one entry per plant step.
 LOG_ARRAYS = ("stamp_ns", "u", "u_received_ns", "noise", "y", "y_measured", "published")

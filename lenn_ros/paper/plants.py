@@ -9,7 +9,7 @@ classes differ in which part is nonlinear and which is a known linear combinatio
 - Model 4: y(k+1) = f[y(k..k-n+1), u(k..k-m+1)]
 
 The nonlinear parts are Python callables; user-defined ones come from
-:mod:`lenn_ros.core.expression` (never ``eval``). Time convention used everywhere in
+:mod:`lenn_ros.paper.expression` (never ``eval``). Time convention used everywhere in
 the package: at step k the plant *shows* y(k), then the input u(k) is applied (plus
 noise) and the plant moves to y(k+1).
 
@@ -30,8 +30,8 @@ from typing import Protocol
 
 import numpy as np
 
-from lenn_ros.core.expression import Expression, compile_expression
 from lenn_ros.core.kernels import COMPILED, njit
+from lenn_ros.paper.expression import Expression, compile_expression
 
 Function = Callable[..., float]
 

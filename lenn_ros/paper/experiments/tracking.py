@@ -23,14 +23,14 @@ from typing import Any
 
 import numpy as np
 
-from lenn_ros.core.examples import EXAMPLES, TRAIN_SAMPLES
 from lenn_ros.core.networks import OnlineRegressor
-from lenn_ros.core.plants import Plant
-from lenn_ros.core.signals import Excitation
 from lenn_ros.core.structure import Identifier
-from lenn_ros.experiments import report
-from lenn_ros.experiments.candidates import candidates
-from lenn_ros.experiments.convergence import WITHIN_DB
+from lenn_ros.paper.examples import EXAMPLES, TRAIN_SAMPLES
+from lenn_ros.paper.experiments import report
+from lenn_ros.paper.experiments.candidates import candidates
+from lenn_ros.paper.experiments.convergence import WITHIN_DB
+from lenn_ros.paper.plants import Plant
+from lenn_ros.paper.signals import Excitation
 
 GAIN_AFTER_CHANGE = -1.0
 SMOOTHING_WINDOW = 200

@@ -6,5 +6,5 @@
 - :mod:`.tracking`: a plant that changes mid-run, and how fast each rule recovers;
 - :mod:`.report`: mean ± std over seeds and table cells, shared with ``reproduce``.
 
-``lenn_ros.beyond`` runs them and prints the tables.
+``lenn_ros.paper.beyond`` runs them and prints the tables.
 """

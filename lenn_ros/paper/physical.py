@@ -7,7 +7,7 @@ the torque overcomes it. A model builder must be judged on such plants too (a
 polynomial of the lags cannot follow the sign of a velocity), so the simulated robot
 can be one.
 
-:class:`FrictionJoint` has the interface :class:`~lenn_ros.core.robot.SimulatedRobot`
+:class:`FrictionJoint` has the interface :class:`~lenn_ros.paper.robot.SimulatedRobot`
 steps (``output``, ``step``, ``reset``) and a whole-run :meth:`FrictionJoint.run`.
 """
 

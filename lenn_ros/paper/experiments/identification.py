@@ -11,13 +11,13 @@ from typing import Any
 
 import numpy as np
 
-from lenn_ros.core.evaluation import least_squares_floor, simulate, train_and_test
-from lenn_ros.core.examples import EXAMPLES, TEST_SAMPLES, TRAIN_SAMPLES, PaperExample
 from lenn_ros.core.networks import OnlineRegressor
 from lenn_ros.core.structure import Identifier
-from lenn_ros.experiments import report
-from lenn_ros.experiments.candidates import candidates, winner
-from lenn_ros.experiments.convergence import checkpoints, learning_curve, samples_to_level, samples_to_within
+from lenn_ros.paper.evaluation import least_squares_floor, simulate, train_and_test
+from lenn_ros.paper.examples import EXAMPLES, TEST_SAMPLES, TRAIN_SAMPLES, PaperExample
+from lenn_ros.paper.experiments import report
+from lenn_ros.paper.experiments.candidates import candidates, winner
+from lenn_ros.paper.experiments.convergence import checkpoints, learning_curve, samples_to_level, samples_to_within
 
 
 @dataclass

@@ -47,8 +47,8 @@ from pathlib import Path
 import numpy as np
 
 from lenn_ros.core.scaling import Scaling
-from lenn_ros.core.selection import TermModel
-from lenn_ros.fit import Data, fit
+from lenn_ros.fit.build import Data, fit
+from lenn_ros.fit.selection import TermModel
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 VALIDATION_FRACTION = 0.2
@@ -252,7 +252,7 @@ def _rmse_columns(y: np.ndarray, y_hat: np.ndarray) -> list[float]:
 
 def run_lenn_mimo(split: MimoSplit) -> dict:
     """``lenn-ros fit`` with several --u/--y: its MIMO model, and its own one-SISO-per-output comparison."""
-    from lenn_ros.fit_mimo import MimoData, fit_mimo
+    from lenn_ros.fit.mimo import MimoData, fit_mimo
 
     began = time.perf_counter()
     u_names = tuple(f"u{i + 1}" for i in range(split.u.shape[1]))

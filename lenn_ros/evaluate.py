@@ -58,7 +58,7 @@ from lenn_ros.core.spread import Z95
 from lenn_ros.core.structure import Identifier
 from lenn_ros.evaluate_mimo import MimoBagEvaluation, score_mimo
 from lenn_ros.evaluate_mimo import report as report_mimo
-from lenn_ros.fit_data import REPORT_FILE
+from lenn_ros.fit.data import REPORT_FILE
 
 _NODE_DEFAULTS = {parameter.name: parameter.default for parameter in NODE_PARAMETERS}
 RESOLVED_TOPICS = topics.RESOLVED_TOPICS

@@ -33,7 +33,7 @@ import numpy as np
 
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.structure import Identifier
-from lenn_ros.fit_data import REPORT_FILE
+from lenn_ros.fit.data import REPORT_FILE
 
 
 class ModelError(ValueError):

@@ -19,9 +19,11 @@ import yaml
 from lenn_ros.config import ConfigError, build_identifier, read_params_file, resolve
 from lenn_ros.core.evaluation import free_run_problems
 from lenn_ros.core.expansions import format_terms, parse_terms
-from lenn_ros.core.families import Spec
 from lenn_ros.core.scaling import Scaling
-from lenn_ros.core.selection import (
+from lenn_ros.core.structure import Identifier
+from lenn_ros.fit.build import Data, fit
+from lenn_ros.fit.families import Spec
+from lenn_ros.fit.selection import (
     NONLINEAR_GAIN,
     PARSIMONY,
     Candidate,
@@ -34,8 +36,6 @@ from lenn_ros.core.selection import (
     runs,
     soundness_problem,
 )
-from lenn_ros.core.structure import Identifier
-from lenn_ros.fit import Data, fit
 from lenn_ros.paper.examples import get_example
 
 SILVERBOX = Path(__file__).resolve().parents[2] / "shared" / "data" / "silverbox_multisine.csv"
@@ -241,7 +241,7 @@ def test_silverbox_slice_beats_linear_and_polynomial_narx_level() -> None:
 def test_epochs_with_early_stopping_beat_one_pass_on_small_data() -> None:
     """SGD on 1 500 samples: more passes help, and the kept weights are the held-out best."""
     from lenn_ros.core.networks import FunctionalLinkNetwork
-    from lenn_ros.core.training import held_out_rmse, train_epochs
+    from lenn_ros.fit.training import held_out_rmse, train_epochs
 
     u, y = cubic_plant(1500, 4)
     scaling = Scaling.from_training(u, y)
@@ -386,7 +386,7 @@ def test_peer_linear_arx_is_least_squares_with_lags_chosen_on_the_tail() -> None
 
 
 def test_fit_solver_sgd_trains_the_selected_terms_by_epochs_and_round_trips(tmp_path: Path) -> None:
-    from lenn_ros.fit import write_outputs
+    from lenn_ros.fit.build import write_outputs
 
     u, y = cubic_plant(2500, 8)
     result = fit(Data(u, y, "synthetic"), 2001, solver="sgd")

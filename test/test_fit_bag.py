@@ -146,7 +146,7 @@ def test_a_bag_whose_start_weights_are_elsewhere_is_fitted_and_evaluate_says_wha
     only the record's meaning (it builds its own model) and pairs it as without one; evaluate, which relearns
     from those weights, refuses in one line naming the file."""
     from lenn_ros.evaluate import EvaluateError, evaluate_bag
-    from lenn_ros.fit_bag import load_bag
+    from lenn_ros.fit.bag import load_bag
 
     elsewhere = str(tmp_path / "on_the_robot" / "weights.npz")  # never written
     with_weights, without = tmp_path / "started_from_weights", tmp_path / "fresh"

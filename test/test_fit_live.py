@@ -24,7 +24,7 @@ from test_fit import cubic_plant  # noqa: E402
 
 from lenn_ros.config import build_identifier, read_params_file, resolve  # noqa: E402
 from lenn_ros.core.networks import OnlineRegressor  # noqa: E402
-from lenn_ros.fit import Data, fit, write_outputs  # noqa: E402
+from lenn_ros.fit.build import Data, fit, write_outputs  # noqa: E402
 
 
 class SeriesTalker(Talker):

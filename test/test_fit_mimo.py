@@ -17,7 +17,7 @@ from lenn_ros.bag import BagError, import_csv, read_run
 from lenn_ros.config import build_identifier, read_params_file, resolve
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.networks import ModelFileError
-from lenn_ros.fit_mimo import fit_mimo, load_mimo_data, write_outputs
+from lenn_ros.fit.mimo import fit_mimo, load_mimo_data, write_outputs
 from lenn_ros.paper.evaluation import simulate_mimo
 from lenn_ros.paper.plants import narendra_mimo_plant
 
@@ -193,7 +193,7 @@ def test_a_gap_in_a_vector_record_is_a_break_of_the_mimo_fit() -> None:
     started afresh on that run.
     """
     from lenn_ros.core.expansions import full_exponents
-    from lenn_ros.fit_mimo import MimoData, Scalings, _training_features, least_squares_identifier
+    from lenn_ros.fit.mimo import MimoData, Scalings, _training_features, least_squares_identifier
     from lenn_ros.paper.signals import noise_std
 
     rng = np.random.default_rng(3)

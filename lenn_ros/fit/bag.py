@@ -18,8 +18,8 @@ same ``--ros-args -r u:=... -r y_p:=...`` remaps apply.
 
 A bag of a robot with several channels (``u_field: data[*]`` with ``u_names``, a
 JointState's ``position[*]`` with ``y_names``, or a side's several topics) is read the
-same way, by the same session: its vectors come back as :class:`~lenn_ros.fit_mimo.MimoData`
-(channel names as the node names them), for :mod:`lenn_ros.fit_mimo`. Without
+same way, by the same session: its vectors come back as :class:`~lenn_ros.fit.mimo.MimoData`
+(channel names as the node names them), for :mod:`lenn_ros.fit.mimo`. Without
 ``identifier_config`` the flags say it: ``--u-field 'data[*]' --u-names u1,u2``, and
 ``--u`` repeated for one topic per channel.
 """
@@ -33,7 +33,7 @@ import numpy as np
 
 from lenn_ros import bag as bags
 from lenn_ros import topics
-from lenn_ros.fit_data import Data, FitError, MimoData
+from lenn_ros.fit.data import Data, FitError, MimoData
 
 #: node parameters that say how the input topics become samples: copied into the fitted params file
 INTERPRETATION = (
@@ -61,7 +61,7 @@ def load_bag(path: Path, flags: dict[str, Any]) -> Data | MimoData:
 
     ``flags``: ``u`` / ``y`` (a topic, or a list: one topic per part of the side), ``u_field``,
     ``y_field``, ``u_names``, ``y_names`` (comma-separated), ``sample_period``, ``pairing``.
-    Several channels on a side give a :class:`~lenn_ros.fit_mimo.MimoData`.
+    Several channels on a side give a :class:`~lenn_ros.fit.mimo.MimoData`.
     """
     from lenn_ros.bag.vectors import read_test_start
     from lenn_ros.evaluate import EvaluateError, configuration, make_session, pair_raw

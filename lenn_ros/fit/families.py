@@ -1,7 +1,7 @@
 """Model families ``lenn-ros fit`` chooses among: the dictionaries of terms it selects from.
 
 Every family is a functional link (fixed features, weights linear), so each is one
-:class:`~lenn_ros.core.selection.TermModel`: the identifier node runs and adapts any of
+:class:`~lenn_ros.fit.selection.TermModel`: the identifier node runs and adapts any of
 them by RLS with the same compiled step. What they offer:
 
 - ``polynomial``: Legendre polynomials of the lags and their products up to a degree

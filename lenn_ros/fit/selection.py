@@ -2,7 +2,7 @@
 
 A functional-link network is linear in its weights, so choosing its structure is
 choosing columns of a feature matrix. Each candidate is a *family* of terms at some
-lags (:mod:`lenn_ros.core.families`: polynomials, hinges, increments with friction-like
+lags (:mod:`lenn_ros.fit.families`: polynomials, hinges, increments with friction-like
 terms of the velocity), a dictionary built from the training data; orthogonal forward
 regression ranks its terms by error-reduction ratio (Billings' FROLS). Up to here this
 is FROLS. The difference is how a model is judged: every prefix of every ranked list is
@@ -43,9 +43,9 @@ import numpy as np
 
 from lenn_ros.core import kernels
 from lenn_ros.core.expansions import checked_factors, format_terms, term_features
-from lenn_ros.core.families import Dictionary, Spec, candidate_specs
 from lenn_ros.core.scaling import Scaling
 from lenn_ros.core.structure import FREE_RUN_DIVERGENCE_BOUND, ModelStructure
+from lenn_ros.fit.families import Dictionary, Spec, candidate_specs
 
 #: relative simulation error a term (or a candidate's extra terms) must buy to be kept
 PARSIMONY = 0.01

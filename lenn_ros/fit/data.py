@@ -1,7 +1,7 @@
 """What ``fit`` reads, apart from how it reads it: the loaded record and the one error type.
 
-A module of its own so that the readers (CSV in :mod:`lenn_ros.fit`, bags in
-:mod:`lenn_ros.fit_bag`) share it without importing each other.
+A module of its own so that the readers (CSV in :mod:`lenn_ros.fit.build`, bags in
+:mod:`lenn_ros.fit.bag`) share it without importing each other.
 """
 
 from __future__ import annotations

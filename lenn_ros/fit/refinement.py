@@ -9,7 +9,7 @@ that carries the outputs' sensitivities to the weights along (forward sensitivit
 Refining on the training samples always lowers the training simulation error, and on
 a small record it fits the noise as surely (a 680-sample robot arm refined 20 times
 simulated its test part worse). So the number of iterations is chosen like the
-structure: on every block of :func:`~lenn_ros.core.selection.fold_blocks`, the weights
+structure: on every block of :func:`~lenn_ros.fit.selection.fold_blocks`, the weights
 fitted without that block are refined on the others and the block's own free run is
 scored after every iteration; the count with the lowest pooled score over all blocks
 wins, and zero, no refinement, is one of the counts. Only then are the weights of all
@@ -24,8 +24,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from lenn_ros.core import kernels
-from lenn_ros.core.selection import Candidate, Record, TermModel, fold_blocks, runs
 from lenn_ros.core.structure import FREE_RUN_DIVERGENCE_BOUND
+from lenn_ros.fit.selection import Candidate, Record, TermModel, fold_blocks, runs
 
 #: most Levenberg-Marquardt iterations tried per fold (and then on all samples)
 ITERATIONS = 15

@@ -5,13 +5,13 @@ What it does, each step reported:
    samples K.. only score it; gaps in a bag's record stay gaps (nothing is fitted or
    simulated across them);
 2. takes offsets and scale factors from the training samples (with a margin);
-3. selects the family (polynomial, hinge, increment: :mod:`lenn_ros.core.families`),
+3. selects the family (polynomial, hinge, increment: :mod:`lenn_ros.fit.families`),
    the lags and the terms by orthogonal forward regression, judging every candidate by
    the free runs of blocks of the training samples, each simulated by the weights of
    the other blocks, and rejecting those that run away, leave the range or do worse than
-   the mean anywhere (:mod:`lenn_ros.core.selection`);
+   the mean anywhere (:mod:`lenn_ros.fit.selection`);
 4. refines the weights of the best few candidates on simulation error, as many
-   iterations as the blocks vouch for, zero included (:mod:`lenn_ros.core.refinement`),
+   iterations as the blocks vouch for, zero included (:mod:`lenn_ros.fit.refinement`),
    and keeps the best; the weights delivered are those of all training samples;
 5. scores the frozen model on the test samples: one-step and free run (the free run
    starts from the measured outputs just before sample K, as a live switch from
@@ -19,7 +19,7 @@ What it does, each step reported:
 6. with ``-o DIR`` writes ``params.yaml`` and ``weights.npz`` from which the
    identifier node starts and keeps adapting live (RLS with forgetting).
 
-Several ``--u`` / ``--y`` columns, or a vector bag, go to :mod:`lenn_ros.fit_mimo` (the command line decides).
+Several ``--u`` / ``--y`` columns, or a vector bag, go to :mod:`lenn_ros.fit.mimo` (the command line decides).
 """
 
 from __future__ import annotations
@@ -38,12 +38,14 @@ import yaml
 
 from lenn_ros.bag.csv_import import is_number
 from lenn_ros.core.evaluation import free_run_problems, free_run_segments
-from lenn_ros.core.families import INCREMENT_LAGS, pass_through_weights
 from lenn_ros.core.metrics import band_half_width, coverage, nmse_db, rmse
 from lenn_ros.core.networks import FunctionalLinkNetwork
-from lenn_ros.core.refinement import cross_validated_refinement
 from lenn_ros.core.scaling import Scaling
-from lenn_ros.core.selection import (
+from lenn_ros.core.structure import Identifier
+from lenn_ros.fit.data import REPORT_FILE, Data, FitError
+from lenn_ros.fit.families import INCREMENT_LAGS, pass_through_weights
+from lenn_ros.fit.refinement import cross_validated_refinement
+from lenn_ros.fit.selection import (
     NONLINEAR_GAIN,
     PARSIMONY,
     Candidate,
@@ -55,8 +57,6 @@ from lenn_ros.core.selection import (
     out_of_fold_residuals,
     select_structure,
 )
-from lenn_ros.core.structure import Identifier
-from lenn_ros.fit_data import REPORT_FILE, Data, FitError
 
 #: share of the training samples the epochs of an MLP / SGD fit are early-stopped on
 VALIDATION_FRACTION = 0.2
@@ -69,15 +69,15 @@ RLS_RIDGE = 1e-7
 def load_data(
     path: str | Path, u_column: str | None = None, y_column: str | None = None, flags: dict[str, Any] | None = None
 ) -> Data | Any:
-    """u and y from a bag (directory or .mcap: :mod:`lenn_ros.fit_bag`) or a CSV file (columns by name or index).
+    """u and y from a bag (directory or .mcap: :mod:`lenn_ros.fit.bag`) or a CSV file (columns by name or index).
 
-    A bag whose identifier read several channels gives a :class:`~lenn_ros.fit_mimo.MimoData`.
+    A bag whose identifier read several channels gives a :class:`~lenn_ros.fit.mimo.MimoData`.
     """
     path = Path(path)
     if not path.exists():
         raise FitError(f"{path} does not exist (expected a CSV file or a bag directory)")
     if path.is_dir() or path.suffix == ".mcap":
-        from lenn_ros.fit_bag import load_bag
+        from lenn_ros.fit.bag import load_bag
 
         return load_bag(path, {**(flags or {}), "u": u_column, "y": y_column})
     return _load_csv(path, u_column, y_column)
@@ -194,7 +194,7 @@ def fit(
     The structure is chosen on blocks of the training samples (each simulated by the
     weights of the others), the weights delivered are those of all training samples,
     refined on simulation error as many times as the blocks vouch for
-    (:func:`~lenn_ros.core.refinement.cross_validated_refinement`). ``solver="sgd"``
+    (:func:`~lenn_ros.fit.refinement.cross_validated_refinement`). ``solver="sgd"``
     trains the selected terms by SGD epochs instead (:func:`fit_lenn_sgd`), for a node
     that will learn by SGD; ``network="mlp"`` an MLP on the selected lags.
     """
@@ -479,7 +479,7 @@ def fit_mlp(selected: TermModel, u: np.ndarray, y: np.ndarray, validation_start:
     one learning rate (on the normalised target) suits any units.
     """
     from lenn_ros.core.networks import MLP
-    from lenn_ros.core.training import train_epochs
+    from lenn_ros.fit.training import train_epochs
 
     s = selected.scaling
     structure = dataclasses.replace(selected.structure, output_offset=s.y_offset)
@@ -506,7 +506,7 @@ def fit_lenn_sgd(selected: TermModel, u: np.ndarray, y: np.ndarray, validation_s
 
     One pass over a few hundred samples leaves SGD far from its optimum, so the estimation
     samples are passed repeatedly, early-stopped on the held-out free run
-    (:func:`~lenn_ros.core.training.train_epochs`). The step is unit-free: with momentum
+    (:func:`~lenn_ros.fit.training.train_epochs`). The step is unit-free: with momentum
     beta, alpha = SGD_STEP (1 - beta) / max ||phi||^2 over the training features keeps the
     update below its stability bound 2 (1 - beta) / ||phi||^2 for any data (Legendre terms
     of inputs in [-1, 1] have |phi| <= 1, but a factor of a velocity may reach several).
@@ -514,7 +514,7 @@ def fit_lenn_sgd(selected: TermModel, u: np.ndarray, y: np.ndarray, validation_s
     signal's level; an increment-form model starts from its pass-through y(k) (weight
     y_scale on ``y1``), the part of the structure that is not learnt but given.
     """
-    from lenn_ros.core.training import train_epochs
+    from lenn_ros.fit.training import train_epochs
 
     s = selected.scaling
     structure = dataclasses.replace(selected.structure, output_offset=s.y_offset)
@@ -634,7 +634,7 @@ def write_outputs(
     """``DIR/params.yaml`` (key ``/**``: any node name or namespace) and ``DIR/weights.npz``.
 
     ``interpretation``: the node values that say how its topics become samples (a
-    bag's types, fields, pairing, sample period: :mod:`lenn_ros.fit_bag`), so the node
+    bag's types, fields, pairing, sample period: :mod:`lenn_ros.fit.bag`), so the node
     started from the file reads the topics the model was fitted on, the same way.
 
     ``weights_in`` in the params file is the absolute path of the weights: the node
@@ -697,7 +697,7 @@ def _jsonable(report: dict[str, Any]) -> dict[str, Any]:
     return clean({k: v for k, v in report.items() if not k.endswith(("_test", "_train"))})
 
 
-#: the command line's flags that say how a bag's topics become samples (fit_bag.load_bag)
+#: the command line's flags that say how a bag's topics become samples (fit.bag.load_bag)
 BAG_FLAGS = ("u_field", "y_field", "u_names", "y_names", "sample_period", "pairing")
 
 
@@ -715,7 +715,7 @@ def test_row(index: np.ndarray | None, given: int | None, recorded: int | None) 
 
 def load_for(args: Any) -> Any:
     """What ``lenn-ros fit DATA`` reads: a :class:`Data`, or a ``MimoData`` where the bag's identifier read
-    several channels (then ``cli`` hands it to :func:`lenn_ros.fit_mimo.run`)."""
+    several channels (then ``cli`` hands it to :func:`lenn_ros.fit.mimo.run`)."""
     u_columns, y_columns = columns(args.u), columns(args.y)
     return load_data(
         args.data, u_columns[0] if u_columns else None, y_columns[0] if y_columns else None, bag_flags(args)

@@ -5,13 +5,13 @@ other outputs are measured, so in series-parallel they are inputs like u), and, 
 comparison, one SISO network per output (couplings ``diagonal``, when there are as many
 inputs as outputs): the user sees in one report whether the coupling matters.
 
-How it differs from the SISO ``fit`` (:mod:`lenn_ros.fit`), and why:
+How it differs from the SISO ``fit`` (:mod:`lenn_ros.fit.build`), and why:
 
 1. **Structure**: a grid of lags L (y_lags = u_lags = L, for every channel) and full
    Legendre expansions (``order``, ``cross_degree``), shared by every output, because
    that is all the identifier node's MIMO mode reads: it builds each output's network
    from those parameters and takes no ``terms``. So FROLS term selection
-   (:mod:`lenn_ros.core.selection`) does not carry over; choosing among whole
+   (:mod:`lenn_ros.fit.selection`) does not carry over; choosing among whole
    expansions does, with the selection's rules: every candidate's weights are least
    squares on the training samples before the held-out tail (the last 20 %), and it is
    judged by the free run of the **joint** model over that tail
@@ -27,9 +27,9 @@ How it differs from the SISO ``fit`` (:mod:`lenn_ros.fit`), and why:
 2. **Weights**: least squares of the chosen structure on *all* training samples (the
    tail only chose the structure, and no iteration count depends on it, so refitting
    loses nothing it judged), with the RLS covariance of those features
-   (:func:`lenn_ros.fit.rls_covariance`), so the node goes on adapting as if it had
+   (:func:`lenn_ros.fit.build.rls_covariance`), so the node goes on adapting as if it had
    seen the training data. No simulation-error refinement: the refinement
-   (:mod:`lenn_ros.core.refinement`) runs the SISO compiled free run of a TermModel.
+   (:mod:`lenn_ros.fit.refinement`) runs the SISO compiled free run of a TermModel.
 3. **Scaling** per channel, the SISO rule: centre of the training range, half-range
    plus 100 % margin onto 1.
 4. ``-o DIR``: ``params.yaml`` with the node's MIMO parameters and ``weights.npz``
@@ -60,8 +60,7 @@ from lenn_ros.core.metrics import nmse_db, rmse
 from lenn_ros.core.mimo import MimoIdentifier, MimoStructure, build_mimo_identifier, parse_couplings
 from lenn_ros.core.networks import FunctionalLinkNetwork
 from lenn_ros.core.scaling import DEFAULT_MARGIN
-from lenn_ros.core.selection import PARSIMONY, Record, runs
-from lenn_ros.fit import (
+from lenn_ros.fit.build import (
     MIN_VALIDATION,
     VALIDATION_FRACTION,
     FitError,
@@ -74,7 +73,8 @@ from lenn_ros.fit import (
     write_params,
     write_report,
 )
-from lenn_ros.fit_data import MimoData
+from lenn_ros.fit.data import MimoData
+from lenn_ros.fit.selection import PARSIMONY, Record, runs
 
 #: (order, cross_degree) tried, linear ARX first: a nonlinear expansion must beat it in simulation
 EXPANSIONS = ((1, 0), (2, 2), (3, 3), (4, 3))
@@ -95,7 +95,7 @@ def load_mimo_data(
     """Several channels from a bag or a CSV file.
 
     A bag the identifier was recorded beside (its ``identifier_config``), or one whose
-    topics the flags name, is paired by the node's session (:func:`lenn_ros.fit_bag.load_bag`;
+    topics the flags name, is paired by the node's session (:func:`lenn_ros.fit.bag.load_bag`;
     ``--u`` / ``--y`` are then topics); an ``import-csv`` vector bag (``u`` / ``y_p`` of
     Float64MultiArray, no configuration) is read by message order, ``--u`` / ``--y``
     picking its channels by label.
@@ -106,7 +106,7 @@ def load_mimo_data(
     if path.is_dir() or path.suffix == ".mcap":
         if not _session_bag(path, flags or {}):
             return _load_bag(path, u_columns, y_columns)
-        from lenn_ros.fit_bag import load_bag
+        from lenn_ros.fit.bag import load_bag
 
         data = load_bag(path, {**(flags or {}), "u": u_columns, "y": y_columns})
         if not isinstance(data, MimoData):
@@ -120,7 +120,7 @@ def load_mimo_data(
 def _session_bag(path: Path, flags: dict[str, Any]) -> bool:
     """Whether the bag is read by the node's session: an identifier_config, or flags that say how."""
     from lenn_ros.bag.vectors import is_vector_run
-    from lenn_ros.fit_bag import has_identifier_config
+    from lenn_ros.fit.bag import has_identifier_config
 
     return has_identifier_config(path) or any(flags.values()) or not is_vector_run(path)
 
@@ -543,7 +543,7 @@ def params_values(
     """``ros__parameters`` of the identifier node's MIMO mode (README "Several inputs and outputs").
 
     ``interpretation``: how the bag's topics became the samples (types, fields, names,
-    pairing, sample period: :data:`lenn_ros.fit_bag.INTERPRETATION`), so the node reads the
+    pairing, sample period: :data:`lenn_ros.fit.bag.INTERPRETATION`), so the node reads the
     robot's own topics the way they were read for the fit; without one (a CSV, an
     ``import-csv`` bag), u and y_p carry Float64MultiArray samples, channels in the
     order of u_names / y_names.
@@ -715,14 +715,14 @@ def plot(path: str | Path, report: dict[str, Any]) -> Path:
 
 def main(args: Any, u_columns: list[str], y_columns: list[str]) -> int:
     """``lenn-ros fit`` with several channels (or a vector bag); the SISO options that do not apply are refused."""
-    from lenn_ros.fit import bag_flags
+    from lenn_ros.fit.build import bag_flags
 
     return run(args, load_mimo_data(args.data, u_columns, y_columns, bag_flags(args)))
 
 
 def run(args: Any, data: MimoData) -> int:
     """Fit, write (``-o``), plot and report the loaded channels: what ``main`` does once they are read."""
-    from lenn_ros.fit import test_row
+    from lenn_ros.fit.build import test_row
 
     if (getattr(args, "network", "lenn") or "lenn") != "lenn" or (getattr(args, "solver", "ls") or "ls") != "ls":
         raise FitError("several channels: only the LeNN by least squares is fitted (drop --network/--solver)")

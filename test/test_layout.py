@@ -1,4 +1,5 @@
-"""The package's layout: no import cycles, no benchmarks inside it, figures that leave the backend alone."""
+"""The package's layout: no import cycles, layers that import downwards only, no benchmarks inside it,
+figures that leave the backend alone."""
 
 from __future__ import annotations
 
@@ -70,6 +71,62 @@ def test_no_import_cycles_in_the_package() -> None:
     for name in sorted(graph):
         if name not in state:
             visit(name, [name])
+
+
+#: what each layer must not import, at module level or inside functions (a prefix covers its submodules)
+_LAYERS = {
+    # the runtime: numpy/numba only; model building, the paper, ROS and bags sit above it
+    "core": ("lenn_ros.fit", "lenn_ros.paper", "lenn_ros.nodes", "lenn_ros.bag", "rclpy"),
+    # model building runs offline, without ROS (it reads bags through lenn_ros.bag, not rclpy)
+    "fit": ("rclpy", "lenn_ros.nodes"),
+}
+#: the only lenn_ros modules outside lenn_ros.core that core may import (none today)
+_CORE_MAY_IMPORT: tuple[str, ...] = ()
+
+
+def _imported_modules(path: Path) -> set[str]:
+    """Every module a file names in an import statement (absolute names; relative ones resolved)."""
+    package = ".".join(path.relative_to(REPO).with_suffix("").parts[:-1])
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            base = ".".join(package.split(".")[: len(package.split(".")) - node.level + 1]) if node.level else ""
+            module = ".".join(part for part in (base, node.module or "") if part)
+            names.add(module)
+            names.update(f"{module}.{alias.name}" for alias in node.names)
+        elif isinstance(node, ast.Import):
+            names.update(alias.name for alias in node.names)
+    return names
+
+
+def test_the_layers_import_downwards_only() -> None:
+    """core (the runtime) imports no fit, paper, nodes, bag or rclpy, and nothing else of the package
+    beyond _CORE_MAY_IMPORT; fit imports no rclpy and no nodes. Checked in the source (lazy imports
+    too) and by importing every module of both in a fresh interpreter (what they pull in)."""
+
+    def under(name: str, prefixes: tuple[str, ...]) -> bool:
+        return any(name == prefix or name.startswith(prefix + ".") for prefix in prefixes)
+
+    offenders = []
+    for layer, forbidden in _LAYERS.items():
+        for path in sorted((PACKAGE / layer).rglob("*.py")):
+            for name in sorted(_imported_modules(path)):
+                allowed = name == "lenn_ros" or under(name, ("lenn_ros.core", *_CORE_MAY_IMPORT))
+                if under(name, forbidden) or (layer == "core" and under(name, ("lenn_ros",)) and not allowed):
+                    offenders.append(f"{path.relative_to(REPO)} imports {name}")
+    assert not offenders, "\n".join(offenders)
+    code = (
+        "import importlib, pkgutil, sys\n"
+        f"layers = {_LAYERS!r}\n"
+        "for layer, forbidden in layers.items():\n"
+        "    package = importlib.import_module('lenn_ros.' + layer)\n"
+        "    for module in pkgutil.iter_modules(package.__path__):\n"
+        "        importlib.import_module(f'lenn_ros.{layer}.{module.name}')\n"
+        "    print(layer, *sorted(m for m in sys.modules if any(m == f or m.startswith(f + '.') for f in forbidden)))\n"
+    )
+    result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split("\n")[:2] == ["core", "fit"], result.stdout
 
 
 #: rclpy's non-public API as the code would spell it: the native module, the C handles, its private fields

@@ -48,7 +48,7 @@ import numpy as np
 
 from lenn_ros.core.scaling import Scaling
 from lenn_ros.fit.build import Data, fit
-from lenn_ros.fit.selection import TermModel
+from lenn_ros.fit.selection import Layout, TermModel, siso_view
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 VALIDATION_FRACTION = 0.2
@@ -194,8 +194,8 @@ def _arx(lag: int, u: np.ndarray, y: np.ndarray, scaling) -> TermModel:
     """Least-squares ARX(lag, lag) with a bias, as a term model (its compiled free run)."""
     rows = np.zeros((2 * lag + 1, 2 * lag), dtype=np.int64)
     rows[1:] = np.eye(2 * lag, dtype=np.int64)
-    model = TermModel(lag, lag, scaling, rows)
-    features, targets = model.regression(u, y)
+    model = TermModel(Layout.of(lag, scaling), rows)
+    features, targets = model.regression(siso_view(u, y))
     model.weights = np.linalg.lstsq(features, targets, rcond=None)[0]
     return model
 
@@ -211,11 +211,11 @@ def run_arx(split: Split) -> dict:
     for lag in ARX_LAGS:
         if 40 * lag > validation:
             continue
-        y_sim, _, diverged_at = _arx(lag, u[:validation], y[:validation], scaling).free_run(u, y, validation)
+        y_sim, _, diverged_at = _arx(lag, u[:validation], y[:validation], scaling).free_run(siso_view(u, y), validation)
         tried.append((_rmse(y[validation:], y_sim) if diverged_at < 0 else math.inf, lag))
     score, lag = min(tried)
     model = _arx(lag, u, y, scaling)
-    y_free, _, diverged_at = model.free_run(split.u, split.y, start)
+    y_free, _, diverged_at = model.free_run(siso_view(split.u, split.y), start)
     return {
         "rmse_free_run": _rmse(split.y[start:], y_free) if diverged_at < 0 else math.nan,
         "seconds": time.perf_counter() - began,
@@ -251,20 +251,35 @@ def _rmse_columns(y: np.ndarray, y_hat: np.ndarray) -> list[float]:
 
 
 def run_lenn_mimo(split: MimoSplit) -> dict:
-    """``lenn-ros fit`` with several --u/--y: its MIMO model, and its own one-SISO-per-output comparison."""
-    from lenn_ros.fit.mimo import MimoData, fit_mimo
+    """``lenn-ros fit`` with several --u/--y, and ``lenn-ros fit`` once per output from its own input (one SISO
+    model per output, where there are as many inputs as outputs), each timed."""
+    from lenn_ros.fit.data import Data
 
     began = time.perf_counter()
     u_names = tuple(f"u{i + 1}" for i in range(split.u.shape[1]))
-    report = fit_mimo(MimoData(split.u, split.y, u_names, split.y_names, split.name), split.test_from)["report"]
+    result = fit(Data(split.u, split.y, split.name, u_names=u_names, y_names=split.y_names), split.test_from)
     seconds = time.perf_counter() - began
-    model, siso = report["model"], report["comparison"]
+    report = result["report"]
+    model = report["model"]
+    lags = [part["model"]["structure"]["y_lags"] for part in report["per_output"]]
+    families = [part["model"]["family"] for part in report["per_output"]]
+    siso, siso_models, siso_seconds = [], [], 0.0
+    if split.u.shape[1] == split.y.shape[1]:
+        for j in range(split.y.shape[1]):
+            part = run_lenn(Split(f"{split.name} {split.y_names[j]}", split.u[:, j], split.y[:, j], split.test_from,
+                                  split.note))  # fmt: skip
+            siso.append(part["rmse_free_run"])
+            siso_models.append(part["model"])
+            siso_seconds += part["seconds"]
+    reads = "reads the other outputs" if model.get("coupling", {}).get("reads_other_outputs") else "own past only"
     return {
         "rmse_free_run": [o["rmse_free_run"] for o in report["per_output"]],
-        "siso_rmse_free_run": [o["rmse_free_run"] for o in siso.get("per_output", [])],
+        "siso_rmse_free_run": siso,
         "seconds": seconds,
-        "model": f"lags {model['y_lags']}, order {model['order']}, cross degree {model['cross_degree']}",
-        "siso_model": (f"lags {siso['model']['y_lags']}, order {siso['model']['order']}" if "model" in siso else "-"),
+        "siso_seconds": siso_seconds,
+        "model": f"{reads}; family/lags per output: "
+        + ", ".join(f"{f} {lag}" for f, lag in zip(families, lags, strict=True)),
+        "siso_model": "; ".join(siso_models) or "-",
     }
 
 
@@ -374,8 +389,8 @@ def mimo_table(rows: list[dict]) -> str:
                 f"| {_fmt(mean)} |"
             )
         lines.append(
-            f"| {row['data']}: time (s), model | {lenn['seconds']:.1f}, {lenn['model']} | (in fit's time), "
-            f"{lenn['siso_model']} | {frols['seconds']:.1f}, {frols['model']} "
+            f"| {row['data']}: time (s), model | {lenn['seconds']:.1f}, {lenn['model']} | "
+            f"{lenn['siso_seconds']:.1f}, {lenn['siso_model']} | {frols['seconds']:.1f}, {frols['model']} "
             f"| {arx['seconds']:.1f}, {arx['model']} | |"
         )
     return "\n".join(lines)

@@ -37,17 +37,7 @@ def _evaluate(args: argparse.Namespace) -> int:
 def _fit(args: argparse.Namespace) -> int:
     from lenn_ros.fit import build
 
-    u_columns, y_columns = build.columns(args.u), build.columns(args.y)
-    if len(u_columns) > 1 or len(y_columns) > 1 or build.is_vector_bag(args.data):
-        from lenn_ros.fit import mimo  # several channels: one MISO model per output
-
-        return mimo.main(args, u_columns, y_columns)
-    data = build.load_for(args)
-    if not isinstance(data, build.Data):  # a robot bag whose identifier read several channels
-        from lenn_ros.fit import mimo
-
-        return mimo.run(args, data)
-    return build.main(args, data)
+    return build.main(args)
 
 
 def _import_csv(args: argparse.Namespace) -> int:

@@ -23,7 +23,7 @@ from typing import Any
 import yaml
 
 from lenn_ros.core.change import DEFAULT_THRESHOLD
-from lenn_ros.core.expansions import parse_terms
+from lenn_ros.core.expansions import parse_terms, siso_channels
 from lenn_ros.core.fields import FieldError, channel_names, compile_path, compile_vector, is_vector
 from lenn_ros.core.mimo import MimoIdentifier, MimoStructure, build_mimo_identifier, parse_couplings
 from lenn_ros.core.networks import OUTPUTS, SOLVERS
@@ -227,7 +227,9 @@ def identifier_parameters(example: int, network: str, parameters: str = "calibra
             "terms",
             [""],
             "LeNN: selected terms instead of the full expansion ([''] = full), as lenn-ros fit writes them: "
-            "'1' bias, 'y1^3' = degree-3 basis polynomial of scaled y(k-1), 'y1*u2' = P1(y(k-1)) P1(u(k-2))",
+            "'1' bias, 'y1^3' = degree-3 basis polynomial of scaled y(k-1), 'y1*u2' = P1(y(k-1)) P1(u(k-2)); "
+            "with several channels each names its output first and the channel's lag after '_': "
+            "'y1: u0_2*y1_1' = a term of output y1, P1(u0(k-2)) P1(y1(k-1))",
         ),
         Parameter("hidden", [int(h) for h in net.get("hidden", [20, 10])], "MLP hidden layer sizes"),
         Parameter("output", net.get("output", "tanh"), "output node", choices=OUTPUTS),
@@ -382,7 +384,7 @@ def _build_identifier(values: dict[str, Any], network: str) -> Identifier | Mimo
     selected = terms and network == "lenn"  # the MLP takes every input (terms are the LeNN's)
     exponents = factors = None
     if selected:
-        rows, factor_rows = parse_terms(terms, structure.y_lags, structure.u_lags)
+        rows, factor_rows = parse_terms(terms, siso_channels(structure.y_lags, structure.u_lags))
         exponents = rows.tolist()
         factors = factor_rows.tolist() if factor_rows[:, 0].any() else None
     if exponents is not None and structure.separate:
@@ -508,7 +510,6 @@ def _build_mimo(values: dict[str, Any], network: str) -> MimoIdentifier:
     unsupported = [
         name
         for name, given in (
-            ("terms", any(str(t).strip() for t in values.get("terms", [""]))),
             ("separate", bool(values.get("separate", False))),
             ("known_a", any(float(a) for a in values.get("known_a", [0.0]))),
             ("known_b", any(float(b) for b in values.get("known_b", [0.0]))),
@@ -535,9 +536,53 @@ def _build_mimo(values: dict[str, Any], network: str) -> MimoIdentifier:
         u_offset=_per_channel(values, "u_offset", n_u),
         couplings=parse_couplings(str(values.get("couplings", "full")), n_u, n_y),
     )
+    selected = mimo_terms(values, structure) if network == "lenn" else [(None, None)] * n_y
     return build_mimo_identifier(
-        structure, lambda n_inputs, _output: _make_model(values, network, n_inputs, None, None), y_names
+        structure, lambda n_inputs, output: _make_model(values, network, n_inputs, None, *selected[output]), y_names
     )
+
+
+def mimo_channels(structure: MimoStructure, output: int) -> list[tuple[str, int]]:
+    """Output ``output``'s network inputs as terms name them: its own lags (``y1_1``..), then each channel
+    it sees (``u0_1``.., ``y0_1``..), in the regressor's order (:class:`~lenn_ros.core.mimo.ChannelStructure`)."""
+    channel = structure.channel(output)
+    others = [
+        (f"{kind}{index}", lags)
+        for (kind, index), lags in zip(structure.others(output), channel.other_lags, strict=True)
+    ]
+    return [(f"y{output}", channel.y_lags), *others]
+
+
+def mimo_terms(values: dict[str, Any], structure: MimoStructure) -> list[tuple[list | None, list | None]]:
+    """(exponents, factors) of each output's selected terms, or (None, None) each: the full expansion.
+
+    With several outputs every entry of ``terms`` names its output first, ``y1: u0_2*y1_1``
+    (as ``lenn-ros fit`` writes them); every output needs at least one term.
+    """
+    terms = [str(t) for t in values.get("terms", [""]) if str(t).strip()]
+    if not terms:
+        return [(None, None)] * structure.n_y
+    outputs = [f"y{j}" for j in range(structure.n_y)]
+    groups: dict[str, list[str]] = {name: [] for name in outputs}
+    for text in terms:
+        prefix, colon, term = text.partition(":")
+        if not colon or prefix.strip() not in groups:
+            raise ConfigError(
+                f"terms entry {text!r}: with several outputs each term names its output first, e.g. "
+                f"'y0: u1_2*y0_1' (outputs {', '.join(outputs)})"
+            )
+        groups[prefix.strip()].append(term.strip())
+    empty = [name for name in outputs if not groups[name]]
+    if empty:
+        raise ConfigError(f"terms name no term for {', '.join(empty)}: give each output at least one ('y0: 1')")
+    selected = []
+    for j, name in enumerate(outputs):
+        try:
+            rows, factor_rows = parse_terms(groups[name], mimo_channels(structure, j))
+        except ValueError as error:
+            raise ConfigError(f"terms of {name}: {error}") from None
+        selected.append((rows.tolist(), factor_rows.tolist() if factor_rows[:, 0].any() else None))
+    return selected
 
 
 def _coefficients(values: Any) -> tuple[float, ...]:

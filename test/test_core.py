@@ -416,13 +416,13 @@ def test_one_sample_expansion_is_bitwise_the_batch_expansion(
 def test_terms_with_factors_step_compiled_as_in_python_and_in_batch(monkeypatch) -> None:
     """Every factor kind in a selected-terms model: compiled step = Python step = batch run, bit for bit."""
     from lenn_ros.core import structure
-    from lenn_ros.core.expansions import parse_terms
+    from lenn_ros.core.expansions import parse_terms, siso_channels
     from lenn_ros.core.networks import FunctionalLinkNetwork
     from lenn_ros.core.structure import ModelStructure
 
     names = ["1", "y1", "lin(y1-y2)", "tanh(8*y1-8*y2)", "u1*abs(3*y1-3*y2)", "relu(u1-0.2)", "cos(1.5*y1+0.7*u2-0.3)",
              "sqabs(2*y1-2*y2)", "y1^2*u2"]  # fmt: skip
-    exponents, factors = parse_terms(names, 2, 2)
+    exponents, factors = parse_terms(names, siso_channels(2, 2))
     shape = ModelStructure(y_lags=2, u_lags=2, y_scale=2.0, u_scale=1.5)
     series = simulate(EXAMPLES[1].plant(), -20.0, 4, 1200, 100)
     u, y = 1.6 * series.u, series.y  # inputs beyond the scale: clipped

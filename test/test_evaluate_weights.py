@@ -34,7 +34,7 @@ TRAIN = 2000
 def fitted(tmp_path_factory: pytest.TempPathFactory) -> tuple[np.ndarray, np.ndarray, dict, dict[str, str]]:
     u, y = cubic_plant(2500, 3)
     result = fit(Data(u, y, "synthetic"), TRAIN + 1)
-    files = write_outputs(tmp_path_factory.mktemp("fit") / "model", result, u[:TRAIN], y)
+    files = write_outputs(tmp_path_factory.mktemp("fit") / "model", result, Data(u, y, "fitted"))
     return u, y, result, files
 
 

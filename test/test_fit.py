@@ -18,7 +18,7 @@ import yaml
 
 from lenn_ros.config import ConfigError, build_identifier, read_params_file, resolve
 from lenn_ros.core.evaluation import free_run_problems
-from lenn_ros.core.expansions import format_terms, parse_terms
+from lenn_ros.core.expansions import format_terms, parse_terms, siso_channels
 from lenn_ros.core.scaling import Scaling
 from lenn_ros.core.structure import Identifier
 from lenn_ros.fit.build import Data, fit
@@ -28,12 +28,14 @@ from lenn_ros.fit.selection import (
     PARSIMONY,
     Candidate,
     Folds,
+    Layout,
     Record,
     TermModel,
     fold_blocks,
     forward_regression,
     order_candidates,
     runs,
+    siso_view,
     soundness_problem,
 )
 from lenn_ros.paper.examples import get_example
@@ -138,14 +140,18 @@ def test_compiled_free_run_equals_the_python_loop_and_counts_clipping() -> None:
 def test_unstable_free_run_is_flagged_not_printed_as_a_number() -> None:
     scaling = Scaling(0.0, 1.0, 0.0, 1.0)
     u, y = np.ones(200), np.zeros(200)
-    exploding = TermModel(1, 1, scaling, parse_terms(["y1", "u1"], 1, 1)[0], weights=np.array([30.0, 1.0]))
-    y_sim, clipped, diverged_at = exploding.free_run(u, y, 10)
+    exploding = TermModel(
+        Layout.of(1, scaling), parse_terms(["y1", "u1"], siso_channels(1, 1))[0], weights=np.array([30.0, 1.0])
+    )
+    y_sim, clipped, diverged_at = exploding.free_run(siso_view(u, y), 10)
     assert diverged_at > 10 and np.isnan(y_sim[-1])
     problems = free_run_problems(y[10:] + np.sin(np.arange(190)), y_sim, {"diverged": True, "diverged_at": 11})
     assert "free run diverged at sample 12" in problems[0]
     # an unstable model that only saturates (inputs clipped at +-1) is reported by its clipping
-    saturating = TermModel(1, 1, scaling, parse_terms(["y1", "u1"], 1, 1)[0], weights=np.array([1.5, 1.0]))
-    y_sim, clipped, diverged_at = saturating.free_run(u, y, 10)
+    saturating = TermModel(
+        Layout.of(1, scaling), parse_terms(["y1", "u1"], siso_channels(1, 1))[0], weights=np.array([1.5, 1.0])
+    )
+    y_sim, clipped, diverged_at = saturating.free_run(siso_view(u, y), 10)
     assert diverged_at == -1 and clipped > 150
     problems = free_run_problems(np.sin(np.arange(190)), y_sim, {"clipped_inputs": clipped})
     assert any("worse than predicting the mean" in p for p in problems)
@@ -166,17 +172,20 @@ def test_term_names_round_trip() -> None:
     factors = np.zeros((6, 6))
     factors[4] = [4, 0.0, 12.5, -12.5, 0.0, 0.0]  # u1 * tanh(12.5 (x_y1 - x_y2))
     factors[5] = [3, -0.25, 0.0, 0.0, 1.0, 0.0]  # relu(x_u1 - 0.25)
-    names = format_terms(rows, 2, factors)
+    names = format_terms(rows, siso_channels(2, 2), factors)
     assert names == ["1", "y1^3", "y1*u2^2", "y2*u1", "u1*tanh(12.5*y1-12.5*y2)", "relu(u1-0.25)"]
-    exponents, parsed = parse_terms(names, 2, 2)
+    exponents, parsed = parse_terms(names, siso_channels(2, 2))
     assert np.array_equal(exponents, rows) and np.array_equal(parsed, factors)
-    assert format_terms(rows[:4], 2) == names[:4] and not parse_terms(names[:4], 2, 2)[1][:, 0].any()
-    with pytest.raises(ValueError, match="y_lags=2"):
-        parse_terms(["y3"], 2, 2)
+    assert (
+        format_terms(rows[:4], siso_channels(2, 2)) == names[:4]
+        and not parse_terms(names[:4], siso_channels(2, 2))[1][:, 0].any()
+    )
+    with pytest.raises(ValueError, match="no input 'y3'"):
+        parse_terms(["y3"], siso_channels(2, 2))
     with pytest.raises(ValueError, match="unknown factor 'sin'"):
-        parse_terms(["sin(y1)"], 2, 2)
+        parse_terms(["sin(y1)"], siso_channels(2, 2))
     with pytest.raises(ValueError, match="cannot read"):
-        parse_terms(["tanh(2*y1*y2)"], 2, 2)
+        parse_terms(["tanh(2*y1*y2)"], siso_channels(2, 2))
 
 
 def test_params_file_keys_and_typos(tmp_path: Path) -> None:
@@ -245,7 +254,7 @@ def test_epochs_with_early_stopping_beat_one_pass_on_small_data() -> None:
 
     u, y = cubic_plant(1500, 4)
     scaling = Scaling.from_training(u, y)
-    structure = TermModel(2, 2, scaling, parse_terms(["1"], 2, 2)[0]).structure
+    structure = TermModel(Layout.of(2, scaling), parse_terms(["1"], siso_channels(2, 2))[0]).structure
     network = FunctionalLinkNetwork(n_inputs=4, order=3, output="linear", alpha=0.05, beta=0.5, random_state=0)
     identifier = Identifier(structure, network, learning=False)
     report = train_epochs(identifier, u, y, 1200, max_epochs=40, patience=5)
@@ -257,14 +266,16 @@ def test_epochs_with_early_stopping_beat_one_pass_on_small_data() -> None:
 def test_soundness_rejects_a_model_that_runs_away_on_its_own_data_or_on_its_input_shuffled() -> None:
     u, y = cubic_plant(1500, 5)
     scaling = Scaling.from_training(u, y)
-    terms = parse_terms(["1", "y1", "y2", "u1", "y1^3"], 2, 2)[0]
-    features, targets = TermModel(2, 2, scaling, terms).regression(u, y)
-    good = TermModel(2, 2, scaling, terms, weights=np.linalg.lstsq(features, targets, rcond=None)[0])
-    record = Record.of(u, y)
+    terms = parse_terms(["1", "y1", "y2", "u1", "y1^3"], siso_channels(2, 2))[0]
+    features, targets = TermModel(Layout.of(2, scaling), terms).regression(siso_view(u, y))
+    good = TermModel(Layout.of(2, scaling), terms, weights=np.linalg.lstsq(features, targets, rcond=None)[0])
+    record = Record.of(siso_view(u, y))
     assert soundness_problem(good, record) == ""
     runaway = good.with_weights(good.weights * np.array([1.0, 1.0, 1.0, 1.0, 3.0]))
     assert soundness_problem(runaway, record) == "in-sample free run left the training range"
-    flat = TermModel(2, 2, scaling, parse_terms(["1"], 2, 2)[0], weights=np.array([float(y.max())]))
+    flat = TermModel(
+        Layout.of(2, scaling), parse_terms(["1"], siso_channels(2, 2))[0], weights=np.array([float(y.max())])
+    )
     assert soundness_problem(flat, record) == "in-sample free run worse than its mean"
     # sound on the record as it was measured, not on the same input in another order: two up-steps in a
     # row drive the integrator y(k+1) = y(k) + 0.02 u(k) past the range plus margin, which the record never did
@@ -273,10 +284,10 @@ def test_soundness_rejects_a_model_that_runs_away_on_its_own_data_or_on_its_inpu
     for k in range(1499):
         drift[k + 1] = drift[k] + 0.02 * steps[k]
     scaling = Scaling.from_training(steps, drift)
-    integrator = TermModel(1, 1, scaling, parse_terms(["1", "y1", "u1"], 1, 1)[0])
-    features, targets = integrator.regression(steps, drift)
+    integrator = TermModel(Layout.of(1, scaling), parse_terms(["1", "y1", "u1"], siso_channels(1, 1))[0])
+    features, targets = integrator.regression(siso_view(steps, drift))
     integrator.weights = np.linalg.lstsq(features, targets, rcond=None)[0]
-    shuffled = Record.of(steps, drift)
+    shuffled = Record.of(siso_view(steps, drift))
     assert shuffled.simulate(integrator, 0, 1500).problem("in-sample") == ""
     assert "shuffled in blocks" in soundness_problem(integrator, shuffled)
 
@@ -287,12 +298,12 @@ def test_blocks_breaks_and_fold_weights() -> None:
     assert len(fold_blocks(40_000, 10)) == 5 and len(fold_blocks(150, 2)) == 2
     assert runs(0, 100, np.array([30, 60, 150])) == [(0, 30), (30, 60), (60, 100)]
     u, y = cubic_plant(1000, 1)
-    record = Record.of(u, y, [500])
+    record = Record.of(siso_view(u, y), [500])
     valid = record.valid_rows(2)  # row r predicts sample r + 2 from samples r, r + 1
     assert not valid[498] and not valid[499] and valid[497] and valid[500]
     scaling = Scaling.from_training(u, y)
-    model = TermModel(2, 2, scaling, parse_terms(["1", "y1", "y2", "u1", "y1^3"], 2, 2)[0])
-    features, targets = model.regression(u, y)
+    model = TermModel(Layout.of(2, scaling), parse_terms(["1", "y1", "y2", "u1", "y1^3"], siso_channels(2, 2))[0])
+    features, targets = model.regression(siso_view(u, y))
     features, targets = features[valid], targets[valid]
     predicted = np.arange(2, 1000)[valid]
     blocks = fold_blocks(1000, 2)
@@ -314,7 +325,7 @@ def _candidate(family: str, degree: int, terms: int, score: float, stub: TermMod
 
 def test_candidates_fewest_terms_within_parsimony_and_linear_unless_beaten() -> None:
     scaling = Scaling(0.0, 1.0, 0.0, 1.0)
-    stub = TermModel(1, 1, scaling, parse_terms(["y1"], 1, 1)[0], weights=np.ones(1))
+    stub = TermModel(Layout.of(1, scaling), parse_terms(["y1"], siso_channels(1, 1))[0], weights=np.ones(1))
     big = _candidate("polynomial", 3, 23, 1.0, stub)
     small = _candidate("polynomial", 3, 10, 1.0 + PARSIMONY / 2, stub)
     far = _candidate("polynomial", 2, 5, 1.0 + 2 * PARSIMONY, stub)
@@ -347,7 +358,7 @@ def test_ball_and_beam_chosen_structure_simulates_its_own_training_data() -> Non
     result = fit(Data(u, y, "ball and beam"), 667, refine=False)
     report = result["report"]
     assert report["warnings"] == []
-    assert soundness_problem(result["model"], Record.of(u[:666], y[:666])) == ""
+    assert soundness_problem(result["model"], Record.of(siso_view(u[:666], y[:666]))) == ""
     assert report["free_run"]["clipped_inputs"] == 0
     assert report["nmse_free_run_db"] < -1.0  # measured -1.66 dB (random Fourier features of 3 lags)
 
@@ -394,7 +405,7 @@ def test_fit_solver_sgd_trains_the_selected_terms_by_epochs_and_round_trips(tmp_
     assert report["model"]["live"]["solver"] == "sgd" and report["model"]["epochs"]["best_epoch"] > 1
     assert report["choices"]["refinement"] == {"done": False}
     assert report["rmse_free_run"] < 0.5 * float(np.std(y[2000:]))  # well better than the mean
-    files = write_outputs(tmp_path / "model", result, u[:2000], y)
+    files = write_outputs(tmp_path / "model", result, Data(u, y, "fitted"))
     values = read_params_file(files["params"])
     assert values["solver"] == "sgd" and values["alpha"] == pytest.approx(result["identifier"].model.alpha)
     resolved, network = resolve(values)

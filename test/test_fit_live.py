@@ -49,7 +49,7 @@ class SeriesTalker(Talker):
 def test_node_starts_from_the_fitted_model_and_keeps_adapting(tmp_path: Path, domain: int) -> None:
     u, y = cubic_plant(2600, 7)
     result = fit(Data(u, y, "synthetic"), 2001)
-    files = write_outputs(tmp_path / "model", result, u[:2000], y)
+    files = write_outputs(tmp_path / "model", result, Data(u, y, "fitted"))
     live_u, live_y = u[2000:], y[2000:]
     listener = Listener(domain)
     talker = SeriesTalker(domain)

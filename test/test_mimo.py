@@ -233,7 +233,10 @@ def test_the_one_sample_expansion_with_cross_terms_equals_the_batch_bit_for_bit(
         ({"y_scales": [1.0, 2.0, 3.0]}, "y_scales has 3 values for 2 channels"),
         ({"y_names": ["only"]}, "1 names for 2 fields"),
         ({"u_field": "data[*]", "u_names": [""]}, "give the channels' names"),
-        ({"terms": ["y1"]}, "terms: SISO structure options"),
+        ({"terms": ["y1"]}, "each term names its output first, e.g. 'y0: u1_2*y0_1' (outputs y0, y1)"),
+        ({"terms": ["y0: 1"]}, "terms name no term for y1"),
+        ({"terms": ["y0: 1", "y1: u5_1"]}, "terms of y1: term 'u5_1': no input 'u5_1'"),
+        ({"separate": True}, "separate: SISO structure options"),
         ({"u_topics": ["/a", "/b"], "u_field": "data[*]"}, "list the fields instead of [*]"),
     ],
 )

@@ -36,7 +36,7 @@ def fitted(tmp_path_factory: pytest.TempPathFactory) -> dict:
     result = fit(Data(u, y, "robot-arm"), test_from)
     directory = tmp_path_factory.mktemp("model")
     start = result["report"]["train_samples"]
-    files = write_outputs(directory, result, u[:start], y)
+    files = write_outputs(directory, result, Data(u, y, "fitted"))
     assert json.loads(Path(files["report"]).read_text())["intervals"] == result["report"]["intervals"]
     return {"dir": directory, "u": u, "y": y, "start": start, "report": result["report"]}
 

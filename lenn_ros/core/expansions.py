@@ -15,6 +15,7 @@ bias separately as N0 = n0 + 1), and so does :func:`feature_count`.
 from __future__ import annotations
 
 import re
+from collections.abc import Sequence
 from functools import lru_cache
 from itertools import combinations_with_replacement
 
@@ -348,14 +349,28 @@ def term_features_reference(
     return features
 
 
-def _input_name(i: int, y_lags: int) -> str:
-    return f"y{i + 1}" if i < y_lags else f"u{i - y_lags + 1}"
+#: the network inputs' channels in regressor order, (name, lags) each: a term's inputs are named by them
+Channels = Sequence[tuple[str, int]]
 
 
-def _format_linear(factor: np.ndarray, y_lags: int) -> str:
+def siso_channels(y_lags: int, u_lags: int) -> list[tuple[str, int]]:
+    """One output of one input: y(k-1..), then u(k-1..), named ``y1``, ``u2``."""
+    return [("y", y_lags), ("u", u_lags)]
+
+
+def _channel_name(name: str, lag: int) -> str:
+    """``y`` at lag 2 is ``y2``; a numbered channel ``u3`` at lag 2 is ``u3_2``."""
+    return f"{name}_{lag}" if name[-1:].isdigit() else f"{name}{lag}"
+
+
+def _input_names(channels: Channels) -> list[str]:
+    return [_channel_name(name, lag + 1) for name, lags in channels for lag in range(lags)]
+
+
+def _format_linear(factor: np.ndarray, names: list[str]) -> str:
     """b + w . x as ``2.5*y1-2.5*y2+0.1`` (coefficients to 6 significant digits, which fit rounds them to)."""
     parts = [
-        ("+" if w > 0 else "-") + ("" if abs(w) == 1.0 else f"{abs(w):.6g}*") + _input_name(i, y_lags)
+        ("+" if w > 0 else "-") + ("" if abs(w) == 1.0 else f"{abs(w):.6g}*") + names[i]
         for i, w in enumerate(factor[2:])
         if w
     ]
@@ -364,50 +379,49 @@ def _format_linear(factor: np.ndarray, y_lags: int) -> str:
     return "".join(parts).lstrip("+")
 
 
-def format_terms(exponents: np.ndarray, y_lags: int, factors: np.ndarray | None = None) -> list[str]:
+def format_terms(exponents: np.ndarray, channels: Channels, factors: np.ndarray | None = None) -> list[str]:
     """Readable names: ``y1^3*u2`` is P3(y(k-1)) P1(u(k-2)) for a model of y(k), ``1`` the bias.
 
-    Inputs 0..y_lags-1 are y(k-1..k-y_lags), then u(k-1)...: the usual NARX lags of
-    the predicted sample (the structure's y(k), u(k) when it predicts y(k+1)). A factor
-    is written ``kind(linear form)``: ``u1*tanh(40*y1-40*y2)`` is P1(u(k-1)) tanh(40 (x_y1 - x_y2)),
-    on the scaled inputs x the network sees.
+    The network inputs are the lags of each channel in turn (``channels``: (name, lags)
+    each; :func:`siso_channels` for y then u): the usual NARX lags of the predicted sample
+    (the structure's y(k), u(k) when it predicts y(k+1)). A numbered channel's lag follows
+    an underscore: ``y1_2*u0_1`` is P1(y1(k-2)) P1(u0(k-1)). A factor is written
+    ``kind(linear form)``: ``u1*tanh(40*y1-40*y2)`` is P1(u(k-1)) tanh(40 (x_y1 - x_y2)), on
+    the scaled inputs x the network sees.
     """
     exponents = np.asarray(exponents, dtype=np.int64)
     factors = checked_factors(factors, len(exponents), exponents.shape[1] if exponents.ndim == 2 else 0)
+    inputs = _input_names(channels)
     names = []
     for t, row in enumerate(exponents):
         parts = []
         for i, e in enumerate(row):
             if e:
-                name = _input_name(i, y_lags)
-                parts.append(name if e == 1 else f"{name}^{e}")
+                parts.append(inputs[i] if e == 1 else f"{inputs[i]}^{e}")
         if len(factors) and factors[t, 0]:
-            parts.append(f"{_FACTOR_NAMES[int(factors[t, 0])]}({_format_linear(factors[t], y_lags)})")
+            parts.append(f"{_FACTOR_NAMES[int(factors[t, 0])]}({_format_linear(factors[t], inputs)})")
         names.append("*".join(parts) or "1")
     return names
 
 
 _FACTOR = re.compile(r"([a-z]+)\(([^()]*)\)")
-_LINEAR_PART = re.compile(r"\s*([+-]?)\s*(\d+\.?\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?)?\s*(\*?)\s*([yu]\d+)?")
+_LINEAR_PART = re.compile(
+    r"\s*([+-]?)\s*(\d+\.?\d*(?:[eE][+-]?\d+)?|\.\d+(?:[eE][+-]?\d+)?)?\s*(\*?)\s*([yu]\d+(?:_\d+)?)?"
+)
 
 
-def _lag_index(text: str, name: str, y_lags: int, u_lags: int) -> int:
-    """0-based network input of ``y3`` / ``u2``, or an error naming the term."""
-    try:
-        lag = int(name[1:])
-    except ValueError:
-        raise ValueError(f"term {text!r}: {name!r} is not like y1 or u2") from None
-    limit = y_lags if name[:1] == "y" else u_lags if name[:1] == "u" else 0
-    if not 1 <= lag <= limit:
-        raise ValueError(
-            f"term {text!r}: {name!r} needs {name[:1] or '?'} lag 1..{limit} (y_lags={y_lags}, u_lags={u_lags})"
-        )
-    return lag - 1 if name[0] == "y" else y_lags + lag - 1
+def _lag_index(text: str, name: str, channels: Channels) -> int:
+    """0-based network input of ``y3`` / ``u2`` (or ``y1_3`` / ``u0_2``), or an error naming the term."""
+    inputs = _input_names(channels)
+    if name in inputs:
+        return inputs.index(name)
+    shown = ", ".join(f"{_channel_name(c, 1)}..{_channel_name(c, lags)}" for c, lags in channels if lags) or "none"
+    raise ValueError(f"term {text!r}: no input {name!r} (the inputs are {shown})")
 
 
-def _parse_linear(text: str, inner: str, y_lags: int, u_lags: int) -> tuple[float, np.ndarray]:
+def _parse_linear(text: str, inner: str, channels: Channels) -> tuple[float, np.ndarray]:
     """(b, w) of ``2.5*y1-2.5*y2+0.1``."""
-    w = np.zeros(y_lags + u_lags)
+    w = np.zeros(sum(lags for _, lags in channels))
     b, position, inner = 0.0, 0, inner.replace(" ", "")
     while position < len(inner):
         match = _LINEAR_PART.match(inner, position)
@@ -416,16 +430,16 @@ def _parse_linear(text: str, inner: str, y_lags: int, u_lags: int) -> tuple[floa
             raise ValueError(f"term {text!r}: cannot read {inner[position:]!r} as a linear form like 2*y1-2*y2+0.5")
         value = (-1.0 if sign == "-" else 1.0) * (float(number) if number else 1.0)
         if name:
-            w[_lag_index(text, name, y_lags, u_lags)] += value
+            w[_lag_index(text, name, channels)] += value
         else:
             b += value
         position = match.end()
     return b, w
 
 
-def parse_terms(terms: list[str], y_lags: int, u_lags: int) -> tuple[np.ndarray, np.ndarray]:
+def parse_terms(terms: list[str], channels: Channels) -> tuple[np.ndarray, np.ndarray]:
     """(exponent rows, factor rows) from names written by :func:`format_terms`; a bad name is an error naming it."""
-    n = y_lags + u_lags
+    n = sum(lags for _, lags in channels)
     rows, factors = [], []
     for text in terms:
         row, factor = [0] * n, np.zeros(n + 2)
@@ -436,7 +450,7 @@ def parse_terms(terms: list[str], y_lags: int, u_lags: int) -> tuple[np.ndarray,
             if kind is None:
                 raise ValueError(f"term {text!r}: unknown factor {match.group(1)!r}; known: {', '.join(FACTOR_KINDS)}")
             factor[0] = kind
-            factor[1], factor[2:] = _parse_linear(text, match.group(2), y_lags, u_lags)
+            factor[1], factor[2:] = _parse_linear(text, match.group(2), channels)
             clean = (clean[: match.start()] + clean[match.end() :]).strip("*").replace("**", "*")
         if clean not in ("1", ""):
             for part in clean.split("*"):
@@ -445,9 +459,9 @@ def parse_terms(terms: list[str], y_lags: int, u_lags: int) -> tuple[np.ndarray,
                     degree = int(power or 1)
                 except ValueError:
                     raise ValueError(f"term {text!r}: factor {part!r} is not like y1, u2^3") from None
-                if degree < 1 or not name[1:].isdigit():
+                if degree < 1 or not name[1:].replace("_", "").isdigit():
                     raise ValueError(f"term {text!r}: factor {part!r} is not like y1, u2^3 (degree >= 1)")
-                row[_lag_index(text, name, y_lags, u_lags)] += degree
+                row[_lag_index(text, name, channels)] += degree
         elif clean == "" and not match:
             raise ValueError(f"term {text!r} is empty")
         rows.append(row)

@@ -482,19 +482,10 @@ def free_run(
     sums = np.zeros(n_branches)
     for k in range(start - 1, n - 1):
         for j in range(n_y):
-            first, last = input_start[j], input_start[j + 1]
-            clips = 0
-            for i in range(last - first):
-                entry = first + i
-                x = (values[k - input_lag[entry], input_source[entry]] - input_offset[entry]) / input_scale[entry]
-                if x > 1.0:
-                    x = 1.0
-                    clips += 1
-                elif x < -1.0:
-                    x = -1.0
-                    clips += 1
-                _univariate_row(x, need[i], basis, table[i])
-            clipped[j] += clips
+            clipped[j] += _input_table(
+                values, k, input_start[j], input_start[j + 1], input_source, input_lag, input_offset, input_scale,
+                n_y, basis, need, table,
+            )  # fmt: skip
             out = constant[j] + _term_network_output(
                 table, plan, factors, term_start[j], term_start[j + 1], weights, feature_branch, tanh_output[j],
                 output_scale[j], sums,
@@ -576,29 +567,38 @@ def free_run_functional_link(
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _polynomial_table(
-    u: np.ndarray,
-    y_out: np.ndarray,
+def _input_table(
+    values: np.ndarray,
     k: int,
-    y_lags: int,
-    u_lags: int,
-    y_offset: float,
-    y_scale: float,
-    u_offset: float,
-    u_scale: float,
+    first: int,
+    last: int,
+    source: np.ndarray,
+    lag: np.ndarray,
+    offset: np.ndarray,
+    scale: np.ndarray,
+    simulated: int,
     basis: int,
     need: np.ndarray,
     table: np.ndarray,
 ) -> int:
-    """table[i, n] = P_n(x_i(k)) for n <= need[i] of every network input of sample k; returns how many clipped.
+    """table[i, n] = P_n(x_i(k)) for n <= need[i] of network inputs ``first..last`` of sample k; returns how
+    many were clipped.
 
-    Each input's polynomials are computed once per sample and shared by all terms,
-    which is what makes a free run cost one pass over the terms per sample; an input
-    no term reads (a long lag span's middle lags) is only checked for clipping.
+    Input ``first + i`` is column ``source`` of ``values`` at ``lag`` samples before k, as
+    (value - offset) / scale clipped to [-1, 1]. Each input's polynomials are computed once
+    per sample and shared by all terms, which is what makes a free run cost one pass over
+    the terms per sample. An input no term reads (a long lag span's middle lags) is only
+    checked for clipping where it is a fed-back output (a column below ``simulated``): a
+    measured one that no term reads cannot matter, and skipping it is what keeps a model
+    of many channels' long lags as cheap as its terms. The one place a free run turns a
+    sample into network inputs.
     """
     clipped = 0
-    for i in range(y_lags + u_lags):
-        x = (y_out[k - i] - y_offset) / y_scale if i < y_lags else (u[k - i + y_lags] - u_offset) / u_scale
+    for i in range(last - first):
+        entry = first + i
+        if need[i] == 0 and source[entry] >= simulated:
+            continue
+        x = (values[k - lag[entry], source[entry]] - offset[entry]) / scale[entry]
         if x > 1.0:
             x = 1.0
             clipped += 1
@@ -693,18 +693,15 @@ def _term_network_output(
 
 @njit(cache=True, nogil=True)
 def simulate_pieces(
-    u: np.ndarray,
-    y: np.ndarray,
+    values: np.ndarray,
     first: np.ndarray,
     stop: np.ndarray,
     group: np.ndarray,
     warm: int,
-    y_lags: int,
-    u_lags: int,
-    y_offset: float,
-    y_scale: float,
-    u_offset: float,
-    u_scale: float,
+    source: np.ndarray,
+    lag: np.ndarray,
+    offset: np.ndarray,
+    scale: np.ndarray,
     exponents: np.ndarray,
     factors: np.ndarray,
     weights: np.ndarray,
@@ -712,40 +709,56 @@ def simulate_pieces(
     divergence_bound: float,
     out: np.ndarray,
 ) -> None:
-    """Free runs of samples first[p]..stop[p] (each from the ``warm`` measured samples before it), pooled per group.
+    """Free runs of column 0 of ``values`` over samples first[p]..stop[p], pooled per group.
 
-    Piece p is simulated with the weights ``weights[group[p]]`` (a fold's); ``out[g]``
-    accumulates [sum of squared errors, samples, sum of squares about each piece's
-    mean, clipped inputs, diverged (1.0)]. One call scores a prefix on every block, so
-    the selection pays no Python per simulation.
+    ``values`` is one output's view: column 0 the output the model predicts (simulated,
+    from the ``warm`` measured samples before each piece), the other columns what it
+    reads besides (measured). Network input i is column ``source[i]`` at ``lag[i]``,
+    (value - offset[i]) / scale[i]; input 0 is the output's newest lag, whose offset and
+    scale bound the divergence. Piece p is simulated with the weights ``weights[group[p]]``
+    (a fold's); ``out[g]`` accumulates [sum of squared errors, samples, sum of squares
+    about each piece's mean, clipped inputs, diverged (1.0)]. One call scores a prefix on
+    every block, so the selection pays no Python per simulation.
     """
     longest = 0
     for p in range(len(first)):
         longest = max(longest, stop[p] - first[p])
-    scratch = np.empty(longest + warm)
-    branch = np.zeros(exponents.shape[0], dtype=np.int64)
-    none = np.zeros(0)
+    scratch = np.empty((longest + warm, values.shape[1]))
+    n_terms, n_inputs = exponents.shape[0], len(source)
+    branch = np.zeros(n_terms, dtype=np.int64)
+    no_index = np.zeros(0, dtype=np.int64)
+    input_start = np.array([0, n_inputs])
+    known_start = np.zeros(2, dtype=np.int64)
+    term_start = np.array([0, n_terms])
+    linear_output = np.zeros(1, dtype=np.bool_)
+    unit = np.ones(1)
+    zero = np.zeros(1)
+    y_offset = np.array([offset[0]])
+    y_scale = np.array([scale[0]])
+    clipped = np.zeros(1, dtype=np.int64)
     for p in range(len(first)):
         a, b, g = first[p], stop[p], group[p]
         buffer = scratch[: b - a + warm]
-        buffer[:] = y[a - warm : b]
-        clipped, diverged_at = free_run_functional_link(
-            u[a - warm : b], buffer, warm, y_lags, u_lags, y_offset, y_scale, u_offset, u_scale, 0.0, none, none,
-            exponents, factors, weights[g], branch, 1, basis, False, 1.0, divergence_bound, buffer,
+        buffer[:, :] = values[a - warm : b, :]
+        clipped[0] = 0
+        diverged_at = free_run(
+            buffer, warm, 1, input_start, source, lag, offset, scale, known_start, no_index, no_index, zero[:0],
+            term_start, exponents, factors, weights[g], branch, 1, linear_output, unit, zero, y_offset, y_scale,
+            basis, divergence_bound, clipped,
         )  # fmt: skip
         mean = 0.0
         for k in range(a, b):
-            mean += y[k]
+            mean += values[k, 0]
         mean /= b - a
         squared, deviation = 0.0, 0.0
         for k in range(a, b):
-            error = buffer[k - a + warm] - y[k]
+            error = buffer[k - a + warm, 0] - values[k, 0]
             squared += error * error
-            deviation += (y[k] - mean) * (y[k] - mean)
+            deviation += (values[k, 0] - mean) * (values[k, 0] - mean)
         out[g, 0] += squared
         out[g, 1] += b - a
         out[g, 2] += deviation
-        out[g, 3] += clipped
+        out[g, 3] += clipped[0]
         if diverged_at >= 0:
             out[g, 4] = 1.0
 
@@ -855,15 +868,13 @@ def _sensitivity_row(
 
 @njit(cache=True, nogil=True)
 def free_run_jacobian(
-    u: np.ndarray,
-    y_out: np.ndarray,
+    values: np.ndarray,
     start: int,
     y_lags: int,
-    u_lags: int,
-    y_offset: float,
-    y_scale: float,
-    u_offset: float,
-    u_scale: float,
+    source: np.ndarray,
+    lag: np.ndarray,
+    offset: np.ndarray,
+    scale: np.ndarray,
     exponents: np.ndarray,
     factors: np.ndarray,
     weights: np.ndarray,
@@ -871,19 +882,22 @@ def free_run_jacobian(
     divergence_bound: float,
     jacobian: np.ndarray,
 ) -> tuple[int, int]:
-    """:func:`free_run_functional_link` of a linear-output term model, with d y^(k) / d w in one pass.
+    """:func:`simulate_pieces`' free run of one piece of a linear-output term model, with d y^(k) / d w.
 
-    The outputs are computed as :func:`free_run_functional_link` computes them (the same
-    bits); ``jacobian[k - start, j]`` gets d y^(k) / d w_j by forward sensitivity:
+    ``values`` and the inputs as in :func:`simulate_pieces`; the first ``y_lags`` inputs
+    are column 0 (the simulated output) at lags 0, 1, ...; column 0 from ``start`` on is
+    overwritten with the model's outputs, computed as :func:`free_run` computes them (the
+    same bits). ``jacobian[k - start, j]`` gets d y^(k) / d w_j by forward sensitivity:
     d y^(k+1) = phi(x(k)) + sum_i dN/dx_i (k) dx_i(k), where x_i is a fed-back output
     y^(k-i) scaled (zero when it is clipped or still measured). One pass replaces a
     free run per nudged weight, and it is exact. Legendre and Chebyshev bases only.
+    Returns (clipped inputs, first diverged sample or -1).
     """
-    n, n_terms = len(u), exponents.shape[0]
+    n, n_terms = values.shape[0], exponents.shape[0]
     plan = _sparse_terms(exponents, factors)
     need = plan[6]
     top = max(1, _top_degree(exponents))
-    table = np.empty((y_lags + u_lags, top + 1))
+    table = np.empty((len(source), top + 1))
     slopes = np.zeros((y_lags, top + 1))
     sums = np.zeros(1)
     branch = np.zeros(n_terms, dtype=np.int64)
@@ -891,22 +905,22 @@ def free_run_jacobian(
     phi = np.empty(n_terms)
     gradient = np.zeros(y_lags)
     alive = np.zeros(y_lags, dtype=np.bool_)
+    y_offset, y_scale = offset[0], scale[0]
     clipped = 0
     for k in range(start - 1, n - 1):
-        clipped += _polynomial_table(u, y_out, k, y_lags, u_lags, y_offset, y_scale, u_offset, u_scale, basis, need,
-                                     table)  # fmt: skip
+        clipped += _input_table(values, k, 0, len(source), source, lag, offset, scale, 1, basis, need, table)
         out = _term_network_output(table, plan, factors, 0, n_terms, weights, branch, False, 1.0, sums)
         for i in range(y_lags):
-            value = (y_out[k - i] - y_offset) / y_scale
+            value = (values[k - i, 0] - y_offset) / y_scale
             alive[i] = k - i >= start and -1.0 < value < 1.0  # a clipped or measured input has no slope
             if alive[i]:
                 _slope_row(table[i, 1], need[i], basis, table[i], slopes[i])
         _features_and_gradient(table, slopes, alive, plan, factors, weights, phi, gradient)
         if not math.isfinite(out) or abs(out - y_offset) > divergence_bound * y_scale:
             for j in range(k + 1, n):
-                y_out[j] = np.nan
+                values[j, 0] = np.nan
             return clipped, k + 1
-        y_out[k + 1] = out
+        values[k + 1, 0] = out
         _sensitivity_row(jacobian[k + 1 - start], phi, gradient, alive, history, y_scale)
     return clipped, -1
 

@@ -31,20 +31,8 @@ class Scaling:
     @classmethod
     def from_training(cls, u: np.ndarray, y: np.ndarray, margin: float = DEFAULT_MARGIN) -> Scaling:
         """Centre and half-range of each training signal, widened by ``margin``."""
-        if margin < 0:
-            raise ValueError(f"margin must be >= 0, got {margin}")
-        values = []
-        for name, signal in (("y", y), ("u", u)):
-            signal = np.asarray(signal, dtype=np.float64)
-            if signal.size == 0 or not np.all(np.isfinite(signal)):
-                raise ValueError(f"training {name} is empty or holds NaN/inf: clean the data first")
-            low, high = float(signal.min()), float(signal.max())
-            if high == low:
-                raise ValueError(
-                    f"training {name} is constant ({low:g}): nothing to identify; check the --u/--y columns"
-                )
-            values += [(high + low) / 2.0, (high - low) / 2.0 * (1.0 + margin)]
-        return cls(values[0], values[1], values[2], values[3], margin)
+        (y_offset, u_offset), (y_scale, u_scale) = ranges(np.column_stack([y, u]), ("y", "u"), margin)
+        return cls(y_offset, y_scale, u_offset, u_scale, margin)
 
     def outside(self, u: np.ndarray, y: np.ndarray) -> dict[str, int]:
         """How many samples of u and y fall outside [-1, 1] once scaled (they will be clipped)."""
@@ -52,3 +40,24 @@ class Scaling:
             "u": int(np.count_nonzero(np.abs((np.asarray(u) - self.u_offset) / self.u_scale) > 1.0)),
             "y": int(np.count_nonzero(np.abs((np.asarray(y) - self.y_offset) / self.y_scale) > 1.0)),
         }
+
+
+def ranges(
+    values: np.ndarray, names: tuple[str, ...] | list[str], margin: float = DEFAULT_MARGIN
+) -> tuple[tuple[float, ...], tuple[float, ...]]:
+    """(offsets, scales) of each column of ``values``: the centre of its range, and its half-range widened by
+    ``margin``. One rule for every channel of every model ``fit`` builds; ValueError naming a constant or
+    non-finite column."""
+    if margin < 0:
+        raise ValueError(f"margin must be >= 0, got {margin}")
+    values = np.asarray(values, dtype=np.float64).reshape(len(values), -1)
+    offsets, scales = [], []
+    for column, name in zip(values.T, names, strict=True):
+        if column.size == 0 or not np.all(np.isfinite(column)):
+            raise ValueError(f"training {name} is empty or holds NaN/inf: clean the data first")
+        low, high = float(column.min()), float(column.max())
+        if high == low:
+            raise ValueError(f"training {name} is constant ({low:g}): nothing to identify; check the --u/--y columns")
+        offsets.append((high + low) / 2.0)
+        scales.append((high - low) / 2.0 * (1.0 + margin))
+    return tuple(offsets), tuple(scales)

@@ -18,8 +18,8 @@ same ``--ros-args -r u:=... -r y_p:=...`` remaps apply.
 
 A bag of a robot with several channels (``u_field: data[*]`` with ``u_names``, a
 JointState's ``position[*]`` with ``y_names``, or a side's several topics) is read the
-same way, by the same session: its vectors come back as :class:`~lenn_ros.fit.mimo.MimoData`
-(channel names as the node names them), for :mod:`lenn_ros.fit.mimo`. Without
+same way, by the same session: its vectors come back as one column per channel (named as
+the node names them), and ``fit`` builds one model per output over them. Without
 ``identifier_config`` the flags say it: ``--u-field 'data[*]' --u-names u1,u2``, and
 ``--u`` repeated for one topic per channel.
 """
@@ -33,7 +33,7 @@ import numpy as np
 
 from lenn_ros import bag as bags
 from lenn_ros import topics
-from lenn_ros.fit.data import Data, FitError, MimoData
+from lenn_ros.fit.data import Data, FitError
 
 #: node parameters that say how the input topics become samples: copied into the fitted params file
 INTERPRETATION = (
@@ -56,12 +56,12 @@ INTERPRETATION = (
 )
 
 
-def load_bag(path: Path, flags: dict[str, Any]) -> Data | MimoData:
+def load_bag(path: Path, flags: dict[str, Any]) -> Data:
     """u, y (and the gaps between them) of a bag, paired as the node pairs them; see the module docstring.
 
     ``flags``: ``u`` / ``y`` (a topic, or a list: one topic per part of the side), ``u_field``,
     ``y_field``, ``u_names``, ``y_names`` (comma-separated), ``sample_period``, ``pairing``.
-    Several channels on a side give a :class:`~lenn_ros.fit.mimo.MimoData`.
+    Several channels on a side give (N, channels) arrays, each channel named as the node names it.
     """
     from lenn_ros.bag.vectors import read_test_start
     from lenn_ros.evaluate import EvaluateError, configuration, make_session, pair_raw
@@ -101,8 +101,10 @@ def load_bag(path: Path, flags: dict[str, Any]) -> Data | MimoData:
     )
     recorded_start = read_test_start(path)
     interpretation = {key: values[key] for key in INTERPRETATION if key in values}
+    names: dict[str, tuple[str, ...]] = {}
     if u.ndim > 1 or y.ndim > 1:
-        return _vectors(path, values, index, u, y, source, recorded_start, interpretation)
+        names = _channel_names(path, values)
+        u, y = u.reshape(len(index), -1), y.reshape(len(index), -1)
     return Data(
         u,
         y,
@@ -111,38 +113,19 @@ def load_bag(path: Path, flags: dict[str, Any]) -> Data | MimoData:
         breaks=[int(b) for b in np.flatnonzero(np.diff(index) != 1) + 1],
         index=index,
         interpretation=interpretation,
+        **names,
     )
 
 
-def _vectors(
-    path: Path,
-    values: dict[str, Any],
-    index: np.ndarray,
-    u: np.ndarray,
-    y: np.ndarray,
-    source: str,
-    recorded_start: int | None,
-    interpretation: dict[str, Any],
-) -> MimoData:
-    """The paired vectors as the MIMO fit takes them, each channel named as the node names it."""
+def _channel_names(path: Path, values: dict[str, Any]) -> dict[str, tuple[str, ...]]:
+    """``u_names`` / ``y_names`` of a bag read as several channels, as the node names them."""
     from lenn_ros.config import side_channels
     from lenn_ros.core.fields import FieldError
 
     try:
-        u_names, y_names = side_channels(values, "u")[0], side_channels(values, "y")[0]
+        return {"u_names": tuple(side_channels(values, "u")[0]), "y_names": tuple(side_channels(values, "y")[0])}
     except FieldError as error:
         raise FitError(f"{path}: {error}") from None
-    u, y = u.reshape(len(index), -1), y.reshape(len(index), -1)
-    return MimoData(
-        u,
-        y,
-        tuple(u_names),
-        tuple(y_names),
-        source,
-        test_start=_row(index, recorded_start) if recorded_start else None,
-        index=index,
-        interpretation=interpretation,
-    )
 
 
 def _side_source(values: dict[str, Any], resolved: dict[str, str], side: str, name: str) -> str:

@@ -1,25 +1,35 @@
 """``lenn-ros fit DATA --test-from K``: build a good model of logged data, automatically.
 
-What it does, each step reported:
-1. reads u and y from a CSV file or a bag; samples 1..K-1 (1-based) build the model,
-   samples K.. only score it; gaps in a bag's record stay gaps (nothing is fitted or
-   simulated across them);
-2. takes offsets and scale factors from the training samples (with a margin);
-3. selects the family (polynomial, hinge, increment: :mod:`lenn_ros.fit.families`),
-   the lags and the terms by orthogonal forward regression, judging every candidate by
-   the free runs of blocks of the training samples, each simulated by the weights of
-   the other blocks, and rejecting those that run away, leave the range or do worse than
-   the mean anywhere (:mod:`lenn_ros.fit.selection`);
-4. refines the weights of the best few candidates on simulation error, as many
-   iterations as the blocks vouch for, zero included (:mod:`lenn_ros.fit.refinement`),
+One procedure for any number of inputs and outputs (a single channel is the 1 x 1 case),
+each step reported:
+1. reads u and y from a CSV file (one ``--u`` / ``--y`` column each, or several) or a
+   bag; samples 1..K-1 (1-based) build the model, samples K.. only score it; gaps in a
+   bag's record stay gaps (nothing is fitted or simulated across them);
+2. takes offsets and scale factors of every channel from the training samples (with a
+   margin: :func:`lenn_ros.core.scaling.ranges`);
+3. for each output, selects the family (polynomial, hinge, rff, increment:
+   :mod:`lenn_ros.fit.families`), the lags and the terms over that output's *view*:
+   its own past and every input (:class:`~lenn_ros.fit.selection.Layout`). Orthogonal
+   forward regression ranks the terms; every candidate is judged by the free runs of
+   blocks of the training samples, each simulated by the weights of the other blocks,
+   and rejected when it runs away, leaves the range or does worse than the mean anywhere
+   (:mod:`lenn_ros.fit.selection`). An output's model reads the inputs and its own past
+   only, never another output's, so the block free runs that choose it are exactly how
+   it runs inside the several-output model's free run;
+4. refines the weights of each output's best few candidates on simulation error, as
+   many iterations as the blocks vouch for, zero included (:mod:`lenn_ros.fit.refinement`),
    and keeps the best; the weights delivered are those of all training samples;
 5. scores the frozen model on the test samples: one-step and free run (the free run
    starts from the measured outputs just before sample K, as a live switch from
-   series-parallel to parallel would), counting clipped inputs and flagging divergence;
-6. with ``-o DIR`` writes ``params.yaml`` and ``weights.npz`` from which the
-   identifier node starts and keeps adapting live (RLS with forgetting).
+   series-parallel to parallel would; several outputs run together), counting clipped
+   inputs and flagging divergence;
+6. with ``-o DIR`` writes ``params.yaml`` and ``weights.npz`` from which the identifier
+   node starts and keeps adapting live (RLS with forgetting): one channel each side as
+   the node's single-channel parameters, several as its several-channel ones, with each
+   output's selected terms (``y1: u0_2*y1_1``).
 
-Several ``--u`` / ``--y`` columns, or a vector bag, go to :mod:`lenn_ros.fit.mimo` (the command line decides).
+``--network mlp`` and ``--solver sgd`` train one input's and one output's selected
+structure by epochs instead (:func:`fit_mlp`, :func:`fit_lenn_sgd`).
 """
 
 from __future__ import annotations
@@ -29,33 +39,40 @@ import dataclasses
 import itertools
 import json
 import math
+import os
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import yaml
 
+from lenn_ros import topics
 from lenn_ros.bag.csv_import import is_number
 from lenn_ros.core.evaluation import free_run_problems, free_run_segments
 from lenn_ros.core.metrics import band_half_width, coverage, nmse_db, rmse
+from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.networks import FunctionalLinkNetwork
-from lenn_ros.core.scaling import Scaling
+from lenn_ros.core.scaling import DEFAULT_MARGIN, ranges
 from lenn_ros.core.structure import Identifier
 from lenn_ros.fit.data import REPORT_FILE, Data, FitError
-from lenn_ros.fit.families import INCREMENT_LAGS, pass_through_weights
+from lenn_ros.fit.families import INCREMENT_LAGS, candidate_specs, pass_through_weights
 from lenn_ros.fit.refinement import cross_validated_refinement
 from lenn_ros.fit.selection import (
     NONLINEAR_GAIN,
     PARSIMONY,
     Candidate,
+    Layout,
     Record,
     TermModel,
     fold_blocks,
+    joint_block_score,
     loosen,
     order_candidates,
     out_of_fold_residuals,
     select_structure,
+    siso_view,
 )
 
 #: share of the training samples the epochs of an MLP / SGD fit are early-stopped on
@@ -67,20 +84,38 @@ RLS_RIDGE = 1e-7
 
 
 def load_data(
-    path: str | Path, u_column: str | None = None, y_column: str | None = None, flags: dict[str, Any] | None = None
-) -> Data | Any:
-    """u and y from a bag (directory or .mcap: :mod:`lenn_ros.fit.bag`) or a CSV file (columns by name or index).
+    path: str | Path,
+    u_columns: str | list[str] | None = None,
+    y_columns: str | list[str] | None = None,
+    flags: dict[str, Any] | None = None,
+) -> Data:
+    """u and y from a bag (directory or .mcap) or a CSV file (columns by name or index), any number of each.
 
-    A bag whose identifier read several channels gives a :class:`~lenn_ros.fit.mimo.MimoData`.
+    A bag the identifier was recorded beside (its ``identifier_config``), or whose topics the
+    flags name, is paired by the node's session (:func:`lenn_ros.fit.bag.load_bag`: ``--u`` /
+    ``--y`` are topics); an ``import-csv`` bag of Float64MultiArray samples (no configuration)
+    is read by message order, ``--u`` / ``--y`` picking its channels by label.
     """
     path = Path(path)
+    u_columns, y_columns = columns(u_columns), columns(y_columns)
     if not path.exists():
         raise FitError(f"{path} does not exist (expected a CSV file or a bag directory)")
     if path.is_dir() or path.suffix == ".mcap":
+        flags = {**(flags or {}), "u": u_columns or None, "y": y_columns or None}
+        if is_vector_bag(path) and not _configured(path, flags):
+            return _load_vector_bag(path, u_columns, y_columns)
         from lenn_ros.fit.bag import load_bag
 
-        return load_bag(path, {**(flags or {}), "u": u_column, "y": y_column})
-    return _load_csv(path, u_column, y_column)
+        return load_bag(path, {key: value[0] if isinstance(value, list) and len(value) == 1 else value
+                               for key, value in flags.items()})  # fmt: skip
+    return _load_csv(path, u_columns, y_columns)
+
+
+def _configured(path: Path, flags: dict[str, Any]) -> bool:
+    """Whether a bag is read by the node's session: an identifier_config, or bag flags that say how."""
+    from lenn_ros.fit.bag import has_identifier_config
+
+    return has_identifier_config(path) or any(value for key, value in flags.items() if key not in ("u", "y"))
 
 
 def read_csv_rows(path: Path) -> tuple[list[str] | None, list[list[str]], int]:
@@ -93,26 +128,34 @@ def read_csv_rows(path: Path) -> tuple[list[str] | None, list[list[str]], int]:
     return header, rows[1:] if header else rows, len(rows[0])
 
 
-def _load_csv(path: Path, u_column: str | None, y_column: str | None) -> Data:
+def _load_csv(path: Path, u_columns: list[str], y_columns: list[str]) -> Data:
     header, body, width = read_csv_rows(path)
-    if u_column is None or y_column is None:
+    if not u_columns or not y_columns:
         if header and "u" in header and "y" in header:
-            u_column, y_column = u_column or "u", y_column or "y"
+            u_columns, y_columns = u_columns or ["u"], y_columns or ["y"]
         elif width == 2:
-            u_column, y_column = u_column or "0", y_column or "1"
+            u_columns, y_columns = u_columns or ["0"], y_columns or ["1"]
         else:
             shown = ", ".join(header) if header else f"{width} unnamed columns"
             raise FitError(f"{path} has columns {shown}: pass --u COL --y COL (name or 0-based index)")
-    iu, iy = _column(header, u_column, width, path), _column(header, y_column, width, path)
-    u, y = np.empty(len(body)), np.empty(len(body))
+    wanted = [*u_columns, *y_columns]
+    indices = [_column(header, column, width, path) for column in wanted]
+    values = np.empty((len(body), len(indices)))
     for n, row in enumerate(body):
         try:
-            u[n], y[n] = float(row[iu]), float(row[iy])
+            values[n] = [float(row[i]) for i in indices]
         except (ValueError, IndexError):
             line = n + (2 if header else 1)
-            raise FitError(f"{path}, line {line}: not a number in column {u_column} or {y_column}: {row}") from None
-    names = (header[iu], header[iy]) if header else (str(iu), str(iy))
-    return Data(u, y, f"CSV {path}: u = column {names[0]}, y = column {names[1]}")
+            shown = " or ".join(wanted) if len(wanted) == 2 else ", ".join(wanted)
+            raise FitError(f"{path}, line {line}: not a number in column {shown}: {row}") from None
+    names = tuple(header[i] if header else str(i) for i in indices)
+    split = len(u_columns)
+    u_names, y_names = names[:split], names[split:]
+    plural = "s" if len(wanted) > 2 else ""
+    source = f"CSV {path}: u = column{plural} {', '.join(u_names)}, y = column{plural} {', '.join(y_names)}"
+    u, y = values[:, :split], values[:, split:]
+    return Data(u[:, 0] if split == 1 else u, y[:, 0] if len(y_names) == 1 else y, source, u_names=u_names,
+                y_names=y_names)  # fmt: skip
 
 
 def _column(header: list[str] | None, column: str, width: int, path: Path) -> int:
@@ -122,6 +165,27 @@ def _column(header: list[str] | None, column: str, width: int, path: Path) -> in
         return int(column)
     shown = ", ".join(header) if header else f"indices 0..{width - 1}"
     raise FitError(f"{path}: no column {column!r}; columns are {shown}")
+
+
+def _load_vector_bag(path: Path, u_columns: list[str], y_columns: list[str]) -> Data:
+    """An ``import-csv`` bag of labelled Float64MultiArray samples, its channels picked by label or index."""
+    from lenn_ros.bag.vectors import read_vector_run
+
+    run = read_vector_run(path)
+    iu = [_channel(run.u_names, c, path, "u") for c in u_columns] or list(range(len(run.u_names)))
+    iy = [_channel(run.y_names, c, path, "y_p") for c in y_columns] or list(range(len(run.y_names)))
+    u_names, y_names = tuple(run.u_names[i] for i in iu), tuple(run.y_names[i] for i in iy)
+    source = f"bag {path}: u = {', '.join(u_names)}; y_p = {', '.join(y_names)}"
+    return Data(run.u[:, iu], run.y[:, iy], source, test_start=run.test_start, u_names=u_names, y_names=y_names)
+
+
+def _channel(names: tuple[str, ...], column: str, path: Path, topic: str) -> int:
+    """A bag channel by its label or 0-based index, as a CSV column is found."""
+    if column in names:
+        return names.index(column)
+    if column.isdigit() and int(column) < len(names):
+        return int(column)
+    raise FitError(f"{path}: no {topic} channel {column!r}; channels are {', '.join(names)}")
 
 
 def check_split(n: int, test_from: int) -> int:
@@ -143,41 +207,36 @@ def live_forgetting(n_train: int) -> float:
     return 1.0 - 1.0 / min(max(n_train, 1000), 10_000)
 
 
-def build_identifier(model: TermModel, record: Record, forgetting: float) -> Identifier:
-    """The fitted model as the package's :class:`Identifier` (what the node runs), RLS-ready.
+def rls_covariance(features: np.ndarray, forgetting: float) -> np.ndarray:
+    """The RLS covariance as if live adaptation had seen ``features``, scaled to the forgetting's memory.
 
-    The RLS covariance is the least-squares one of the training features, scaled to the
-    forgetting factor's memory: live adaptation starts as if it had seen the training data.
     A ridge of RLS_RIDGE times the largest eigenvalue of the features' Gram matrix bounds
     its condition number to 1 / RLS_RIDGE: lagged outputs are nearly collinear, and the
     robot arm's 29 terms gave a condition number of 7e10, at which the conventional RLS
     update loses positive definiteness by round-off (it stopped learning at its 97th sample).
     """
-    factors = model.factors if len(model.factors) else None
-    network = FunctionalLinkNetwork(
-        n_inputs=model.y_lags + model.u_lags,
-        exponents=model.exponents.tolist(),
-        factors=None if factors is None else factors.tolist(),
-        order=max(1, int(model.exponents.max(initial=1))),
-        basis=model.basis,
-        output="linear",
-        solver="rls",
-        forgetting=forgetting,
-        init_scale=0.0,
-    )
-    network._initialise()
-    network.weights_ = np.array(model.weights, dtype=np.float64)
-    features, _ = model.regression(record.u, record.y)
-    network.covariance_ = rls_covariance(features[record.valid_rows(model.warm_up)], forgetting)
-    return Identifier(model.structure, network, learning=False)
-
-
-def rls_covariance(features: np.ndarray, forgetting: float) -> np.ndarray:
-    """The RLS covariance as if live adaptation had seen ``features`` (see :func:`build_identifier`)."""
     gram = features.T @ features
     gram += max(RLS_RIDGE * float(np.linalg.eigvalsh(gram)[-1]), 1e-9) * np.eye(features.shape[1])
     memory = len(features) if forgetting >= 1.0 else min(len(features), 1.0 / (1.0 - forgetting))
     return np.linalg.inv(gram) * (len(features) / memory)
+
+
+@dataclass
+class OutputFit:
+    """What the selection made of one output: its view of the training samples, candidates and choice."""
+
+    name: str
+    record: Record
+    layout: Layout
+    candidates: list[Candidate]
+    chosen: Candidate
+    refinement: dict[str, Any]
+    warnings: list[str] = field(default_factory=list)
+    columns: list[int] = field(default_factory=list)  # the view's columns in [y_0.., u_0..]
+
+    @property
+    def model(self) -> TermModel:
+        return self.chosen.model
 
 
 def fit(
@@ -189,14 +248,14 @@ def fit(
     solver: str = "ls",
     progress: Any = None,
 ) -> dict[str, Any]:
-    """The whole procedure; returns the report (also what ``--json`` prints) and the identifier.
+    """The whole procedure; returns the report (also what ``--json`` prints), the identifier and the models.
 
-    The structure is chosen on blocks of the training samples (each simulated by the
-    weights of the others), the weights delivered are those of all training samples,
+    Each output's structure is chosen on blocks of the training samples (each simulated by
+    the weights of the others), the weights delivered are those of all training samples,
     refined on simulation error as many times as the blocks vouch for
     (:func:`~lenn_ros.fit.refinement.cross_validated_refinement`). ``solver="sgd"``
     trains the selected terms by SGD epochs instead (:func:`fit_lenn_sgd`), for a node
-    that will learn by SGD; ``network="mlp"`` an MLP on the selected lags.
+    that will learn by SGD; ``network="mlp"`` an MLP on the selected lags (one input, one output).
     """
     from threadpoolctl import threadpool_limits
 
@@ -209,78 +268,231 @@ def fit(
 def _fit(data: Data, test_from: int, refine: bool, network: str, solver: str, progress: Any) -> dict[str, Any]:
     began = time.perf_counter()
     say = progress or (lambda text: None)
-    u, y = data.u, data.y
+    u, y = data.matrices()
     if not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
-        bad = int(np.count_nonzero(~(np.isfinite(u) & np.isfinite(y))))
+        bad = int(np.count_nonzero(~(np.isfinite(u).all(axis=1) & np.isfinite(y).all(axis=1))))
         raise FitError(f"{bad} samples hold NaN/inf: remove or interpolate them before fitting")
+    single = data.n_u == 1 and data.n_y == 1
+    if not single and (network != "lenn" or solver != "ls"):
+        raise FitError(
+            f"{data.n_u} inputs and {data.n_y} outputs: only the LeNN by least squares is fitted for several "
+            "channels (drop --network/--solver)"
+        )
     start = check_split(len(y), test_from)
-    u_train, y_train = u[:start], y[:start]
     breaks = [b for b in data.breaks if 0 < b < start]
     try:
-        scaling = Scaling.from_training(u_train, y_train)
+        u_offsets, u_scales = ranges(u[:start], data.u_names)
+        y_offsets, y_scales = ranges(y[:start], data.y_names)
     except ValueError as error:
         raise FitError(str(error)) from None
-    record = Record.of(u_train, y_train, breaks)
     blocks = fold_blocks(start, 1)
     say(
         f"selecting a structure on samples 1..{start}: {len(blocks)} blocks, each simulated by the weights "
         f"of the others{f', {len(breaks)} gaps in the record' if breaks else ''}"
     )
-    candidates, selection_warnings = _select(record, scaling, say)
-    chosen = candidates[0]
-    refinement: dict[str, Any] = {"done": False}
-    if refine and solver == "ls" and network == "lenn":
-        chosen, refinement = _refine_best(candidates, record, say)
-    final = chosen.model
+    outputs, coupling = _fit_outputs(data, u[:start], y[:start], breaks, (y_offsets, y_scales, u_offsets, u_scales),
+                                     refine and solver == "ls" and network == "lenn", say)  # fmt: skip
     forgetting = live_forgetting(start)
-    identifier = build_identifier(final, record, forgetting)
-    described = describe_model(final, chosen, forgetting)
+    if single:
+        identifier, described = _single(outputs[0], u[:start, 0], y[:start, 0], network, solver, forgetting, say)
+        models = [outputs[0].model]
+    else:
+        identifier = build_mimo_identifier(outputs, data, forgetting)
+        models = common_lags([fitted.model for fitted in outputs])
+        described = None
+    scored = score(identifier, data, start, models, [fitted.columns for fitted in outputs])
+    report: dict[str, Any] = {"data": data.source, "test_from": test_from, "train_samples": start}
+    held_out = network == "lenn" and solver == "ls"
+    parts = []
+    for j, fitted in enumerate(outputs):
+        part = scored["per_output"][j]
+        part["warnings"] = fitted.warnings + part["warnings"]
+        part["intervals"] = fit_intervals(part, identifier if single else None, fitted, held_out)
+        part["model"] = described if single else describe_model(fitted.model, fitted.chosen, forgetting)
+        part["choices"] = _choices(fitted, len(blocks), len(breaks))
+        parts.append(part)
+    report.update(_joined(parts, scored, data, models, forgetting))
+    if coupling:
+        report["model"]["coupling"] = coupling
+    report["seconds"] = round(time.perf_counter() - began, 2)
+    return {"report": report, "identifier": identifier, "model": models[0] if single else None, "models": models,
+            "outputs": outputs}  # fmt: skip
+
+
+def _joined(
+    parts: list[dict[str, Any]], scored: dict[str, Any], data: Data, models: list[TermModel], forgetting: float
+) -> dict[str, Any]:
+    """The report's figures: one output's at the top level, several outputs' each in ``per_output``."""
+    if len(parts) == 1 and data.n_u == 1:
+        return {**{k: v for k, v in parts[0].items() if k != "name"}, "free_run": scored["free_run"]}
+    for part in parts:
+        for key in ("y_test", "y_hat_test", "y_free_test"):
+            part.pop(key)
+    return {
+        "samples": parts[0]["samples"],
+        "inputs": list(data.u_names),
+        "outputs": list(data.y_names),
+        "model": describe_mimo(models, forgetting),
+        "per_output": parts,
+        "free_run": scored["free_run"],
+        "warnings": [f"{p['name']}: {text}" for p in parts for text in p.pop("warnings")],
+        **{key: scored[key] for key in ("y_test", "y_hat_test", "y_free_test")},
+    }
+
+
+def _fit_outputs(
+    data: Data, u: np.ndarray, y: np.ndarray, breaks: list[int], scaling: tuple, refine: bool, say: Any
+) -> tuple[list[OutputFit], dict[str, Any]]:
+    """Each output's model, and how the outputs are coupled: (the fits, what was chosen and why).
+
+    Output j's view is its own past and every input; with several outputs, also every other
+    output's past (measured, as the node's series-parallel mode has them). Reading the other
+    outputs helps when the plant couples them (a joint's load on the next joint), and can
+    hurt in simulation, where each is fed the others' errors. So both are built and the
+    two models of all outputs are judged as they are used, by their free runs *together* on
+    the selection's blocks (:func:`~lenn_ros.fit.selection.joint_block_score`); reading the
+    other outputs must win by NONLINEAR_GAIN. With the other outputs an output's view is
+    several times wider, so it is offered the polynomial family (where a coupling such as
+    y1 / (1 + y2^2) is expressed) and the COUPLED_SPECS structures that served the output
+    best alone, not the whole grid again (which cost 1.5x the first pass on a six-joint
+    robot). The outputs are fitted side by side on the machine's cores (the kernels release
+    the GIL); what each says is printed when it is done, in order.
+    """
+    y_offsets, y_scales, u_offsets, u_scales = scaling
+    n_y, n_u = data.n_y, data.n_u
+    single = n_u == 1 and n_y == 1
+    values = np.column_stack([y, u])
+    kinds = ["own"] if n_y == 1 else ["own", "coupled"]
+    fits: dict[str, list[OutputFit]] = {}
+    for kind in kinds:
+
+        def one(j: int, kind: str = kind) -> tuple[OutputFit, list[str]]:
+            others = [k for k in range(n_y) if k != j] if kind == "coupled" else []
+            where = [j, *others, *(n_y + i for i in range(n_u))]
+            names = ("y", "u") if single else tuple(f"y{c}" if c < n_y else f"u{c - n_y}" for c in where)
+            offsets = tuple(y_offsets[c] if c < n_y else u_offsets[c - n_y] for c in where)
+            scales = tuple(y_scales[c] if c < n_y else u_scales[c - n_y] for c in where)
+            said: list[str] = []
+            if not single:
+                reads = f"the other outputs' past and the {n_u} inputs" if others else f"the {n_u} inputs"
+                said.append(f"output {data.y_names[j]} ({names[0]}): its own past and {reads}")
+            record = Record.of(values[:, where], breaks)
+            specs = None if kind == "own" else _coupled_specs(fits["own"][j], record.n, len(where))
+            layout = Layout(1, offsets, scales, names)
+            fitted = _fit_output(data.y_names[j], record, layout, refine, say if single else said.append, specs)
+            fitted.columns = where
+            return fitted, said
+
+        fits[kind] = []
+        for fitted, said in _side_by_side(one, n_y):
+            for line in said:
+                say(line)
+            fits[kind].append(fitted)
+    if n_y == 1:
+        return fits["own"], {}
+    scores = {
+        kind: joint_block_score(
+            [f.chosen for f in fits[kind]], [f.columns for f in fits[kind]], values, np.asarray(breaks)
+        )
+        for kind in kinds
+    }
+    own, coupled = scores["own"][0], scores["coupled"][0]
+    kind = "coupled" if coupled < (1.0 - NONLINEAR_GAIN) * own else "own"
+    say(f"outputs together on the blocks: mean NMSE {own:.4g} reading only their own past, {coupled:.4g} "
+        f"reading the other outputs too: {'the latter' if kind == 'coupled' else 'the former'} is used")  # fmt: skip
+    coupling = {
+        "reads_other_outputs": kind == "coupled",
+        "judged_by": "mean over outputs of the NMSE of all outputs simulated together on the blocks, each by the "
+        "weights fitted without its block; reading the other outputs must win by "
+        f"{NONLINEAR_GAIN:.0%}",
+        "nmse_blocks": {
+            k: {"mean": _finite(v[0]), "per_output": [_finite(x) for x in v[1]]} for k, v in scores.items()
+        },
+    }
+    return fits[kind], coupling
+
+
+def _coupled_specs(alone: OutputFit, n: int, columns: int) -> list:
+    """The grid of an output's view with the other outputs: the polynomial family, and the COUPLED_SPECS
+    structures that served it best alone."""
+    best = [c.spec for c in alone.candidates if c.model is not None][:COUPLED_SPECS]
+    polynomial = [spec for spec in candidate_specs(n, columns) if spec.family == "polynomial"]
+    return polynomial + [spec for spec in best if spec not in polynomial]
+
+
+def _side_by_side(work: Any, count: int) -> list:
+    """``work(j)`` for j < count on a thread per core (the selection's kernels and BLAS release the GIL), in
+    order; one runs here, on this thread."""
+    if count == 1:
+        return [work(0)]
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=max(1, min(count, os.cpu_count() or 1))) as pool:
+        return list(pool.map(work, range(count)))
+
+
+def _finite(value: float) -> float | None:
+    return float(value) if math.isfinite(value) else None
+
+
+def _fit_output(
+    name: str, record: Record, layout: Layout, refine: bool, say: Any, specs: list | None = None
+) -> OutputFit:
+    """Select (and refine) one output's model over its view of the training samples (``specs``: the grid's)."""
+    candidates, warnings = _select(record, layout, say, specs)
+    chosen, refinement = candidates[0], {"done": False}
+    if refine:
+        chosen, refinement = _refine_best(candidates, record, say)
+    return OutputFit(name, record, layout, candidates, chosen, refinement, warnings)
+
+
+def _single(
+    fitted: OutputFit, u: np.ndarray, y: np.ndarray, network: str, solver: str, forgetting: float, say: Any
+) -> tuple[Identifier, dict[str, Any]]:
+    """The identifier (and its description) of a model of one output of one input: the selected LeNN, or
+    its structure trained by epochs (``--network mlp``, ``--solver sgd``)."""
+    final, chosen, start = fitted.model, fitted.chosen, len(y)
     if network == "mlp":
         validation_start = start - max(MIN_VALIDATION, round(VALIDATION_FRACTION * start))
         say(f"training an MLP on lags {final.y_lags}/{final.u_lags} by epochs, early-stopped on the held-out tail")
-        identifier, epochs = fit_mlp(final, u_train, y_train, validation_start)
-        described = describe_mlp(identifier, epochs)
-    elif solver == "sgd":
+        identifier, epochs = fit_mlp(final, u, y, validation_start)
+        return identifier, describe_mlp(identifier, epochs)
+    if solver == "sgd":
         validation_start = start - max(MIN_VALIDATION, round(VALIDATION_FRACTION * start))
         say(f"training the {len(final.exponents)} selected terms by SGD epochs, early-stopped on the held-out tail")
-        identifier, epochs = fit_lenn_sgd(final, u_train, y_train, validation_start, chosen.spec.increment)
-        described = {**describe_model(final, chosen, forgetting), **describe_sgd(identifier, epochs)}
-    report = score(identifier, u, y, start, data.breaks)
-    report["warnings"] = selection_warnings + report["warnings"]
-    report["intervals"] = fit_intervals(report, identifier, chosen, record, network == "lenn" and solver == "ls")
-    report.update(
-        {
-            "data": data.source,
-            "test_from": test_from,
-            "train_samples": start,
-            "model": described,
-            "choices": {
-                "scaling": {
-                    "from": f"training samples 1..{start}",
-                    "margin": scaling.margin,
-                    "y_offset": scaling.y_offset,
-                    "y_scale": scaling.y_scale,
-                    "u_offset": scaling.u_offset,
-                    "u_scale": scaling.u_scale,
-                },
-                "blocks": len(blocks),
-                "gaps": len(breaks),
-                "judged_by": f"pooled free-run RMSE over {len(blocks)} blocks of the training samples, each "
-                "simulated from its measured start by the weights fitted to the other blocks; rejected: diverged, "
-                "clipped or worse than the block mean in any block, an unsound free run over the whole training "
-                "record or on its input shuffled in blocks; a nonlinear candidate must beat the best linear one by "
-                f"{NONLINEAR_GAIN:.0%}; of those within {PARSIMONY:.0%} of the lowest, the fewest terms",
-                "candidates": [c.as_dict() for c in candidates],
-                "chosen": candidates.index(chosen),
-                "refinement": refinement,
-                "time_scale": time_scale_note(chosen),
-            },
-            "seconds": round(time.perf_counter() - began, 2),
-        }
-    )
-    return {"report": report, "identifier": identifier, "model": final}
+        identifier, epochs = fit_lenn_sgd(final, u, y, validation_start, chosen.spec.increment)
+        return identifier, {**describe_model(final, chosen, forgetting), **describe_sgd(identifier, epochs)}
+    return build_identifier(final, fitted.record, forgetting), describe_model(final, chosen, forgetting)
 
 
+def _choices(fitted: OutputFit, blocks: int, gaps: int) -> dict[str, Any]:
+    """How one output's model was chosen, as the report gives it."""
+    layout = fitted.layout
+    scaling: dict[str, Any] = {"from": f"training samples 1..{fitted.record.n}", "margin": DEFAULT_MARGIN}
+    if layout.n_columns == 2:  # one output of one input: y_offset, y_scale, u_offset, u_scale
+        for name, offset, scale in zip(("y", "u"), layout.offsets, layout.scales, strict=True):
+            scaling.update({f"{name}_offset": offset, f"{name}_scale": scale})
+    else:
+        scaling["offsets"] = dict(zip(layout.names, layout.offsets, strict=True))
+        scaling["scales"] = dict(zip(layout.names, layout.scales, strict=True))
+    return {
+        "scaling": scaling,
+        "blocks": blocks,
+        "gaps": gaps,
+        "judged_by": f"pooled free-run RMSE over {blocks} blocks of the training samples, each "
+        "simulated from its measured start by the weights fitted to the other blocks; rejected: diverged, "
+        "clipped or worse than the block mean in any block, an unsound free run over the whole training "
+        "record or on its input shuffled in blocks; a nonlinear candidate must beat the best linear one by "
+        f"{NONLINEAR_GAIN:.0%}; of those within {PARSIMONY:.0%} of the lowest, the fewest terms",
+        "candidates": [c.as_dict() for c in fitted.candidates],
+        "chosen": fitted.candidates.index(fitted.chosen),
+        "refinement": fitted.refinement,
+        "time_scale": time_scale_note(fitted.chosen),
+    }
+
+
+#: structures (best first, from an output's own view) tried again reading the other outputs too
+COUPLED_SPECS = 4
 #: candidates (best first) whose weights are refined on simulation error; the best refined one is kept
 REFINED_CANDIDATES = 3
 
@@ -318,7 +530,7 @@ def time_scale_note(candidate: Candidate) -> str:
     return f"lags {spec.lags} samples at the recorded rate"
 
 
-def _select(record: Record, scaling: Scaling, say: Any) -> tuple[list[Candidate], list[str]]:
+def _select(record: Record, layout: Layout, say: Any, specs: list | None = None) -> tuple[list[Candidate], list[str]]:
     """(candidates, warnings): the strict selection, else the loose one with a warning, else FitError."""
 
     def tell(candidate: Candidate) -> None:
@@ -329,7 +541,7 @@ def _select(record: Record, scaling: Scaling, say: Any) -> tuple[list[Candidate]
         )
         say(f"  {candidate.spec.label}: {shown}")
 
-    candidates = select_structure(record.u, record.y, scaling, record.breaks, progress=tell)
+    candidates = select_structure(record, layout, specs, progress=tell)
     warnings = []
     if not any(c.model is not None for c in candidates):
         # nothing passed the strict checks: the best that merely simulates the blocks,
@@ -349,59 +561,148 @@ def _select(record: Record, scaling: Scaling, say: Any) -> tuple[list[Candidate]
     return candidates, warnings
 
 
-def score(
-    identifier: Identifier, u: np.ndarray, y: np.ndarray, start: int, breaks: list[int] | tuple[int, ...] = ()
-) -> dict[str, Any]:
-    """Test-part figures of the frozen model: one-step and free run from sample ``start``.
+# -- the model the node runs -------------------------------------------------------------------
 
-    ``breaks`` (samples that start a new run: gaps in a bag) are never crossed: the
+
+def build_identifier(model: TermModel, record: Record, forgetting: float) -> Identifier:
+    """A model of one output of one input as the package's :class:`Identifier` (what the node runs), RLS-ready.
+
+    The RLS covariance is the least-squares one of the training features, scaled to the
+    forgetting factor's memory (:func:`rls_covariance`): live adaptation starts as if it
+    had seen the training data.
+    """
+    factors = model.factors if len(model.factors) else None
+    network = FunctionalLinkNetwork(
+        n_inputs=model.layout.n_inputs,
+        exponents=model.exponents.tolist(),
+        factors=None if factors is None else factors.tolist(),
+        order=max(1, int(model.exponents.max(initial=1))),
+        basis=model.basis,
+        output="linear",
+        solver="rls",
+        forgetting=forgetting,
+        init_scale=0.0,
+    )
+    network._initialise()
+    network.weights_ = np.array(model.weights, dtype=np.float64)
+    features, _ = model.regression(record.values)
+    network.covariance_ = rls_covariance(features[record.valid_rows(model.warm_up)], forgetting)
+    return Identifier(model.structure, network, learning=False)
+
+
+def common_lags(models: list[TermModel]) -> list[TermModel]:
+    """Every output's model as the node's several-channel mode runs it: over the longest lags any of them chose
+    (its one ``y_lags``/``u_lags``: the same terms and weights over a wider regressor), with a bias term
+    (appended with weight 0 where the selection kept none: the node's output offset is taken off it)."""
+    lags = max(model.layout.lags for model in models)
+    wide = []
+    for model in models:
+        model = model.with_lags(lags)
+        if not len(_bias_rows(model)):
+            factors = np.vstack([model.factors, np.zeros(model.factors.shape[1])]) if len(model.factors) else None
+            bias = np.zeros((1, model.layout.n_inputs), dtype=np.int64)
+            exponents, weights = np.vstack([model.exponents, bias]), np.append(model.weights, 0.0)
+            model = TermModel(model.layout, exponents, model.basis, weights, factors)
+        wide.append(model)
+    return wide
+
+
+def _bias_rows(model: TermModel) -> np.ndarray:
+    """Indices of the model's constant terms (no exponent, no factor)."""
+    plain = model.factors[:, 0] == 0 if len(model.factors) else np.ones(len(model.exponents), dtype=bool)
+    return np.flatnonzero(~model.exponents.any(axis=1) & plain)
+
+
+def build_mimo_identifier(outputs: list[OutputFit], data: Data, forgetting: float) -> MimoIdentifier:
+    """Several outputs as the node builds them from the params file ``fit -o`` writes, weights installed.
+
+    Built by :func:`lenn_ros.config.build_identifier` from :func:`mimo_values`, so the
+    model scored here is the node's by construction. The node's networks learn each output
+    less its offset (:meth:`~lenn_ros.core.mimo.MimoStructure.channel`), so the offset comes
+    off the bias weight; each output's RLS covariance is that of its training features
+    (:func:`rls_covariance`).
+    """
+    from lenn_ros import config
+
+    models = common_lags([fitted.model for fitted in outputs])
+    values = {**_vector_reading(data), **mimo_values(models, data, forgetting)}
+    resolved, network = config.resolve(values)
+    identifier = config.build_identifier({**values, **resolved}, network)
+    for network_j, model, fitted in zip(identifier.models, models, outputs, strict=True):
+        network_j._initialise()
+        weights = np.array(model.weights, dtype=np.float64)
+        weights[_bias_rows(model)[0]] -= model.layout.y_offset
+        network_j.weights_ = weights
+        features, _ = model.regression(fitted.record.values)
+        network_j.covariance_ = rls_covariance(features[fitted.record.valid_rows(model.warm_up)], forgetting)
+    identifier.learning = False
+    return identifier
+
+
+def score(
+    identifier: Identifier | MimoIdentifier, data: Data, start: int, models: list[TermModel], columns: list[list[int]]
+) -> dict[str, Any]:
+    """Test-part figures of the frozen model, per output: one-step and free run from sample ``start``.
+
+    ``data.breaks`` (samples that start a new run: gaps in a bag) are never crossed: the
     one-step pass and the free run restart from the measured outputs after each
     (:func:`~lenn_ros.core.evaluation.free_run_segments`, as ``evaluate`` does); the samples
-    that seed them are not scored.
+    that seed them are not scored. Several outputs run their free run together, each fed the
+    model's outputs. ``models``: each output's terms as the identifier runs them, over the
+    ``columns`` of [y, u] of its view (clipped inputs and the training range are counted there).
     """
-    cuts = sorted(int(b) for b in breaks if 0 < b < len(y))
-    y_hat = np.full(len(y), np.nan)
+    u, y = data.matrices()
+    single = isinstance(identifier, Identifier)
+    run_u, run_y = (u[:, 0], y[:, 0]) if single else (u, y)
+    cuts = sorted(int(b) for b in data.breaks if 0 < b < len(y))
+    y_hat = np.full(y.shape, np.nan)
     window = identifier.structure.warm_up
     for a, b in itertools.pairwise([0, *cuts, len(y)]):
         if b - a > window:
-            y_hat[a:b] = identifier.run(u[a:b], y[a:b], learn=False)
-    first = start - window  # the regressors that predict samples start..N-1
-    x_test, _ = identifier.structure.regressors(u[first:], y[first:])
-    test_clipped = int(np.count_nonzero(np.abs(x_test[:-1]) > 1.0))
-    if cuts:
-        index = np.arange(len(y)) + np.searchsorted(cuts, np.arange(len(y)), side="right")  # one lost per break
-        y_free, info = free_run_segments(identifier, index, u, y, start)
-    else:
-        y_free, info = identifier.free_run(u, y, start), identifier.last_free_run
-    y_test = y[start:]
-    simulated = np.isfinite(y_free)
-    healthy = not info["diverged"] and bool(simulated.any())
-    predicted = np.isfinite(y_hat[start:])
-    structure = identifier.structure
-    outside = Scaling(structure.y_offset, structure.y_scale, structure.u_offset, structure.u_scale).outside(
-        u[start:], y_test
-    )
-    return {
-        "samples": len(y_test),
-        "rmse": rmse(y_test[predicted], y_hat[start:][predicted]),
-        "nmse_db": nmse_db(y_test[predicted], y_hat[start:][predicted]),
-        "rmse_free_run": rmse(y_test[simulated], y_free[simulated]) if healthy else math.nan,
-        "nmse_free_run_db": nmse_db(y_test[simulated], y_free[simulated]) if healthy else math.nan,
-        "free_run": {**info, "starts_from": f"measured outputs before sample {start + 1}"},
-        "clipped_inputs_one_step": test_clipped,
-        "test_samples_outside_training_range": outside,
-        "warnings": free_run_problems(y_test[simulated], y_free[simulated], info),
-        "y_test": y_test,
-        "y_hat_test": y_hat[start:],
-        "y_free_test": y_free,
-        "y_hat_train": y_hat[:start],
-    }
+            y_hat[a:b] = identifier.run(run_u[a:b], run_y[a:b], learn=False).reshape(b - a, -1)
+    index = np.arange(len(y)) + np.searchsorted(cuts, np.arange(len(y)), side="right")  # one lost per break
+    y_free, info = free_run_segments(identifier, index, run_u, run_y, start)
+    y_free = y_free.reshape(len(y) - start, -1)
+    info = {**info, "starts_from": f"measured outputs before sample {start + 1}"}
+    healthy = not info["diverged"]
+    per_output = []
+    values = np.column_stack([y, u])
+    for j, (name, model) in enumerate(zip(data.y_names, models, strict=True)):
+        y_test, free, one_step = y[start:, j], y_free[:, j], y_hat[start:, j]
+        simulated, predicted = np.isfinite(free), np.isfinite(one_step)
+        ok = healthy and bool(simulated.any())
+        view = values[:, columns[j]]
+        x_test, _ = model.layout.regressors(view[start - model.warm_up :])
+        scaled = (view[start:] - np.asarray(model.layout.offsets)) / np.asarray(model.layout.scales)
+        per_output.append(
+            {
+                "name": name,
+                "samples": len(y_test),
+                "rmse": rmse(y_test[predicted], one_step[predicted]),
+                "nmse_db": nmse_db(y_test[predicted], one_step[predicted]),
+                "rmse_free_run": rmse(y_test[simulated], free[simulated]) if ok else math.nan,
+                "nmse_free_run_db": nmse_db(y_test[simulated], free[simulated]) if ok else math.nan,
+                "free_run": info,
+                "clipped_inputs_one_step": int(np.count_nonzero(np.abs(x_test) > 1.0)),
+                "test_samples_outside_training_range": {
+                    "u": int(np.count_nonzero(np.abs(scaled[:, 1:]) > 1.0)),
+                    "y": int(np.count_nonzero(np.abs(scaled[:, 0]) > 1.0)),
+                },
+                "warnings": free_run_problems(y_test[simulated], free[simulated], info),
+                "y_test": y_test,
+                "y_hat_test": one_step,
+                "y_free_test": free,
+                "y_hat_train": y_hat[:start, j],
+            }
+        )
+    return {"per_output": per_output, "free_run": info, "y_test": y[start:], "y_hat_test": y_hat[start:],
+            "y_free_test": y_free}  # fmt: skip
 
 
 def fit_intervals(
-    report: dict[str, Any], identifier: Identifier, chosen: Candidate, record: Record, held_out: bool
+    report: dict[str, Any], identifier: Identifier | None, fitted: OutputFit, held_out: bool
 ) -> dict[str, Any]:
-    """Nominal 95 % bands, one step ahead and in free run, and how much of the test part they cover.
+    """Nominal 95 % bands of one output, one step ahead and in free run, and how much of the test part they cover.
 
     Both from errors on samples the model was not fitted to: the blocks the structure
     was chosen by, each run by the weights fitted without it (``held_out``), one step
@@ -410,15 +711,16 @@ def fit_intervals(
     half-width is the 95 % quantile of |e|, not 1.96 sigma: free-run errors drift and
     have heavy tails. The one-step std is also the noise the twin node may add.
     """
+    record = fitted.record
     y_train = record.y
     if held_out:
-        one_step = out_of_fold_residuals(chosen, record, one_step=True)
-        free = out_of_fold_residuals(chosen, record)
+        one_step = out_of_fold_residuals(fitted.chosen, record, one_step=True)
+        free = out_of_fold_residuals(fitted.chosen, record)
         source = "the selection's blocks, each run by the weights fitted without it"
     else:
         warm = identifier.structure.warm_up
         one_step = report["y_hat_train"][warm:] - y_train[warm:]
-        free = identifier.free_run(record.u, y_train, warm) - y_train[warm:]
+        free = identifier.free_run(record.values[:, 1], y_train, warm) - y_train[warm:]
         source = "the delivered model over the training record (in-sample: optimistic)"
     report.pop("y_hat_train")
     one_step = one_step[np.isfinite(one_step)]
@@ -442,13 +744,14 @@ def fit_intervals(
 
 def describe_model(model: TermModel, chosen: Candidate, forgetting: float) -> dict[str, Any]:
     refined = (chosen.refinement or {}).get("iterations", 0)
+    names = model.layout.names
     return {
         "network": "lenn",
         "family": chosen.spec.family,
         "structure": {
             "y_lags": model.y_lags,
             "u_lags": model.u_lags,
-            "predicts": "y(k) from y(k-1..), u(k-1..)",
+            "predicts": f"{names[0]}(k) from {', '.join(f'{name}(k-1..)' for name in names)}",
             "form": chosen.spec.as_dict()["form"],
         },
         "expansion": {
@@ -467,6 +770,28 @@ def describe_model(model: TermModel, chosen: Candidate, forgetting: float) -> di
     }
 
 
+def describe_mimo(models: list[TermModel], forgetting: float) -> dict[str, Any]:
+    """The several-output model as a whole; each output's own is in its ``per_output`` entry."""
+    lags = max(model.layout.lags for model in models)
+    return {
+        "network": "lenn",
+        "outputs": len(models),
+        "y_lags": lags,
+        "u_lags": lags,
+        "couplings": _couplings(models),
+        "predicts": "each output from its own past, every input and, where coupled, the other outputs' past "
+        "(its own terms: per_output)",
+        "n_terms": [len(model.exponents) for model in models],
+        "solver": "least squares on all training samples, refined on free-run error as the blocks vouch for; RLS live",
+        "live": {"solver": "rls", "forgetting": forgetting},
+    }
+
+
+def _couplings(models: list[TermModel]) -> str:
+    """The node's ``couplings``: output j reads its own past and every input (the columns of its view)."""
+    return "; ".join(" ".join(model.layout.names) for model in models)
+
+
 #: MLP learning rate on the normalised target (y - offset) / scale; divided by scale^2 for y itself
 MLP_ALPHA = 0.03
 MLP_HIDDEN = [20, 10]
@@ -481,7 +806,7 @@ def fit_mlp(selected: TermModel, u: np.ndarray, y: np.ndarray, validation_start:
     from lenn_ros.core.networks import MLP
     from lenn_ros.fit.training import train_epochs
 
-    s = selected.scaling
+    s = selected.layout
     structure = dataclasses.replace(selected.structure, output_offset=s.y_offset)
     network = MLP(
         n_inputs=structure.n_inputs,
@@ -516,9 +841,9 @@ def fit_lenn_sgd(selected: TermModel, u: np.ndarray, y: np.ndarray, validation_s
     """
     from lenn_ros.fit.training import train_epochs
 
-    s = selected.scaling
+    s = selected.layout
     structure = dataclasses.replace(selected.structure, output_offset=s.y_offset)
-    features, _ = selected.regression(u[:validation_start], y[:validation_start])
+    features, _ = selected.regression(siso_view(u[:validation_start], y[:validation_start]))
     largest = float(np.max(np.einsum("ij,ij->i", features, features), initial=1.0))
     network = FunctionalLinkNetwork(
         n_inputs=structure.n_inputs,
@@ -566,7 +891,7 @@ def describe_mlp(identifier: Identifier, epochs: Any) -> dict[str, Any]:
 def params_values(identifier: Identifier, model: TermModel, forgetting: float, u: np.ndarray, y: np.ndarray):
     """``ros__parameters`` for the identifier node (and ``evaluate --params``)."""
     s = identifier.structure
-    limit = float(10.0 ** math.ceil(math.log10(max(1e3, 10.0 * float(max(np.abs(u).max(), np.abs(y).max()))))))
+    limit = _limit(u, y)
     if identifier.model._kind == "mlp":
         m = identifier.model
         return {
@@ -624,18 +949,65 @@ def _learning_values(identifier: Identifier, forgetting: float) -> dict[str, Any
     return {"solver": "rls", "forgetting": float(forgetting)}
 
 
-def write_outputs(
-    directory: str | Path,
-    result: dict[str, Any],
-    u: np.ndarray,
-    y: np.ndarray,
-    interpretation: dict[str, Any] | None = None,
-) -> dict[str, str]:
-    """``DIR/params.yaml`` (key ``/**``: any node name or namespace) and ``DIR/weights.npz``.
+def mimo_values(models: list[TermModel], data: Data, forgetting: float) -> dict[str, Any]:
+    """The node's several-channel model parameters of ``models`` (each output's terms over the common lags).
 
-    ``interpretation``: the node values that say how its topics become samples (a
-    bag's types, fields, pairing, sample period: :mod:`lenn_ros.fit.bag`), so the node
-    started from the file reads the topics the model was fitted on, the same way.
+    Each output reads its own past and every input (``couplings``); its terms are
+    written ``y1: u0_2*y1_1`` (:func:`lenn_ros.config.mimo_terms` reads them back).
+    """
+    u, y = data.matrices()
+    limit = _limit(u, y)
+    lags, first = models[0].layout.lags, models[0].layout
+    inputs = [first.names.index(f"u{i}") for i in range(data.n_u)]
+    u_offsets, u_scales = [first.offsets[c] for c in inputs], [first.scales[c] for c in inputs]
+    return {
+        "example": 0,
+        "network": "lenn",
+        "couplings": _couplings(models),
+        "y_lags": lags,
+        "u_lags": lags,
+        "u_scales": [float(v) for v in u_scales],
+        "u_offsets": [float(v) for v in u_offsets],
+        "y_scales": [float(model.layout.y_scale) for model in models],
+        "y_offsets": [float(model.layout.y_offset) for model in models],
+        "order": max(1, *(int(model.exponents.max(initial=1)) for model in models)),
+        "basis": models[0].basis,
+        "cross_degree": 0,
+        "terms": [f"y{j}: {term}" for j, model in enumerate(models) for term in model.terms],
+        "output": "linear",
+        "output_scale": 1.0,
+        "solver": "rls",
+        "forgetting": float(forgetting),
+        "u_limit": limit,
+        "y_limit": limit,
+    }
+
+
+def _limit(u: np.ndarray, y: np.ndarray) -> float:
+    """``u_limit`` / ``y_limit``: a power of ten well above anything the record holds (absurd values beyond)."""
+    return float(10.0 ** math.ceil(math.log10(max(1e3, 10.0 * float(max(np.abs(u).max(), np.abs(y).max()))))))
+
+
+def _vector_reading(data: Data) -> dict[str, Any]:
+    """How the node reads several channels: the bag's own interpretation, else u and y_p as Float64MultiArray
+    samples, channels in the order of u_names / y_names (a CSV, an ``import-csv`` bag)."""
+    return data.interpretation or {
+        "u_type": topics.FLOAT64_ARRAY,
+        "y_type": topics.FLOAT64_ARRAY,
+        "u_field": "data[*]",
+        "y_field": "data[*]",
+        "u_names": list(data.u_names),
+        "y_names": list(data.y_names),
+    }
+
+
+def write_outputs(directory: str | Path, result: dict[str, Any], data: Data) -> dict[str, str]:
+    """``DIR/params.yaml`` (key ``/**``: any node name or namespace), ``DIR/weights.npz`` and ``DIR/fit.json``.
+
+    The params file holds how the node reads its topics (a bag's types, fields, pairing,
+    sample period: :mod:`lenn_ros.fit.bag`; for several channels of a CSV, Float64MultiArray
+    samples), so the node started from it reads the topics the model was fitted on, the
+    same way, and the model's parameters.
 
     ``weights_in`` in the params file is the absolute path of the weights: the node
     opens a relative path from its own working directory (it cannot know where the
@@ -644,18 +1016,26 @@ def write_outputs(
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    identifier, model = result["identifier"], result["model"]
-    forgetting = result["report"]["model"]["live"].get("forgetting", 1.0)
+    report, identifier = result["report"], result["identifier"]
     weights = directory / "weights.npz"
-    identifier.model.save(weights)
-    values = {
-        **(interpretation or {}),
-        **params_values(identifier, model, forgetting, u, y),
-        "weights_in": str(weights.resolve()),
-    }
-    note = "starts from weights_in below;\n# move the directory and weights_in must follow: it is absolute"
-    params = write_params(directory, result["report"], values, note)
-    return {"params": str(params), "weights": str(weights), "report": str(write_report(directory, result["report"]))}
+    train = report["train_samples"]
+    u, y = data.matrices()
+    if isinstance(identifier, MimoIdentifier):
+        identifier.save_state(weights)
+        forgetting = report["model"]["live"]["forgetting"]
+        values = {**_vector_reading(data), **mimo_values(result["models"], data, forgetting)}
+        note = (
+            "several channels, read as the bag's\n# topics were (or Float64MultiArray samples); weights_in is absolute"
+        )
+    else:
+        identifier.model.save(weights)
+        forgetting = report["model"]["live"].get("forgetting", 1.0)
+        model_values = params_values(identifier, result["model"], forgetting, u[:train, 0], y[:, 0])
+        values = {**data.interpretation, **model_values}
+        note = "starts from weights_in below;\n# move the directory and weights_in must follow: it is absolute"
+    values["weights_in"] = str(weights.resolve())
+    params = write_params(directory, report, values, note)
+    return {"params": str(params), "weights": str(weights), "report": str(write_report(directory, report))}
 
 
 def write_report(directory: Path, report: dict[str, Any]) -> Path:
@@ -697,7 +1077,7 @@ def _jsonable(report: dict[str, Any]) -> dict[str, Any]:
     return clean({k: v for k, v in report.items() if not k.endswith(("_test", "_train"))})
 
 
-#: the command line's flags that say how a bag's topics become samples (fit.bag.load_bag)
+#: the command line's flags that say how a bag's topics become samples (fit_bag.load_bag)
 BAG_FLAGS = ("u_field", "y_field", "u_names", "y_names", "sample_period", "pairing")
 
 
@@ -713,19 +1093,11 @@ def test_row(index: np.ndarray | None, given: int | None, recorded: int | None) 
     return given if index is None else int(np.searchsorted(index, given)) + 1
 
 
-def load_for(args: Any) -> Any:
-    """What ``lenn-ros fit DATA`` reads: a :class:`Data`, or a ``MimoData`` where the bag's identifier read
-    several channels (then ``cli`` hands it to :func:`lenn_ros.fit.mimo.run`)."""
-    u_columns, y_columns = columns(args.u), columns(args.y)
-    return load_data(
-        args.data, u_columns[0] if u_columns else None, y_columns[0] if y_columns else None, bag_flags(args)
-    )
-
-
-def main(args: Any, data: Data | None = None) -> int:
+def main(args: Any) -> int:
+    """``lenn-ros fit``: read, fit, write (``-o``), plot and report."""
     import sys
 
-    data = load_for(args) if data is None else data
+    data = load_data(args.data, args.u, args.y, bag_flags(args))
     progress = None if args.json else (lambda text: print(text, file=sys.stderr, flush=True))
     network = getattr(args, "network", "lenn") or "lenn"
     test_from = test_row(data.index, args.test_from, data.test_start)
@@ -733,15 +1105,9 @@ def main(args: Any, data: Data | None = None) -> int:
     result = fit(data, test_from, refine=not args.no_refine, network=network, solver=solver, progress=progress)
     report = result["report"]
     if args.output:
-        report["files"] = write_outputs(
-            args.output, result, data.u[: report["train_samples"]], data.y, data.interpretation
-        )
+        report["files"] = write_outputs(args.output, result, data)
     if args.plot:
-        from lenn_ros.plotting import plot_identification
-
-        title = f"{Path(args.data).name}: free-run RMSE {report['rmse_free_run']:.4g} on the test part"
-        band = report["intervals"]["free_run"]["half_width"]
-        plot_identification(args.plot, report["y_test"], report["y_hat_test"], title, report["y_free_test"], band)
+        plot(args.plot, report, Path(args.data).name)
     if args.json:
         print(json.dumps(_jsonable(report), indent=1, allow_nan=False))
         return 0
@@ -750,14 +1116,14 @@ def main(args: Any, data: Data | None = None) -> int:
 
 
 def columns(given: str | list[str] | None) -> list[str]:
-    """``--u`` / ``--y`` as a list: the command line repeats them (MIMO), a caller may pass one name."""
+    """``--u`` / ``--y`` as a list: the command line repeats them (several channels), a caller may pass one name."""
     if given is None:
         return []
     return [given] if isinstance(given, str) else list(given)
 
 
 def is_vector_bag(path: str | Path) -> bool:
-    """A bag whose u holds Float64MultiArray samples is a MIMO run (``import-csv`` with several columns)."""
+    """A bag whose u holds Float64MultiArray samples (``import-csv`` with several columns)."""
     path = Path(path)
     if not (path.is_dir() or path.suffix == ".mcap") or not path.exists():
         return False
@@ -766,52 +1132,102 @@ def is_vector_bag(path: str | Path) -> bool:
     return is_vector_run(path)
 
 
+def plot(path: str | Path, report: dict[str, Any], name: str) -> Path:
+    """Plant against the model on the test part (one-step and free run), one panel per output; one output's
+    with its free-run band. ``name``: the data's, for the title."""
+    from lenn_ros.plotting import plot_channels, plot_identification
+
+    if "per_output" not in report:
+        title = f"{name}: free-run RMSE {report['rmse_free_run']:.4g} on the test part"
+        band = report["intervals"]["free_run"]["half_width"]
+        return plot_identification(path, report["y_test"], report["y_hat_test"], title, report["y_free_test"], band)
+    title = f"{name}: model on the test part (free run from the measured outputs before it)"
+    return plot_channels(path, report["outputs"], report["y_test"], report["y_hat_test"], title, report["y_free_test"])
+
+
 def format_report(report: dict[str, Any], dt: float | None = None) -> str:
-    m, c = report["model"], report["choices"]
+    """The text report: how each output's model was chosen, then its test figures."""
     lines = [
         f"{report['data']}: built on samples 1..{report['train_samples']}, "
         f"tested on {report['samples']} samples from {report['test_from']}",
-        f"  scaling from the training samples, margin {c['scaling']['margin']:.0%}: "
-        f"y = {c['scaling']['y_offset']:.6g} +- {c['scaling']['y_scale']:.6g}, "
-        f"u = {c['scaling']['u_offset']:.6g} +- {c['scaling']['u_scale']:.6g}",
-        f"  structure judged by the free runs of {c['blocks']} blocks of the training samples"
+    ]
+    if "per_output" not in report:
+        return "\n".join(lines + _model_lines(report, "  ") + _test_lines(report, dt))
+    for part in report["per_output"]:
+        lines.append(f"  output {part['name']}:")
+        lines += _model_lines(part, "    ")
+    lines += _table_lines(report)
+    lines += _closing_lines(report, dt)
+    return "\n".join(lines)
+
+
+def _model_lines(part: dict[str, Any], indent: str) -> list[str]:
+    """How one output's model was chosen and what it is."""
+    m, c = part["model"], part["choices"]
+    scaling = c["scaling"]
+    if "offsets" in scaling:
+        shown = ", ".join(f"{n} = {o:.6g} +- {scaling['scales'][n]:.6g}" for n, o in scaling["offsets"].items())
+    else:
+        shown = (
+            f"y = {scaling['y_offset']:.6g} +- {scaling['y_scale']:.6g}, "
+            f"u = {scaling['u_offset']:.6g} +- {scaling['u_scale']:.6g}"
+        )
+    lines = [
+        f"{indent}scaling from the training samples, margin {scaling['margin']:.0%}: {shown}",
+        f"{indent}structure judged by the free runs of {c['blocks']} blocks of the training samples"
         + (f" ({c['gaps']} gaps in the record, not joined)" if c.get("gaps") else "")
         + ":",
     ]
-    lines += _candidate_lines(c)
-    lines.append(f"  time scale: {c['time_scale']}")
+    lines += _candidate_lines(c, indent)
+    lines.append(f"{indent}time scale: {c['time_scale']}")
     if m["network"] == "lenn" and "epochs" in m:
         e = m["epochs"]
-        lines.append(f"  trained by SGD epochs: {e['epochs']} run, best {e['best_epoch']} ({e['stopped']})")
+        lines.append(f"{indent}trained by SGD epochs: {e['epochs']} run, best {e['best_epoch']} ({e['stopped']})")
     if m["network"] == "mlp":
         e = m["epochs"]
-        lines.append(f"  model: MLP {m['structure']} hidden {m['expansion']['hidden']}, {m['n_terms']} weights")
-        lines.append(f"  trained by epochs: {e['epochs']} run, best {e['best_epoch']} ({e['stopped']})")
+        lines.append(f"{indent}model: MLP {m['structure']} hidden {m['expansion']['hidden']}, {m['n_terms']} weights")
+        lines.append(f"{indent}trained by epochs: {e['epochs']} run, best {e['best_epoch']} ({e['stopped']})")
     else:
         terms = " + ".join(m["expansion"]["terms"])
-        lines.append(f"  model: {m['family']} ({m['expansion']['basis']}), {m['n_terms']} terms: {terms}")
+        lines.append(f"{indent}model: {m['family']} ({m['expansion']['basis']}), {m['n_terms']} terms: {terms}")
     refinement = c["refinement"]
     if refinement.get("done"):
         lines.append(
-            f"  refined on simulation error: {refinement['iterations']} of {refinement['tried']} iterations "
+            f"{indent}refined on simulation error: {refinement['iterations']} of {refinement['tried']} iterations "
             f"(chosen on the blocks: held-out free-run RMSE {refinement['rmse_blocks_before']:.5g} -> "
             f"{refinement['rmse_blocks_after']:.5g})"
         )
     live = m["live"]
     lines.append(
-        f"  live: RLS, forgetting {live['forgetting']:.6g}"
+        f"{indent}live: RLS, forgetting {live['forgetting']:.6g}"
         if live["solver"] == "rls"
-        else f"  live: SGD, alpha {live['alpha']:.6g}, beta {live['beta']:.3g}"
+        else f"{indent}live: SGD, alpha {live['alpha']:.6g}, beta {live['beta']:.3g}"
     )
-    lines += _test_lines(report, dt)
-    return "\n".join(lines)
+    return lines
+
+
+def _table_lines(report: dict[str, Any]) -> list[str]:
+    """Several outputs' test figures, one row each."""
+    lines = [
+        f"  test part ({report['samples']} samples; free run of all outputs together from the measured outputs "
+        f"before sample {report['test_from']}):",
+        "    output        one-step NMSE / RMSE      free-run NMSE / RMSE    95 % free-run band covers",
+    ]
+    for part in report["per_output"]:
+        band = part["intervals"]["free_run"]
+        lines.append(
+            f"    {part['name']:<12} {part['nmse_db']:8.2f} dB {part['rmse']:10.4g}   "
+            f"{part['nmse_free_run_db']:8.2f} dB {part['rmse_free_run']:10.4g}   "
+            f"+-{band['half_width']:.4g}: {band['coverage_test']:.1%}"
+        )
+    return lines
 
 
 #: candidates listed in the text report (the JSON has them all)
 SHOWN_CANDIDATES = 12
 
 
-def _candidate_lines(choices: dict[str, Any]) -> list[str]:
+def _candidate_lines(choices: dict[str, Any], indent: str = "  ") -> list[str]:
     lines = []
     listed = choices["candidates"]
     for index, candidate in enumerate(listed[:SHOWN_CANDIDATES]):
@@ -823,13 +1239,13 @@ def _candidate_lines(choices: dict[str, Any]) -> list[str]:
         if candidate.get("refinement"):
             shown += f", refined {candidate['refinement']['iterations']}x"
         lines.append(
-            f"   {mark} {candidate['family']} degree {candidate['degree']}, lags {candidate['y_lags']}/"
+            f"{indent} {mark} {candidate['family']} degree {candidate['degree']}, lags {candidate['y_lags']}/"
             f"{candidate['u_lags']}: {candidate['terms']} of {candidate['dictionary']} terms, {shown}"
         )
     if len(listed) > SHOWN_CANDIDATES:
         usable = sum(1 for c in listed if c["rmse_free_run_validation"] is not None)
         more = len(listed) - SHOWN_CANDIDATES
-        lines.append(f"      ... {more} more ({usable} of {len(listed)} usable; --json lists all)")
+        lines.append(f"{indent}    ... {more} more ({usable} of {len(listed)} usable; --json lists all)")
     return lines
 
 
@@ -855,7 +1271,12 @@ def _test_lines(report: dict[str, Any], dt: float | None) -> list[str]:
             f"  note: {outside['u']} test u and {outside['y']} test y samples lie beyond the training range "
             "plus margin; their network inputs are clipped (counted above)"
         )
-    lines += [f"  WARNING: {text}" for text in report["warnings"]]
+    return lines + _closing_lines(report, dt)
+
+
+def _closing_lines(report: dict[str, Any], dt: float | None) -> list[str]:
+    """Warnings, the test part's length, the files written and how to start from them, the time taken."""
+    lines = [f"  WARNING: {text}" for text in report["warnings"]]
     if dt:
         lines.append(f"  sample time {dt:g} s: test part {report['samples'] * dt:.4g} s")
     if "files" in report:

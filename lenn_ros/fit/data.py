@@ -1,13 +1,14 @@
 """What ``fit`` reads, apart from how it reads it: the loaded record and the one error type.
 
 A module of its own so that the readers (CSV in :mod:`lenn_ros.fit.build`, bags in
-:mod:`lenn_ros.fit.bag`) share it without importing each other.
+:mod:`lenn_ros.fit.bag`) share it without importing each other. One record type for
+any number of channels.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -23,40 +24,43 @@ class FitError(ValueError):
 
 @dataclass
 class Data:
-    u: np.ndarray
-    y: np.ndarray
-    source: str  # what was read, for the report
-    test_start: int | None = None  # 1-based, recorded in a bag (its test_start topic)
-    breaks: list[int] = dataclasses.field(default_factory=list)  # 0-based samples that start a new run (gaps)
-    index: np.ndarray | None = None  # a bag's sample indices, as the node counts them (--test-from is one)
-    interpretation: dict[str, Any] = dataclasses.field(default_factory=dict)  # node values: types, fields, pairing
+    """Paired samples of any number of channels: ``u`` (N,) or (N, n_u), ``y`` (N,) or (N, n_y).
 
-
-@dataclass
-class MimoData:
-    """Paired samples with one column per channel: ``u`` (N, n_u), ``y`` (N, n_y).
-
-    ``index``: the sample indices as the identifier counts them (a robot bag's, from its
-    session; None: rows 1..N, a CSV or an import). Where it skips, the record has a gap,
-    a break of the fit (:attr:`breaks`). ``interpretation``: the node values that say how
-    the bag's topics became these samples (types, fields, names, pairing), written into
-    the params file; empty for a CSV or an ``import-csv`` bag.
+    ``breaks``: 0-based rows that start a new contiguous run (gaps in a bag's record, never
+    joined across by the fit). ``index``: a bag's sample indices as the node counts them
+    (``--test-from`` is one). ``interpretation``: the node values that say how the bag's
+    topics became these samples (types, fields, names, pairing, sample period), written
+    into the params file; empty for a CSV or an ``import-csv`` bag. ``u_names`` /
+    ``y_names``: the channels' names (default ``u``, ``y``, or ``u0``, ``u1``...).
     """
 
     u: np.ndarray
     y: np.ndarray
-    u_names: tuple[str, ...]
-    y_names: tuple[str, ...]
-    source: str
-    test_start: int | None = None
+    source: str  # what was read, for the report
+    test_start: int | None = None  # 1-based, recorded in a bag (its test_start topic)
+    breaks: list[int] = dataclasses.field(default_factory=list)
     index: np.ndarray | None = None
-    interpretation: dict[str, Any] = field(default_factory=dict)
+    interpretation: dict[str, Any] = dataclasses.field(default_factory=dict)
+    u_names: tuple[str, ...] = ()
+    y_names: tuple[str, ...] = ()
 
-    def sample_index(self) -> np.ndarray:
-        """The sample indices (1..N when none were recorded)."""
-        return np.arange(1, len(self.y) + 1) if self.index is None else np.asarray(self.index, dtype=np.int64)
+    def __post_init__(self) -> None:
+        self.u, self.y = np.asarray(self.u, dtype=np.float64), np.asarray(self.y, dtype=np.float64)
+        for side, given in (("u", self.u_names), ("y", self.y_names)):
+            count = self.n_u if side == "u" else self.n_y
+            names = tuple(given) or ((side,) if count == 1 else tuple(f"{side}{i}" for i in range(count)))
+            if len(names) != count:
+                raise FitError(f"{len(names)} {side} names for {count} {side} channels")
+            setattr(self, f"{side}_names", names)
 
     @property
-    def breaks(self) -> list[int]:
-        """0-based rows that start a new contiguous run: never joined across by the fit."""
-        return [int(b) for b in np.flatnonzero(np.diff(self.sample_index()) != 1) + 1]
+    def n_u(self) -> int:
+        return 1 if self.u.ndim == 1 else self.u.shape[1]
+
+    @property
+    def n_y(self) -> int:
+        return 1 if self.y.ndim == 1 else self.y.shape[1]
+
+    def matrices(self) -> tuple[np.ndarray, np.ndarray]:
+        """(u, y) with one column per channel: (N, n_u), (N, n_y)."""
+        return self.u.reshape(len(self.u), -1), self.y.reshape(len(self.y), -1)

@@ -27,16 +27,34 @@ them by RLS with the same compiled step. What they offer:
 The term parameters (knots, velocity scales) come from the training inputs and are
 rounded to six significant digits, which is how ``format_terms`` writes them: the
 params file holds the very terms the weights were fitted with.
+
+A dictionary is built over one output's view (:class:`~lenn_ros.fit.selection.Layout`):
+column 0 is the output, the other columns what it reads (one input u, or several). Its
+width is columns x lags, so the families serve one input or several alike: what they do
+with "the input" they do with every column after the output. With more than one input,
+the products of the nonlinear families involve fewer lags of each input
+(:func:`_recent`), so a six-input record's dictionary stays a few hundred terms.
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
 from lenn_ros.core.expansions import FACTOR_KINDS, dictionary_exponents
-from lenn_ros.core.scaling import Scaling
+
+
+class OutputScaling(Protocol):
+    """What the increment form's pass-through needs of a view's scaling (a :class:`~lenn_ros.fit.selection.Layout`)."""
+
+    @property
+    def y_offset(self) -> float: ...
+
+    @property
+    def y_scale(self) -> float: ...
+
 
 #: lags (equal for y and u) tried per family, and the degrees
 POLYNOMIAL_LAGS = (1, 2, 3, 4, 6, 8, 10)
@@ -54,7 +72,7 @@ KNOT_QUANTILES = (0.1, 0.25, 0.5, 0.75, 0.9)
 VELOCITY_SHARPNESS = (3.0, 10.0, 30.0)
 #: nonlinear terms involve the 3 most recent lags of each signal (the usual home of a static nonlinearity)
 RECENT = 3
-#: a candidate needs this many samples per lag of y and u
+#: a candidate needs this many samples per lag of each column of the view
 SAMPLES_PER_LAG = 20
 
 
@@ -104,13 +122,14 @@ GRID = (
 )
 
 
-def candidate_specs(n_samples: int) -> list[Spec]:
-    """The grid, bounded by how much data there is (SAMPLES_PER_LAG samples per lag of y and u)."""
+def candidate_specs(n_samples: int, n_columns: int = 2) -> list[Spec]:
+    """The grid, bounded by how much data there is (SAMPLES_PER_LAG samples per lag of each of the view's
+    ``n_columns`` columns: the output and what it reads)."""
     return [
         Spec(family, lags, degree)
         for family, lag_set, degrees in GRID
         for lags in lag_set
-        if SAMPLES_PER_LAG * 2 * lags <= n_samples
+        if SAMPLES_PER_LAG * n_columns * lags <= n_samples
         for degree in degrees
     ]
 
@@ -123,14 +142,14 @@ class Dictionary:
     factors: np.ndarray
     increment: bool = False
 
-    def pass_through(self, x: np.ndarray, scaling: Scaling) -> np.ndarray:
+    def pass_through(self, x: np.ndarray, scaling: OutputScaling) -> np.ndarray:
         """The part of the target the terms need not explain: y(k) in the increment form, else 0."""
         if not self.increment:
             return np.zeros(len(x))
         return x[:, 0] * scaling.y_scale + scaling.y_offset
 
     def with_pass_through(
-        self, chosen: list[int], weights: np.ndarray, scaling: Scaling
+        self, chosen: list[int], weights: np.ndarray, scaling: OutputScaling
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(exponents, factors, weights) of the chosen terms; in the increment form plus y(k) itself.
 
@@ -165,7 +184,7 @@ def _matching(exponents: np.ndarray, factors: np.ndarray, row: np.ndarray) -> np
 
 
 def pass_through_weights(
-    exponents: np.ndarray, factors: np.ndarray, scaling: Scaling, with_offset: bool = True
+    exponents: np.ndarray, factors: np.ndarray, scaling: OutputScaling, with_offset: bool = True
 ) -> np.ndarray:
     """Weights that make the terms compute y(k) = y_scale x_1 + y_offset (the bias part only ``with_offset``).
 
@@ -213,23 +232,34 @@ class _Builder:
         return Dictionary(exponents, np.array(self.factors).reshape(len(self.factors), self.n + 2), increment)
 
 
-def _recent(spec: Spec) -> list[int]:
-    """Network inputs of the RECENT most recent lags of y, then of u."""
-    count = min(spec.lags, RECENT)
-    return list(range(count)) + [spec.lags + i for i in range(count)]
+def _columns(spec: Spec, x: np.ndarray) -> int:
+    """Columns of the view the dictionary is built over: the output and what it reads."""
+    return x.shape[1] // spec.lags
+
+
+def _recent(spec: Spec, columns: int) -> list[int]:
+    """Network inputs the nonlinear terms involve: the RECENT most recent lags of the output, then of each
+    column it reads (fewer of each when it reads several: RECENT shared among them, at least one)."""
+    own = min(spec.lags, RECENT)
+    each = own if columns <= 2 else min(spec.lags, max(1, RECENT // (columns - 1)))
+    return list(range(own)) + [c * spec.lags + i for c in range(1, columns) for i in range(each)]
 
 
 def _polynomial(spec: Spec, x: np.ndarray) -> Dictionary:
-    rows = dictionary_exponents(2 * spec.lags, spec.degree, _recent(spec))
-    return Dictionary(rows, np.zeros((len(rows), 2 * spec.lags + 2)))
+    n = x.shape[1]
+    rows = dictionary_exponents(n, spec.degree, _recent(spec, _columns(spec, x)))
+    return Dictionary(rows, np.zeros((len(rows), n + 2)))
 
 
 def _hinge(spec: Spec, x: np.ndarray) -> Dictionary:
-    """Linear terms, the recent lags' squares and products (degree 2), and hinges of y(k), u(k) (and the lag before)."""
-    built = _Builder(2 * spec.lags)
-    for row in dictionary_exponents(2 * spec.lags, spec.degree, _recent(spec)):
+    """Linear terms, the recent lags' squares and products (degree 2), and hinges of each column's newest
+    sample (and the lag before)."""
+    columns, lags = _columns(spec, x), spec.lags
+    built = _Builder(x.shape[1])
+    for row in dictionary_exponents(x.shape[1], spec.degree, _recent(spec, columns)):
         built.add(row)
-    for i in [0, spec.lags] + ([1, spec.lags + 1] if spec.lags > 1 else []):
+    newest = [c * lags for c in range(columns)]
+    for i in newest + ([i + 1 for i in newest] if lags > 1 else []):
         for knot in np.unique([_round6(q) for q in np.quantile(x[:, i], KNOT_QUANTILES)]):
             built.add(None, "relu", built.unit(i), -knot)
     return built.build()
@@ -237,16 +267,17 @@ def _hinge(spec: Spec, x: np.ndarray) -> Dictionary:
 
 def _fourier(spec: Spec, x: np.ndarray) -> Dictionary:
     """Linear terms and RFF_FEATURES cos(w . x_recent + b), w ~ N(0, 1 / l^2), l the regressors' median distance."""
-    built = _Builder(2 * spec.lags)
-    for row in dictionary_exponents(2 * spec.lags, 1):
+    n = x.shape[1]
+    built = _Builder(n)
+    for row in dictionary_exponents(n, 1):
         built.add(row)
-    recent = _recent(spec)
+    recent = _recent(spec, _columns(spec, x))
     rng = np.random.default_rng(RFF_SEED)
     sample = x[rng.choice(len(x), min(len(x), 400), replace=False)][:, recent]
     distances = np.sqrt(((sample[:, None, :] - sample[None, :, :]) ** 2).sum(axis=-1))
     length = float(np.median(distances[distances > 0])) if np.any(distances > 0) else 1.0
     for _ in range(RFF_FEATURES):
-        w = np.zeros(2 * spec.lags)
+        w = np.zeros(n)
         w[recent] = rng.normal(0.0, 1.0 / length, len(recent))
         built.add(None, "cos", w, float(rng.uniform(0.0, 2.0 * np.pi)))
     return built.build()
@@ -266,7 +297,8 @@ def _velocity_terms(built: _Builder, x: np.ndarray, span: int) -> None:
 def _increment(spec: Spec, x: np.ndarray) -> Dictionary:
     """y(k+1) - y(k) from output increments, inputs, and (degree >= 2) velocity and position nonlinearities."""
     lags = spec.lags
-    built = _Builder(2 * lags)
+    read = [c * lags for c in range(1, _columns(spec, x))]  # where each column read besides the output starts
+    built = _Builder(x.shape[1])
     built.add()  # the bias: a constant force (gravity at rest, an offset)
     multi_scale = lags > max(INCREMENT_LAGS)
     spans = [s for s in (1, 2, 4, 8, 16, 32, 64, 128) if s < lags] if multi_scale else list(range(1, lags))
@@ -274,23 +306,32 @@ def _increment(spec: Spec, x: np.ndarray) -> Dictionary:
         # multi-scale: y(k) - y(k-s); else consecutive increments y(k-j+1) - y(k-j)
         first = 0 if multi_scale else s - 1
         built.add(None, "lin", built.unit(first) - built.unit(s))
-    if multi_scale:
-        for s in [1] + [s for s in (2, 4, 8, 16, 32, 64, 128) if s <= lags]:
-            w = np.zeros(2 * lags)
-            w[lags : lags + s] = 1.0 / s
-            built.add(None, "lin", w)
-        for j in range(1, min(lags, RECENT)):
-            built.add(built.power(lags + j, 1))
-    else:
-        for j in range(lags):
-            built.add(built.power(lags + j, 1))
+    for start in read:
+        _input_terms(built, start, lags, multi_scale)
     if spec.degree >= 2 and lags >= 2:
         velocity_spans = sorted({1, spans[len(spans) // 2], spans[-1]})
         for span in velocity_spans:
             _velocity_terms(built, x, span)
-        built.add(built.power(lags, 2))
+        for start in read:
+            built.add(built.power(start, 2))
     if spec.degree >= 3:
         for degree in (1, 2, 3):
             built.add(built.power(0, degree))
-        built.add(built.power(lags, 3))
+        for start in read:
+            built.add(built.power(start, 3))
     return built.build(increment=True)
+
+
+def _input_terms(built: _Builder, start: int, lags: int, multi_scale: bool) -> None:
+    """The linear terms of one column read (its lags at ``start``..): every lag, or multi-scale averages
+    over spans 1, 2, 4, ... and the RECENT newest lags after the first."""
+    if not multi_scale:
+        for j in range(lags):
+            built.add(built.power(start + j, 1))
+        return
+    for s in [1] + [s for s in (2, 4, 8, 16, 32, 64, 128) if s <= lags]:
+        w = np.zeros(built.n)
+        w[start : start + s] = 1.0 / s
+        built.add(None, "lin", w)
+    for j in range(1, min(lags, RECENT)):
+        built.add(built.power(start + j, 1))

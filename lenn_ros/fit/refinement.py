@@ -61,7 +61,7 @@ def residuals(
         for a, b in runs(start, stop, record.breaks):
             if b - a <= warm:
                 continue
-            y_sim, _, diverged_at = model.free_run(record.u[a:b], record.y[a:b], warm, weights)
+            y_sim, _, diverged_at = model.free_run(record.values[a:b], warm, weights)
             if diverged_at >= 0:
                 return None
             out.append(record.y[a + warm : b] - y_sim)
@@ -107,22 +107,23 @@ def jacobian(
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """(measured - simulated, d simulated / d w) over the pieces, by forward sensitivity in one compiled
     pass per run (:func:`~lenn_ros.core.kernels.free_run_jacobian`); None if a run diverges."""
-    s, warm = model.scaling, model.warm_up
+    warm = model.warm_up
+    source, lag, offset, scale = model.layout.arrays()
     residual_parts, slope_parts = [], []
     for start, stop in pieces:
         for a, b in runs(start, stop, record.breaks):
             if b - a <= warm:
                 continue
-            y_model = np.array(record.y[a:b], dtype=np.float64, copy=True)
+            values = np.array(record.values[a:b], copy=True)
             slope = np.zeros((b - a - warm, len(weights)))
             _, diverged_at = kernels.free_run_jacobian(
-                record.u[a:b], y_model, warm, model.y_lags, model.u_lags, s.y_offset, s.y_scale, s.u_offset,
-                s.u_scale, model.exponents, model.factors, np.ascontiguousarray(weights, dtype=np.float64),
-                kernels.BASIS_CODES[model.basis], FREE_RUN_DIVERGENCE_BOUND, slope,
+                values, warm, model.layout.lags, source, lag, offset, scale, model.exponents, model.factors,
+                np.ascontiguousarray(weights, dtype=np.float64), kernels.BASIS_CODES[model.basis],
+                FREE_RUN_DIVERGENCE_BOUND, slope,
             )  # fmt: skip
             if diverged_at >= 0:
                 return None
-            residual_parts.append(record.y[a + warm : b] - y_model[warm:])
+            residual_parts.append(record.y[a + warm : b] - values[warm:, 0])
             slope_parts.append(slope)
     if not residual_parts:
         return np.zeros(0), np.zeros((0, len(weights)))

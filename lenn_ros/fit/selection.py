@@ -72,13 +72,85 @@ PATIENCE = 12
 RIDGE = 1e-10
 
 
+@dataclass(frozen=True)
+class Layout:
+    """What one output's model reads: ``lags`` samples of each column of its *view*, scaled.
+
+    A view is a matrix whose column 0 is the output the model predicts and whose other
+    columns are the signals it reads besides its own past: the inputs u (and, for a plant
+    of several outputs, whatever else that output is given), all measured. Network input
+    ``c * lags + i`` is column c at lag i (0: the sample just before the one predicted), as
+    (value - offsets[c]) / scales[c]. One output of one input is the view [y, u]: the NARX
+    regressor y(k), ..., y(k-L+1), u(k), ..., u(k-L+1). ``names`` name the columns in the
+    terms (``y``, ``u``: ``y1*u2``; ``y3``, ``u0``: ``y3_1*u0_2``).
+    """
+
+    lags: int
+    offsets: tuple[float, ...]
+    scales: tuple[float, ...]
+    names: tuple[str, ...] = ("y", "u")
+
+    @classmethod
+    def of(cls, lags: int, scaling: Scaling) -> Layout:
+        """One output of one input: the view [y, u] with ``scaling``'s offsets and scales."""
+        return cls(lags, (scaling.y_offset, scaling.u_offset), (scaling.y_scale, scaling.u_scale))
+
+    @property
+    def n_columns(self) -> int:
+        return len(self.offsets)
+
+    @property
+    def n_inputs(self) -> int:
+        return self.n_columns * self.lags
+
+    @property
+    def warm_up(self) -> int:
+        return max(self.lags, 1)
+
+    @property
+    def y_offset(self) -> float:
+        return self.offsets[0]
+
+    @property
+    def y_scale(self) -> float:
+        return self.scales[0]
+
+    def with_lags(self, lags: int) -> Layout:
+        return Layout(lags, self.offsets, self.scales, self.names)
+
+    def channels(self) -> list[tuple[str, int]]:
+        """(name, lags) of each column in regressor order, as terms are written and parsed."""
+        return [(name, self.lags) for name in self.names]
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(column, lag, offset, scale) of every network input, as the compiled free runs take them."""
+        c, lag = np.divmod(np.arange(self.n_inputs, dtype=np.int64), max(self.lags, 1))
+        return c, lag, np.asarray(self.offsets)[c], np.asarray(self.scales)[c]
+
+    def regressors(self, view: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(network inputs x(k), unclipped, and the target: column 0 at k + 1) of every complete regressor."""
+        view = np.asarray(view, dtype=np.float64).reshape(len(view), -1)
+        n, first = len(view), self.warm_up - 1
+        rows = max(n - 1 - first, 0)
+        columns = [
+            (view[first - i : n - 1 - i, c] - self.offsets[c]) / self.scales[c]
+            for c in range(self.n_columns)
+            for i in range(self.lags)
+        ]
+        x = np.stack(columns, axis=1) if rows else np.empty((0, self.n_inputs))
+        return x, view[self.warm_up :, 0]
+
+
+def siso_view(u: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """The view [y, u] of one output of one input (:class:`Layout`)."""
+    return np.column_stack([np.asarray(y, dtype=np.float64), np.asarray(u, dtype=np.float64)])
+
+
 @dataclass
 class TermModel:
-    """y(k) = sum_t w_t prod_i P_{e_ti}(x_i(k)) [g_t(b_t + w_t . x(k))], x = scaled y(k-1..), u(k-1..)."""
+    """y(k+1) = sum_t w_t prod_i P_{e_ti}(x_i(k)) [g_t(b_t + w_t . x(k))], x the layout's scaled lags."""
 
-    y_lags: int
-    u_lags: int
-    scaling: Scaling
+    layout: Layout
     exponents: np.ndarray
     basis: str = "legendre"
     weights: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -86,78 +158,84 @@ class TermModel:
 
     def __post_init__(self) -> None:
         self.exponents = np.ascontiguousarray(self.exponents, dtype=np.int64)
-        self.factors = checked_factors(self.factors, len(self.exponents), self.y_lags + self.u_lags)
+        self.factors = checked_factors(self.factors, len(self.exponents), self.layout.n_inputs)
+
+    @property
+    def y_lags(self) -> int:
+        return self.layout.lags
+
+    @property
+    def u_lags(self) -> int:
+        return self.layout.lags
 
     @property
     def structure(self) -> ModelStructure:
-        s = self.scaling
+        """The node's structure of a model of one output of one input (the view [y, u])."""
+        layout = self.layout
+        if layout.n_columns != 2:
+            raise ValueError("a ModelStructure is one output of one input: this model reads several columns")
         return ModelStructure(
-            y_lags=self.y_lags,
-            u_lags=self.u_lags,
-            y_scale=s.y_scale,
-            u_scale=s.u_scale,
-            y_offset=s.y_offset,
-            u_offset=s.u_offset,
+            y_lags=layout.lags,
+            u_lags=layout.lags,
+            y_scale=layout.scales[0],
+            u_scale=layout.scales[1],
+            y_offset=layout.offsets[0],
+            u_offset=layout.offsets[1],
         )
 
     @property
     def warm_up(self) -> int:
-        return max(self.y_lags, self.u_lags, 1)
+        return self.layout.warm_up
 
     @property
     def terms(self) -> list[str]:
-        return format_terms(self.exponents, self.y_lags, self.factors)
+        return format_terms(self.exponents, self.layout.channels(), self.factors)
 
     def with_weights(self, weights: np.ndarray) -> TermModel:
-        return TermModel(
-            self.y_lags, self.u_lags, self.scaling, self.exponents, self.basis, np.asarray(weights), self.factors
-        )
+        return TermModel(self.layout, self.exponents, self.basis, np.asarray(weights), self.factors)
 
-    def inputs(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(network inputs x(k) clipped to [-1, 1], target y(k+1)) of every complete regressor.
+    def with_lags(self, lags: int) -> TermModel:
+        """The same terms and weights over ``lags`` >= the model's lags of every column (the extra lags unused)."""
+        old = self.layout.lags
+        if lags < old:
+            raise ValueError(f"a model of lags {old} cannot be written over {lags}")
+        columns = self.layout.n_columns
+        where = np.array([c * lags + i for c in range(columns) for i in range(old)], dtype=np.int64)
+        exponents = np.zeros((len(self.exponents), columns * lags), dtype=np.int64)
+        exponents[:, where] = self.exponents
+        factors = self.factors
+        if len(factors):
+            wide = np.zeros((len(factors), columns * lags + 2))
+            wide[:, :2] = factors[:, :2]
+            wide[:, 2 + where] = factors[:, 2:]
+            factors = wide
+        return TermModel(self.layout.with_lags(lags), exponents, self.basis, np.array(self.weights), factors)
 
-        The structure has no known linear part, so the series-parallel target is y(k+1) itself.
-        """
-        x, targets, _ = self.structure.training_pairs(u, y)
+    def inputs(self, view: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(network inputs x(k) clipped to [-1, 1], target y(k+1)) of every complete regressor of ``view``."""
+        x, targets = self.layout.regressors(view)
         return np.clip(x, -1.0, 1.0), targets
 
-    def regression(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def regression(self, view: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(features of every complete regressor, target y(k+1))."""
-        x, targets = self.inputs(u, y)
+        x, targets = self.inputs(view)
         return term_features(x, self.exponents, self.basis, self.factors), targets
 
-    def free_run(
-        self, u: np.ndarray, y: np.ndarray, start: int, weights: np.ndarray | None = None
-    ) -> tuple[np.ndarray, int, int]:
-        """Compiled simulation from ``start`` (measured y before it): (y^(start..), clipped, diverged_at)."""
-        s = self.scaling
-        y_model = np.array(y, dtype=np.float64, copy=True)
+    def free_run(self, view: np.ndarray, start: int, weights: np.ndarray | None = None) -> tuple[np.ndarray, int, int]:
+        """Compiled simulation of column 0 from ``start`` (measured before it): (y^(start..), clipped, diverged_at)."""
+        values = np.array(np.asarray(view, dtype=np.float64).reshape(len(view), -1), copy=True)
         w = self.weights if weights is None else weights
-        clipped, diverged_at = kernels.free_run_functional_link(
-            np.asarray(u, dtype=np.float64),
-            y_model,
-            int(start),
-            self.y_lags,
-            self.u_lags,
-            s.y_offset,
-            s.y_scale,
-            s.u_offset,
-            s.u_scale,
-            0.0,
-            np.zeros(0),
-            np.zeros(0),
-            self.exponents,
-            self.factors,
-            np.ascontiguousarray(w, dtype=np.float64),
-            np.zeros(len(self.exponents), dtype=np.int64),
-            1,
-            kernels.BASIS_CODES[self.basis],
-            False,
-            1.0,
-            FREE_RUN_DIVERGENCE_BOUND,
-            y_model,
-        )
-        return y_model[start:], int(clipped), int(diverged_at)
+        source, lag, offset, scale = self.layout.arrays()
+        n_inputs, n_terms = len(source), len(self.exponents)
+        clipped = np.zeros(1, dtype=np.int64)
+        diverged_at = kernels.free_run(
+            values, int(start), 1, np.array([0, n_inputs]), source, lag, offset, scale, np.zeros(2, dtype=np.int64),
+            np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), np.array([0, n_terms]),
+            self.exponents, self.factors, np.ascontiguousarray(w, dtype=np.float64), np.zeros(n_terms, dtype=np.int64),
+            1, np.zeros(1, dtype=np.bool_), np.ones(1), np.zeros(1), np.array([self.layout.y_offset]),
+            np.array([self.layout.y_scale]), kernels.BASIS_CODES[self.basis], FREE_RUN_DIVERGENCE_BOUND, clipped,
+        )  # fmt: skip
+        return values[start:, 0], int(clipped[0]), int(diverged_at)
 
 
 def forward_regression(features: np.ndarray, targets: np.ndarray, max_terms: int) -> tuple[list[int], list[float]]:
@@ -234,17 +312,21 @@ def fold_blocks(n: int, warm_up: int) -> list[tuple[int, int]]:
 
 @dataclass
 class Record:
-    """The training samples as the selection sees them: series, breaks, blocks."""
+    """The training samples as the selection sees them: one output's view (:class:`Layout`), breaks, blocks."""
 
-    u: np.ndarray
-    y: np.ndarray
+    values: np.ndarray  # (N, columns): column 0 the output modelled, the others what it reads
     breaks: np.ndarray  # sample indices that start a new contiguous run (0 is implied)
 
     @classmethod
-    def of(cls, u: np.ndarray, y: np.ndarray, breaks: np.ndarray | list[int] | None = None) -> Record:
+    def of(cls, values: np.ndarray, breaks: np.ndarray | list[int] | None = None) -> Record:
         cuts = np.unique(np.asarray([] if breaks is None else breaks, dtype=np.int64))
-        u, y = np.ascontiguousarray(u, dtype=np.float64), np.ascontiguousarray(y, dtype=np.float64)
-        return cls(u, y, cuts[cuts > 0])
+        values = np.ascontiguousarray(np.asarray(values, dtype=np.float64).reshape(len(values), -1))
+        return cls(values, cuts[cuts > 0])
+
+    @property
+    def y(self) -> np.ndarray:
+        """The output modelled (column 0 of the view)."""
+        return self.values[:, 0]
 
     @property
     def n(self) -> int:
@@ -276,7 +358,7 @@ class Record:
         """Free run of samples [start, stop): one run per contiguous piece, each from its measured warm-up."""
         result = Simulation()
         for measured, y_sim, clipped, diverged in self._free_runs(model, start, stop, weights):
-            result.add(measured, y_sim, clipped, diverged, model.y_lags + model.u_lags)
+            result.add(measured, y_sim, clipped, diverged, model.layout.n_inputs)
         return result
 
     def residuals(self, model: TermModel, start: int, stop: int, weights: np.ndarray | None = None) -> np.ndarray:
@@ -292,7 +374,7 @@ class Record:
         warm = model.warm_up
         parts = []
         for first, b in self.pieces(start, stop, warm):
-            features, targets = model.regression(self.u[first - warm : b], self.y[first - warm : b])
+            features, targets = model.regression(self.values[first - warm : b])
             parts.append(features @ w - targets)
         return np.concatenate(parts) if parts else np.empty(0)
 
@@ -301,7 +383,7 @@ class Record:
         w = model.weights if weights is None else weights
         warm = model.warm_up
         for first, b in self.pieces(start, stop, warm):
-            y_sim, clipped, diverged_at = model.free_run(self.u[first - warm : b], self.y[first - warm : b], warm, w)
+            y_sim, clipped, diverged_at = model.free_run(self.values[first - warm : b], warm, w)
             yield self.y[first:b], y_sim, clipped, diverged_at >= 0
 
     def _break_in(self, a: int, b: int) -> bool:
@@ -446,12 +528,16 @@ def _finite(value: float) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
-def _stress_inputs(u: np.ndarray, seed: int = 0) -> list[np.ndarray]:
-    """The training input cut into STRESS_BLOCKS blocks and shuffled, STRESS_RUNS times (fixed seed)."""
+def _stress_views(values: np.ndarray, seed: int = 0) -> list[np.ndarray]:
+    """The view with what the output reads (columns 1..) cut into STRESS_BLOCKS blocks and shuffled,
+    STRESS_RUNS times (fixed seed); column 0, the output, stays (only its first samples seed a run)."""
     rng = np.random.default_rng(seed)
-    edges = np.linspace(0, len(u), STRESS_BLOCKS + 1).round().astype(int)
-    pieces = [u[a:b] for a, b in itertools.pairwise(edges)]
-    return [np.concatenate([pieces[i] for i in rng.permutation(len(pieces))]) for _ in range(STRESS_RUNS)]
+    edges = np.linspace(0, len(values), STRESS_BLOCKS + 1).round().astype(int)
+    pieces = [values[a:b, 1:] for a, b in itertools.pairwise(edges)]
+    return [
+        np.column_stack([values[:, 0], np.concatenate([pieces[i] for i in rng.permutation(len(pieces))])])
+        for _ in range(STRESS_RUNS)
+    ]
 
 
 def soundness_problem(model: TermModel, record: Record) -> str:
@@ -468,8 +554,8 @@ def soundness_problem(model: TermModel, record: Record) -> str:
     if problem:
         return problem
     warm = model.warm_up
-    for shuffled in _stress_inputs(record.u):
-        _, clipped, diverged_at = model.free_run(shuffled, record.y, warm)
+    for shuffled in _stress_views(record.values):
+        _, clipped, diverged_at = model.free_run(shuffled, warm)
         if diverged_at >= 0 or clipped > 0:
             return "free run on the training input shuffled in blocks " + (
                 "diverged" if diverged_at >= 0 else "left the training range"
@@ -490,14 +576,15 @@ class Design:
     energy: float
 
     @classmethod
-    def of(cls, spec: Spec, record: Record, scaling: Scaling) -> Design:
-        base = TermModel(spec.lags, spec.lags, scaling, np.zeros((1, 2 * spec.lags), dtype=np.int64))
-        x, targets = base.inputs(record.u, record.y)
+    def of(cls, spec: Spec, record: Record, layout: Layout) -> Design:
+        layout = layout.with_lags(spec.lags)
+        base = TermModel(layout, np.zeros((1, layout.n_inputs), dtype=np.int64))
+        x, targets = base.inputs(record.values)
         valid = record.valid_rows(base.warm_up)
         x, targets = x[valid], targets[valid]
         dictionary = spec.dictionary(x)
         features = term_features(x, dictionary.exponents, "legendre", dictionary.factors)
-        targets = targets - dictionary.pass_through(x, scaling)
+        targets = targets - dictionary.pass_through(x, layout)
         predicted = np.arange(base.warm_up, record.n)[valid]
         return cls(dictionary, features, targets, predicted, features.T @ features, features.T @ targets,
                    float(targets @ targets))  # fmt: skip
@@ -517,7 +604,7 @@ class Design:
                       self.gram[:count, :count], self.moment[:count], self.energy)  # fmt: skip
 
 
-def evaluate_candidate(spec: Spec, record: Record, scaling: Scaling, design: Design, strict: bool = True) -> Candidate:
+def evaluate_candidate(spec: Spec, record: Record, layout: Layout, design: Design, strict: bool = True) -> Candidate:
     """Rank the dictionary's terms by FROLS, score every prefix by blocked free runs, keep the preferred sound one.
 
     ``strict=False`` (``fit``'s fallback, with a warning, when nothing passes) refuses
@@ -525,7 +612,7 @@ def evaluate_candidate(spec: Spec, record: Record, scaling: Scaling, design: Des
     """
     dictionary = design.dictionary
     candidate = Candidate(spec, len(dictionary.exponents))
-    base = TermModel(spec.lags, spec.lags, scaling, dictionary.exponents, "legendre", factors=dictionary.factors)
+    base = TermModel(layout.with_lags(spec.lags), dictionary.exponents, "legendre", factors=dictionary.factors)
     warm = base.warm_up
     limit = min(MAX_TERMS, len(dictionary.exponents), max(1, len(design.targets) // SAMPLES_PER_TERM))
     ranked, _ = forward_regression_gram(design.gram, design.moment, design.energy, limit)
@@ -575,7 +662,7 @@ class Prefixes:
     folds: Folds
 
     def __post_init__(self) -> None:
-        d, n = self.dictionary, 2 * self.base.y_lags
+        d, n = self.dictionary, self.base.layout.n_inputs
         rows = d.exponents[self.ranked]
         factors = d.factors[self.ranked]
         self.passing = np.zeros(0)
@@ -583,7 +670,7 @@ class Prefixes:
             rows = np.vstack([rows, np.zeros((2, n), dtype=np.int64)])
             rows[-1, 0] = 1  # y1; the row before is the bias
             factors = np.vstack([factors, np.zeros((2, n + 2))])
-            self.passing = np.array([self.base.scaling.y_offset, self.base.scaling.y_scale])
+            self.passing = np.array([self.base.layout.y_offset, self.base.layout.y_scale])
         self.rows, self.factor_rows = rows, factors
 
     def arrays(self, m: int) -> tuple[np.ndarray, np.ndarray]:
@@ -601,9 +688,9 @@ class Prefixes:
 
     def model(self, m: int, weights: np.ndarray) -> TermModel:
         """The model delivered for prefix ``m`` with its own (least-squares) weights, the pass-through folded in."""
-        exponents, factors, weights = self.dictionary.with_pass_through(self.ranked[:m], weights, self.base.scaling)
+        exponents, factors, weights = self.dictionary.with_pass_through(self.ranked[:m], weights, self.base.layout)
         b = self.base
-        return TermModel(b.y_lags, b.u_lags, b.scaling, exponents, b.basis, weights, factors)
+        return TermModel(b.layout, exponents, b.basis, weights, factors)
 
 
 def _block_pieces(record: Record, blocks: list[tuple[int, int]], warm: int) -> tuple[np.ndarray, ...]:
@@ -619,9 +706,10 @@ def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], li
     Each prefix's blocks are simulated in one compiled call (:func:`kernels.simulate_pieces`).
     """
     base, blocks = prefixes.base, prefixes.folds.blocks
-    s, warm = base.scaling, base.warm_up
+    warm = base.warm_up
     first, stop, group = _block_pieces(record, blocks, warm)
-    width = base.y_lags + base.u_lags
+    width = base.layout.n_inputs
+    source, lag, offset, scale = base.layout.arrays()
     scores, loose, reasons, loose_reasons = [], [], [], []
     best_m, lowest = 0, math.inf
     for m in range(1, len(prefixes.ranked) + 1):
@@ -635,9 +723,8 @@ def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], li
         exponents, factors = prefixes.arrays(m)
         out = np.zeros((len(blocks), 5))
         kernels.simulate_pieces(
-            record.u, record.y, first, stop, group, warm, base.y_lags, base.u_lags, s.y_offset, s.y_scale,
-            s.u_offset, s.u_scale, exponents, factors, weights, kernels.BASIS_CODES[base.basis],
-            FREE_RUN_DIVERGENCE_BOUND, out,
+            record.values, first, stop, group, warm, source, lag, offset, scale, exponents, factors, weights,
+            kernels.BASIS_CODES[base.basis], FREE_RUN_DIVERGENCE_BOUND, out,
         )  # fmt: skip
         runs_of = [Simulation(r[0], int(r[1]), r[2], int(r[3]), int(r[1]) * width, bool(r[4])) for r in out]
         pooled = math.sqrt(float(out[:, 0].sum()) / float(out[:, 1].sum()))
@@ -679,38 +766,36 @@ def _choose_prefix(candidate, prefixes: Prefixes, record: Record, scores, reason
 
 
 def select_structure(
-    u: np.ndarray,
-    y: np.ndarray,
-    scaling: Scaling,
-    breaks: np.ndarray | list[int] | None = None,
+    record: Record,
+    layout: Layout,
     specs: list[Spec] | None = None,
     progress: Callable[[Candidate], None] | None = None,
 ) -> list[Candidate]:
-    """Every candidate of the grid, judged; sorted with the one to use first (:func:`order_candidates`)."""
-    record = Record.of(u, y, breaks)
-    specs = specs if specs is not None else candidate_specs(record.n)
-    designs = _designs(specs, record, scaling)
+    """Every candidate of the grid for the record's output, judged; sorted with the one to use first
+    (:func:`order_candidates`). ``layout`` gives the view's scaling and names (its lags are each spec's)."""
+    specs = specs if specs is not None else candidate_specs(record.n, layout.n_columns)
+    designs = _designs(specs, record, layout)
     candidates = []
     for spec in specs:
-        candidates.append(evaluate_candidate(spec, record, scaling, designs[spec]))
+        candidates.append(evaluate_candidate(spec, record, layout, designs[spec]))
         if progress:
             progress(candidates[-1])
     return order_candidates(candidates)
 
 
-def _designs(specs: list[Spec], record: Record, scaling: Scaling) -> dict[Spec, Design]:
+def _designs(specs: list[Spec], record: Record, layout: Layout) -> dict[Spec, Design]:
     """Each spec's design; a family's lower degrees at the same lags reuse its highest degree's features."""
     designs: dict[Spec, Design] = {}
     for spec in sorted(specs, key=lambda s: (s.family, s.lags, -s.degree)):
         top = next((d for other, d in designs.items() if (other.family, other.lags) == (spec.family, spec.lags)), None)
         if top is not None:
-            base = TermModel(spec.lags, spec.lags, scaling, np.zeros((1, 2 * spec.lags), dtype=np.int64))
-            x = base.inputs(record.u, record.y)[0][record.valid_rows(base.warm_up)]
+            base = TermModel(layout.with_lags(spec.lags), np.zeros((1, spec.lags * layout.n_columns), dtype=np.int64))
+            x = base.inputs(record.values)[0][record.valid_rows(base.warm_up)]
             shared = top.leading(spec.dictionary(x))
             if shared is not None:
                 designs[spec] = shared
                 continue
-        designs[spec] = Design.of(spec, record, scaling)
+        designs[spec] = Design.of(spec, record, layout)
     return designs
 
 
@@ -760,3 +845,73 @@ def order_candidates(candidates: list[Candidate]) -> list[Candidate]:
         ordered.remove(chosen)
         ordered.insert(0, chosen)
     return ordered
+
+
+# -- several outputs simulated together --------------------------------------------------------
+
+
+def simulate_joint(
+    models: list[TermModel], columns: list[list[int]], weights: list[np.ndarray], values: np.ndarray, start: int
+) -> tuple[np.ndarray, int, int]:
+    """Free run of several outputs together: output j is ``models[j]``, its view's column c column
+    ``columns[j][c]`` of ``values`` (whose first len(models) columns are the outputs, each fed the model's own
+    from ``start`` on). Every model over the same lags. (values simulated, clipped inputs, diverged_at or -1).
+    """
+    values = np.array(values, dtype=np.float64, copy=True)
+    arrays = [model.layout.arrays() for model in models]
+    source = np.concatenate([np.asarray(where)[c] for where, (c, *_rest) in zip(columns, arrays, strict=True)])
+    lag, offset, scale = (np.concatenate([a[i] for a in arrays]) for i in (1, 2, 3))
+    input_start = np.cumsum([0, *(len(a[0]) for a in arrays)])
+    term_start = np.cumsum([0, *(len(model.exponents) for model in models)])
+    n_inputs = models[0].layout.n_inputs
+    exponents = np.ascontiguousarray(np.vstack([model.exponents for model in models]), dtype=np.int64)
+    factors = [model.factors if len(model.factors) else np.zeros((len(model.exponents), n_inputs + 2))
+               for model in models]  # fmt: skip
+    factors_all = np.vstack(factors) if any(len(model.factors) for model in models) else np.zeros((0, n_inputs + 2))
+    n_y, terms = len(models), int(term_start[-1])
+    clipped = np.zeros(n_y, dtype=np.int64)
+    diverged_at = kernels.free_run(
+        values, int(start), n_y, input_start, source, lag, offset, scale, np.zeros(n_y + 1, dtype=np.int64),
+        np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), term_start, exponents,
+        np.ascontiguousarray(factors_all), np.ascontiguousarray(np.concatenate(weights), dtype=np.float64),
+        np.zeros(terms, dtype=np.int64), 1, np.zeros(n_y, dtype=np.bool_), np.ones(n_y), np.zeros(n_y),
+        np.array([model.layout.y_offset for model in models]), np.array([model.layout.y_scale for model in models]),
+        kernels.BASIS_CODES[models[0].basis], FREE_RUN_DIVERGENCE_BOUND, clipped,
+    )  # fmt: skip
+    return values, int(clipped.sum()), int(diverged_at)
+
+
+def joint_block_score(
+    candidates: list[Candidate], columns: list[list[int]], values: np.ndarray, breaks: np.ndarray
+) -> tuple[float, list[float]]:
+    """How several outputs' chosen candidates simulate *together* on the selection's blocks.
+
+    Each block is simulated from the measured outputs just before it, every output by
+    its candidate's weights fitted without that block, each fed the others' simulated
+    outputs: what a model of several outputs is used for, which each output's own score
+    (the others measured, when it reads them) cannot tell. Returns (the outputs' mean
+    NMSE pooled over the blocks, each output's NMSE); inf where a block diverges, leaves
+    the range or is worse than its mean for some output.
+    """
+    lags = max(c.model.layout.lags for c in candidates)
+    models = [c.model.with_lags(lags) for c in candidates]
+    record = Record.of(values, breaks)
+    warm = models[0].warm_up
+    blocks = fold_blocks(record.n, warm)
+    n_y = len(models)
+    squared, deviation = np.zeros(n_y), np.zeros(n_y)
+    for fold, (a, b) in enumerate(blocks):
+        weights = [np.asarray(c.fold_weights[fold]) for c in candidates]
+        for first, stop in record.pieces(a, b, warm):
+            simulated, clipped, diverged_at = simulate_joint(
+                models, columns, weights, values[first - warm : stop], warm
+            )
+            if diverged_at >= 0 or clipped:
+                return math.inf, [math.inf] * n_y
+            measured = values[first:stop, :n_y]
+            squared += ((simulated[warm:, :n_y] - measured) ** 2).sum(axis=0)
+            deviation += ((measured - measured.mean(axis=0)) ** 2).sum(axis=0)
+    nmse = squared / np.maximum(deviation, 1e-300)
+    if np.any(nmse > 1.0):
+        return math.inf, [float(v) for v in nmse]
+    return float(np.mean(nmse)), [float(v) for v in nmse]

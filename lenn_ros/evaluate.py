@@ -24,6 +24,11 @@ current directory, as the node takes it from its own), so a model written by
 it really started from, not from fresh ones.
 Every gap, refused or clipped sample and an unstable free run are reported, and each
 thing that makes the figures mean less is a warning (text and ``warnings`` in JSON).
+
+One path for any number of channels: a model of several outputs is learnt by the same
+session and scored output by output with the same code (its free run of all outputs
+together, restarted after every break), reported as one table; one output keeps the
+single figures.
 """
 
 from __future__ import annotations
@@ -48,16 +53,14 @@ from lenn_ros.config import (
     read_params_file,
     resolve,
 )
-from lenn_ros.core.evaluation import Evaluation, free_run_problems, free_run_segments
+from lenn_ros.core.evaluation import Evaluation, finite_rows, free_run_problems, free_run_segments
 from lenn_ros.core.fields import stamp_seconds
 from lenn_ros.core.metrics import coverage, nmse_db, rmse
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.pairing import U, Y
-from lenn_ros.core.session import ParameterChange, Session, SessionConfig, describe_gaps
+from lenn_ros.core.session import ParameterChange, Session, SessionConfig, describe_gaps, json_safe
 from lenn_ros.core.spread import Z95
 from lenn_ros.core.structure import Identifier
-from lenn_ros.evaluate_mimo import MimoBagEvaluation, score_mimo
-from lenn_ros.evaluate_mimo import report as report_mimo
 from lenn_ros.fit.data import REPORT_FILE
 
 _NODE_DEFAULTS = {parameter.name: parameter.default for parameter in NODE_PARAMETERS}
@@ -70,7 +73,7 @@ class EvaluateError(ValueError):
 
 @dataclass
 class BagEvaluation:
-    evaluation: Evaluation
+    evaluations: dict[str, Evaluation]  # per output channel, in the model's order
     pairs: int
     unpaired: int
     rejected: int
@@ -81,7 +84,22 @@ class BagEvaluation:
     notices: list[str] = field(default_factory=list)
     weights_in: str = ""  # the weights file learning started from ("" = fresh weights)
     gaps: list[str] = field(default_factory=list)  # the missing indices in words (session.describe_gaps)
-    intervals: dict[str, Any] = field(default_factory=dict)  # the fit's bands and their coverage here
+    intervals: dict[str, Any] = field(default_factory=dict)  # the bands and their coverage here, per output
+
+    @property
+    def evaluation(self) -> Evaluation:
+        """The first (for one output, the only) output's scores."""
+        return next(iter(self.evaluations.values()))
+
+    @property
+    def single(self) -> bool:
+        return len(self.evaluations) == 1
+
+    @property
+    def channels(self) -> dict[str, dict[str, float]]:
+        """Per output channel: NMSE (dB) and RMSE one-step and in free run on the test part."""
+        keys = ("nmse_db", "rmse", "nmse_free_run_db", "rmse_free_run")
+        return {name: {key: getattr(e, key) for key in keys} for name, e in self.evaluations.items()}
 
     @property
     def warnings(self) -> list[str]:
@@ -102,27 +120,36 @@ class BagEvaluation:
                 "after resume_after blocks), so the test scores weights learnt around the divergence; lower alpha "
                 "(or nlms_step), set y_scale/u_scale/offsets for the signals, or use lenn-ros fit"
             )
-        return found + list(self.evaluation.free_run_warnings)
+        for name, evaluation in self.evaluations.items():
+            found += [text if self.single else f"{name}: {text}" for text in evaluation.free_run_warnings]
+        return found
 
     def as_dict(self) -> dict[str, Any]:
-        return {
-            **self.evaluation.as_dict(),
+        e = self.evaluation
+        common = {
             "pairs": self.pairs,
             "unpaired": self.unpaired,
             "rejected": self.rejected,
             "test_start": self.test_start,
-            "skipped": self.evaluation.skipped + self.unpaired + self.rejected,
+            "skipped": e.skipped + self.unpaired + self.rejected,
             "source": self.source,
             "missing": self.missing,
             "gaps": self.gaps,
-            "free_run_unstable": bool(self.evaluation.free_run_warnings)
-            and not all("clipped" in w for w in self.evaluation.free_run_warnings),
+            "free_run_unstable": any(
+                ev.free_run_warnings and not all("clipped" in w for w in ev.free_run_warnings)
+                for ev in self.evaluations.values()
+            ),
             "counters": self.counters,
             "notices": self.notices,
             "weights_in": self.weights_in,
             "intervals": self.intervals,
             "warnings": self.warnings,
         }
+        if self.single:
+            return {**e.as_dict(), **common}
+        channels = {name: evaluation.as_dict() for name, evaluation in self.evaluations.items()}
+        return json_safe({"channels": channels, "free_run": e.free_run, "samples": e.samples, "trained": e.trained,
+                          **common})  # fmt: skip
 
 
 def identifier_from_params(path: str | None, node: str = "/identifier") -> tuple[Identifier, dict]:
@@ -341,7 +368,7 @@ def _in_index_order(messages: list, names: dict[str, str]) -> list:
 
 def evaluate_bag(
     path: str, params: str | None = None, test_from: int | None = None, node: str = "/identifier"
-) -> BagEvaluation | MimoBagEvaluation:
+) -> BagEvaluation:
     """Train on the bag's training phase, score the frozen model on its test phase.
 
     ``node``: whose section of the params file applies (``/robot1/identifier``), by rcl's rules.
@@ -352,30 +379,29 @@ def evaluate_bag(
     index, u, y, learn, start, source = _samples(path, session, values, test_from, changes)
     mimo = isinstance(identifier, MimoIdentifier)
     notes = change_notes(changes, source, mimo)
-    if mimo:
-        result = score_mimo(session, index, u, y, learn, start, source)
-        result.notices.extend(notes)
-        return result
-    y_hat = session.run_samples(index, u, y, learn, changes)
-    evaluation = _score(identifier, index, u, y, y_hat, start)
+    names = list(identifier.names) if mimo else ["y"]
+    y_hat = session.run_samples(index, u, y, learn, () if mimo else changes)
+    evaluations = dict(zip(names, _score(identifier, index, u, y, y_hat, start), strict=True))
+    first = next(iter(evaluations.values()))
     counters = session.all_counters()
     notices = sorted({f"{n.kind}: {n.text}" for n in session.take_notices() if n.kind != "phase"}) + notes
     for topic, lost in _raw_losses(path).items():
         notices.append(f"recording: {lost} {topic} messages missing (gaps in their sequence numbers)")
-    if evaluation.free_run.get("segments", 1) > 1:
+    if first.free_run.get("segments", 1) > 1:
         notices.append(
-            f"free run: restarted from the measured outputs after each of {evaluation.free_run['segments'] - 1} "
-            f"break(s) in the test part (lost or invalid samples); {evaluation.free_run['not_simulated']} test "
+            f"free run: restarted from the measured outputs after each of {first.free_run['segments'] - 1} "
+            f"break(s) in the test part (lost or invalid samples); {first.free_run['not_simulated']} test "
             "samples not simulated, not scored"
         )
     missing = int(np.sum(np.clip(np.diff(index) - 1, 0, None))) + int(index[0] - 1)
-    rejected = int(np.count_nonzero(~(np.isfinite(u) & np.isfinite(y))))
+    rejected = int(np.count_nonzero(~(finite_rows(u) & finite_rows(y))))
     unpaired = sum(counters.get(name, 0) for name in ("unpaired", "dropped_u", "dropped_y"))
     weights_in = str(weights_path(values["weights_in"])) if values.get("weights_in") else ""
     gaps = describe_gaps(index, session.config.pairing, session.config.sample_period)
-    intervals = {**fit_band_coverage(weights_in, evaluation), **one_step_band(index >= start, y, y_hat, session)}
+    bands = fit_band_coverage(weights_in, evaluations)
+    intervals = {**bands, **one_step_band(index >= start, y, y_hat, session)} if not mimo else bands
     return BagEvaluation(
-        evaluation, len(index), unpaired, rejected, int(start), source, missing, counters, notices, weights_in, gaps,
+        evaluations, len(index), unpaired, rejected, int(start), source, missing, counters, notices, weights_in, gaps,
         intervals,
     )  # fmt: skip
 
@@ -403,26 +429,33 @@ def one_step_band(test: np.ndarray, y: np.ndarray, y_hat: np.ndarray, session: S
     }
 
 
-def fit_band_coverage(weights_in: str, evaluation: Evaluation) -> dict[str, Any]:
+def fit_band_coverage(weights_in: str, evaluations: dict[str, Evaluation]) -> dict[str, Any]:
     """The nominal 95 % free-run band of the fit the weights came from (its ``fit.json``), and what it covers here.
 
     The band is the fit's estimate (errors on its held-out blocks); the model scored here
     went on learning from the bag's training phase, so the coverage says how well the
-    fit's uncertainty carries over to this recording. Empty without a fit report.
+    fit's uncertainty carries over to this recording. Several outputs: one band each,
+    under ``free_run`` by output name. Empty without a fit report.
     """
     report = Path(weights_in).parent / REPORT_FILE if weights_in else None
     if report is None or not report.is_file():
         return {}
     try:
-        band = json.loads(report.read_text()).get("intervals", {}).get("free_run", {})
+        fitted = json.loads(report.read_text())
     except (OSError, ValueError):
         return {}
-    width = band.get("half_width")
-    if not width:
+    parts = fitted.get("per_output") or [fitted]
+    covered = {}
+    for (name, evaluation), part in zip(evaluations.items(), parts, strict=False):
+        width = part.get("intervals", {}).get("free_run", {}).get("half_width")
+        if not width:
+            continue
+        simulated = np.isfinite(evaluation.y_free_test)
+        share = coverage(evaluation.y_test[simulated], evaluation.y_free_test[simulated], float(width))
+        covered[name] = {"half_width": float(width), "from": str(report), "coverage_test": share}
+    if not covered:
         return {}
-    simulated = np.isfinite(evaluation.y_free_test)
-    covered = coverage(evaluation.y_test[simulated], evaluation.y_free_test[simulated], float(width))
-    return {"level": 0.95, "free_run": {"half_width": float(width), "from": str(report), "coverage_test": covered}}
+    return {"level": 0.95, "free_run": covered["y"] if list(covered) == ["y"] else covered}
 
 
 def _samples(
@@ -472,11 +505,30 @@ def _last_phase_start(index: np.ndarray, learn: np.ndarray) -> int | None:
     return int(index[changes[-1] + 1]) if changes.size else int(index[0])
 
 
-def _score(identifier: Identifier, index: np.ndarray, u: np.ndarray, y: np.ndarray, y_hat: np.ndarray, start: int):
+def _score(
+    identifier: Identifier | MimoIdentifier,
+    index: np.ndarray,
+    u: np.ndarray,
+    y: np.ndarray,
+    y_hat: np.ndarray,
+    start: int,
+) -> list[Evaluation]:
+    """Each output's scores over the test part: one-step, and the free run of all outputs together (restarted
+    from the measured outputs after every break)."""
     test = index >= start
-    scored = test & np.isfinite(y_hat)
     first = int(np.argmax(test))
     y_free, free_run = free_run_segments(identifier, index, u, y, first)
+    columns = y.reshape(len(y), -1)
+    predicted = y_hat.reshape(len(y), -1)
+    simulated_all = y_free.reshape(len(y_free), -1)
+    return [_score_output(columns[:, j], predicted[:, j], simulated_all[:, j], free_run, test)
+            for j in range(columns.shape[1])]  # fmt: skip
+
+
+def _score_output(
+    y: np.ndarray, y_hat: np.ndarray, y_free: np.ndarray, free_run: dict[str, Any], test: np.ndarray
+) -> Evaluation:
+    scored = test & np.isfinite(y_hat)
     y_test = y[test]
     simulated = np.isfinite(y_test) & (np.isfinite(y_free) | free_run["diverged"])
     if not simulated.any():
@@ -500,27 +552,24 @@ def _score(identifier: Identifier, index: np.ndarray, u: np.ndarray, y: np.ndarr
     )
 
 
-def print_bands(intervals: dict[str, Any]) -> None:
+def band_lines(intervals: dict[str, Any]) -> list[str]:
     """The one-step and free-run 95 % bands and their coverage of the test part, one line each."""
+    lines = []
     one, run = intervals.get("one_step"), intervals.get("free_run")
     if one:
         width, covered = one["median_half_width"], one["coverage_test"]
-        print(f"  one-step 95 % band (y_hat_std, median +-{width:.4g}): covers {covered:.1%}")
+        lines.append(f"  one-step 95 % band (y_hat_std, median +-{width:.4g}): covers {covered:.1%}")
     if run:
-        print(f"  free-run 95 % band of the fit (+-{run['half_width']:.4g}): covers {run['coverage_test']:.1%} here")
+        lines.append(
+            f"  free-run 95 % band of the fit (+-{run['half_width']:.4g}): covers {run['coverage_test']:.1%} here"
+        )
+    return lines
 
 
 def main(args) -> int:
     result = evaluate_bag(args.bag, args.params, args.test_from, getattr(args, "node", "/identifier"))
-    if isinstance(result, MimoBagEvaluation):
-        return report_mimo(args, result)
     if args.plot:
-        from lenn_ros.plotting import plot_identification
-
-        e = result.evaluation
-        title = f"{args.bag}: NMSE {e.nmse_db:.2f} dB one-step, {e.nmse_free_run_db:.2f} dB free run"
-        band = result.intervals.get("free_run", {}).get("half_width")
-        plot_identification(args.plot, e.y_test, e.y_hat_test, title, e.y_free_test, free_run_band=band)
+        _plot(args, result)
     d = result.as_dict()
     if args.json:
         print(json.dumps(d, indent=1, default=lambda value: None))
@@ -531,13 +580,51 @@ def main(args) -> int:
     for line in d["gaps"]:
         print(f"  {line}")
     print(f"  trained on {d['trained']} samples, scored {d['samples']} test samples, skipped {d['skipped']}")
-    for label, key, rmse_key in (("one-step", "nmse_db", "rmse"), ("free-run", "nmse_free_run_db", "rmse_free_run")):
-        value = d[key]
-        shown = f"{value:8.3f} dB" if value is not None and math.isfinite(value) else str(value)
-        print(f"  NMSE {label}: {shown}   RMSE {d[rmse_key]}")
-    print_bands(d["intervals"])
+    for line in _figure_lines(result, d):
+        print(line)
     for warning in d["warnings"]:
         print(f"  WARNING: {warning}")
     for notice in d["notices"]:
         print(f"  note: {notice}")
     return 0
+
+
+def _figure_lines(result: BagEvaluation, d: dict[str, Any]) -> list[str]:
+    """The scores: one output's two lines and bands, or several outputs' table and bands."""
+    lines = []
+    if result.single:
+        for label, key, rmse_key in (
+            ("one-step", "nmse_db", "rmse"),
+            ("free-run", "nmse_free_run_db", "rmse_free_run"),
+        ):
+            value = d[key]
+            shown = f"{value:8.3f} dB" if value is not None and math.isfinite(value) else str(value)
+            lines.append(f"  NMSE {label}: {shown}   RMSE {d[rmse_key]}")
+        return lines + band_lines(d["intervals"])
+    lines.append("  channel        NMSE one-step   NMSE free run   RMSE one-step   RMSE free run")
+    for name, scores in result.channels.items():
+        cells = [scores[key] for key in ("nmse_db", "nmse_free_run_db", "rmse", "rmse_free_run")]
+        shown = [f"{value:13.3f}" if math.isfinite(value) else f"{'nan':>13s}" for value in cells]
+        lines.append(f"  {name:12s} " + "   ".join(shown))
+    for name, band in d["intervals"].get("free_run", {}).items():
+        width, covered = band["half_width"], band["coverage_test"]
+        lines.append(f"  {name}: free-run 95 % band of the fit (+-{width:.4g}): covers {covered:.1%} here")
+    return lines
+
+
+def _plot(args: Any, result: BagEvaluation) -> None:
+    """``--plot``: plant against the model on the test part (one panel per output), the fit's band if known."""
+    from lenn_ros.plotting import plot_channels, plot_identification
+
+    if result.single:
+        e = result.evaluation
+        title = f"{args.bag}: NMSE {e.nmse_db:.2f} dB one-step, {e.nmse_free_run_db:.2f} dB free run"
+        band = result.intervals.get("free_run", {}).get("half_width")
+        plot_identification(args.plot, e.y_test, e.y_hat_test, title, e.y_free_test, free_run_band=band)
+        return
+    names = list(result.evaluations)
+    stacked = [np.column_stack([getattr(e, key) for e in result.evaluations.values()])
+               for key in ("y_test", "y_hat_test", "y_free_test")]  # fmt: skip
+    shown = ", ".join(f"{name} {e.nmse_db:.2f}" for name, e in result.evaluations.items())
+    path = plot_channels(args.plot, names, stacked[0], stacked[1], f"{args.bag}: one-step NMSE {shown} dB", stacked[2])
+    print(f"  wrote {path}")

@@ -92,49 +92,38 @@ class IdentifierOutputs:
         }
 
     def publish(self, samples: list[Sample]) -> None:
-        """Every output of each sample, y_hat first."""
-        if self.mimo:
-            self._publish_vectors(samples)
-            return
+        """Every output of each sample, y_hat first: one output as Float64, several as one vector message
+        (and the one-step std, which only a single output has)."""
         for sample in samples:
             result = sample.result
             if result is not None and result.y_hat_next is not None:
-                self._y_hat_message.data = result.y_hat_next
+                self._y_hat_message.data = self._data(result.y_hat_next)
                 self.y_hat.publish(self._y_hat_message)
-                if result.y_hat_next_std is not None and self.y_hat_std.get_subscription_count():
+                if result.y_hat_next_std is not None and self.y_hat_std and self.y_hat_std.get_subscription_count():
                     self._std_message.data = result.y_hat_next_std
                     self.y_hat_std.publish(self._std_message)
             if self.samples.get_subscription_count():
                 learn = float(result.learned) if result is not None else 0.0
-                self._sample_message.data = array("d", (float(sample.index), sample.time, sample.u, sample.y, learn))
-                self.samples.publish(self._sample_message)
-            if result is not None and result.error is not None and result.y_hat is not None:
-                self._publish_error(sample.time, result.y_hat, result.error)
-                if result.y_hat_std is not None and self.y_hat_std_stamped.get_subscription_count():
-                    message = self._joint_messages[self.y_hat_std_stamped]
-                    set_stamp(message.header.stamp, sample.time)
-                    message.position[0] = result.y_hat_std
-                    self.y_hat_std_stamped.publish(message)
-
-    def _publish_vectors(self, samples: list[Sample]) -> None:
-        """:meth:`publish` for a MIMO model: every output is one vector message, in the same order."""
-        for sample in samples:
-            result = sample.result
-            if result is not None and result.y_hat_next is not None:
-                self._y_hat_message.data = array("d", result.y_hat_next.tolist())
-                self.y_hat.publish(self._y_hat_message)
-            if self.samples.get_subscription_count():
-                learn = float(result.learned) if result is not None else 0.0
-                values = [float(sample.index), sample.time, *np.ravel(sample.u), *np.ravel(sample.y), learn]
+                values = (float(sample.index), sample.time, *np.ravel(sample.u), *np.ravel(sample.y), learn)
                 self._sample_message.data = array("d", values)
                 self.samples.publish(self._sample_message)
             if result is not None and result.error is not None and result.y_hat is not None:
                 self._publish_error(sample.time, result.y_hat, result.error)
+                std = result.y_hat_std
+                if std is not None and self.y_hat_std_stamped and self.y_hat_std_stamped.get_subscription_count():
+                    message = self._joint_messages[self.y_hat_std_stamped]
+                    set_stamp(message.header.stamp, sample.time)
+                    message.position[0] = std
+                    self.y_hat_std_stamped.publish(message)
+
+    def _data(self, value: Any) -> Any:
+        """A value as its plain message carries it: a float (Float64), or the outputs' vector (Float64MultiArray)."""
+        return array("d", np.ravel(value).tolist()) if self.mimo else value
 
     def _publish_error(self, seconds: float, y_hat: Any, error: Any) -> None:
         """e(k) and y^(k) of a learnt sample (plain and stamped), and the NMSE every ``report_every`` errors."""
         if self.error.get_subscription_count():
-            self._error_message.data = array("d", error.tolist()) if self.mimo else error
+            self._error_message.data = self._data(error)
             self.error.publish(self._error_message)
         for publisher, value in ((self.y_hat_stamped, y_hat), (self.error_stamped, error)):
             if publisher.get_subscription_count():

@@ -498,23 +498,28 @@ REFINED_CANDIDATES = 3
 
 
 def _refine_best(candidates: list[Candidate], record: Record, say: Any) -> tuple[Candidate, dict[str, Any]]:
-    """Refine the first REFINED_CANDIDATES usable candidates (iterations chosen on the blocks); keep the best.
+    """Refine the first REFINED_CANDIDATES usable candidates that feed back their output (iterations chosen on
+    the blocks); keep the best of them and the input-only ones.
 
     Refinement can reorder candidates (a hinge model that least squares left behind may
     simulate best once refined), so the choice among them is made again on the refined
-    block scores with the same rules (:func:`order_candidates`).
+    block scores with the same rules (:func:`order_candidates`). An input-only model
+    (``fir``) is never refined, nor does it take a refinement's place: its least squares
+    already minimise its simulation error (its free run is its one-step prediction).
     """
-    usable = [c for c in candidates if c.model is not None][:REFINED_CANDIDATES]
-    for candidate in usable:
+    usable = [c for c in candidates if c.model is not None]
+    refined = [c for c in usable if c.spec.family != "fir"][:REFINED_CANDIDATES]
+    for candidate in refined:
         say(f"refining {candidate.spec.label} ({candidate.terms} terms) on simulation error")
         result = cross_validated_refinement(candidate, record)
         candidate.refinement = result.as_dict()
         candidate.rmse_validation = result.rmse_blocks_after
-    for candidate in usable:  # the report's list: the refined ones first (the chosen one leading), then the rest
+    contenders = refined + [c for c in usable if c.spec.family == "fir"]
+    for candidate in contenders:  # the report's list: the contenders first (the chosen one leading), then the rest
         candidates.remove(candidate)
-    candidates[:0] = order_candidates(usable)
+    candidates[:0] = order_candidates(contenders)
     chosen = candidates[0]
-    return chosen, {"done": True, **chosen.refinement}
+    return chosen, {"done": True, **(chosen.refinement or {"iterations": 0, "tried": 0, "input_only": True})}
 
 
 def time_scale_note(candidate: Candidate) -> str:
@@ -1191,7 +1196,9 @@ def _model_lines(part: dict[str, Any], indent: str) -> list[str]:
         terms = " + ".join(m["expansion"]["terms"])
         lines.append(f"{indent}model: {m['family']} ({m['expansion']['basis']}), {m['n_terms']} terms: {terms}")
     refinement = c["refinement"]
-    if refinement.get("done"):
+    if refinement.get("input_only"):
+        lines.append(f"{indent}not refined: an input-only model's least squares already minimise its free-run error")
+    elif refinement.get("done"):
         lines.append(
             f"{indent}refined on simulation error: {refinement['iterations']} of {refinement['tried']} iterations "
             f"(chosen on the blocks: held-out free-run RMSE {refinement['rmse_blocks_before']:.5g} -> "

@@ -23,6 +23,12 @@ them by RLS with the same compiled step. What they offer:
   samples (a record sampled far faster than its dynamics, such as a 1 kHz robot) the
   increments are taken over spans 1, 2, 4, ... and the input averaged over them
   (multi-scale), so a long memory costs a few terms, not one per sample.
+- ``fir``: the output from the inputs alone, no output fed back: the newest input lags and
+  the inputs averaged over spans 16, 32, 64 up to the lags; degree 2 adds tanh, v|v| and
+  dead-zones (relu beyond one spread) of the averages over FIR_SPANS. Where one-step least
+  squares sets the feedback of a model's own past wrong (a robot arm's angles, whose
+  velocity follows the torque: the fitted poles sit on or outside the unit circle and
+  every free run drifts), a model that cannot run away simulates best; the blocks decide.
 
 The term parameters (knots, velocity scales) come from the training inputs and are
 rounded to six significant digits, which is how ``format_terms`` writes them: the
@@ -66,6 +72,11 @@ RFF_SEED = 0
 INCREMENT_LAGS = (2, 3, 4, 6, 10)
 #: long lag spans (multi-scale increments) for records sampled far faster than their dynamics
 LONG_SPANS = (17, 33, 65)
+#: input-only models: lags tried (the longer with averages of the inputs over spans up to it)
+FIR_LAGS = (10, 65)
+#: newest input lags an input-only model reads one by one; spans of the averages its nonlinear terms take
+FIR_RECENT = 10
+FIR_SPANS = (8, 32, 64)
 #: training quantiles at which the hinges' knots sit
 KNOT_QUANTILES = (0.1, 0.25, 0.5, 0.75, 0.9)
 #: sharpness of the tanh velocity terms, in units of the velocity's standard deviation
@@ -108,7 +119,8 @@ class Spec:
 
     def dictionary(self, x: np.ndarray) -> Dictionary:
         """The terms this candidate offers, their parameters taken from the training inputs ``x``."""
-        builder = {"polynomial": _polynomial, "hinge": _hinge, "rff": _fourier, "increment": _increment}[self.family]
+        builder = {"polynomial": _polynomial, "hinge": _hinge, "rff": _fourier, "increment": _increment,
+                   "fir": _input_only}[self.family]  # fmt: skip
         return builder(self, np.asarray(x, dtype=np.float64))
 
 
@@ -119,6 +131,7 @@ GRID = (
     ("rff", RFF_LAGS, (2,)),
     ("increment", INCREMENT_LAGS, (1, 2, 3)),
     ("increment", LONG_SPANS, (1, 3)),
+    ("fir", FIR_LAGS, (1, 2)),
 )
 
 
@@ -335,3 +348,39 @@ def _input_terms(built: _Builder, start: int, lags: int, multi_scale: bool) -> N
         built.add(None, "lin", w)
     for j in range(1, min(lags, RECENT)):
         built.add(built.power(start + j, 1))
+
+
+def _input_only(spec: Spec, x: np.ndarray) -> Dictionary:
+    """The output from the columns read alone (none of its own lags): their FIR_RECENT newest lags, their
+    averages over longer spans, and (degree 2) tanh, v|v| and dead-zones of their averages over FIR_SPANS."""
+    lags = spec.lags
+    built = _Builder(x.shape[1])
+    built.add()  # the bias
+    read = [c * lags for c in range(1, _columns(spec, x))]
+    for start in read:
+        for j in range(min(lags, FIR_RECENT)):
+            built.add(built.power(start + j, 1))
+        for s in (16, 32, 64, 128):
+            if FIR_RECENT < s <= lags:
+                w = np.zeros(x.shape[1])
+                w[start : start + s] = 1.0 / s
+                built.add(None, "lin", w)
+    if spec.degree >= 2:
+        for start in read:
+            for s in FIR_SPANS:
+                if s <= lags:
+                    _average_terms(built, x, start, s)
+    return built.build()
+
+
+def _average_terms(built: _Builder, x: np.ndarray, start: int, span: int) -> None:
+    """tanh(z), z|z| and the dead-zones relu(z - 1), relu(-z - 1) of z, the average of one column over its
+    ``span`` newest lags scaled to unit spread."""
+    w = np.zeros(x.shape[1])
+    w[start : start + span] = 1.0 / span
+    spread = float(np.std(x @ w)) or 1.0
+    w /= spread
+    built.add(None, "tanh", w)
+    built.add(None, "sqabs", w)
+    built.add(None, "relu", w, -1.0)
+    built.add(None, "relu", -w, -1.0)

@@ -143,7 +143,11 @@ def test_a_recorded_mimo_run_evaluates_offline_to_the_live_figures(tmp_path: Pat
         "/u": TRAIN + TEST, "/y_p": TRAIN + TEST, "/y_hat": TRAIN + TEST, "/error": TRAIN + TEST - 1
     }  # fmt: skip
     offline = evaluate_bag(str(bag))  # the configuration the identifier recorded; its own samples
-    assert offline.source == "samples" and offline.pairs == TRAIN + TEST and offline.samples == TEST
+    assert (
+        offline.source == "samples"
+        and offline.pairs == TRAIN + TEST
+        and all(e.samples == TEST for e in offline.evaluations.values())
+    )
     for name in NAMES:
         assert offline.channels[name]["nmse_db"] == pytest.approx(live["channels"][name]["phase_nmse_db"], abs=1e-9)
         assert offline.channels[name]["nmse_free_run_db"] < -15.0  # the joint model runs stably on its own

@@ -99,7 +99,7 @@ class IdentifierOutputs:
             if result is not None and result.y_hat_next is not None:
                 self._y_hat_message.data = self._data(result.y_hat_next)
                 self.y_hat.publish(self._y_hat_message)
-                if result.y_hat_next_std is not None and self.y_hat_std and self.y_hat_std.get_subscription_count():
+                if self.y_hat_std and result.y_hat_next_std is not None and self.y_hat_std.get_subscription_count():
                     self._std_message.data = result.y_hat_next_std
                     self.y_hat_std.publish(self._std_message)
             if self.samples.get_subscription_count():
@@ -109,8 +109,8 @@ class IdentifierOutputs:
                 self.samples.publish(self._sample_message)
             if result is not None and result.error is not None and result.y_hat is not None:
                 self._publish_error(sample.time, result.y_hat, result.error)
-                std = result.y_hat_std
-                if std is not None and self.y_hat_std_stamped and self.y_hat_std_stamped.get_subscription_count():
+                std = None if self.mimo else result.y_hat_std
+                if std is not None and self.y_hat_std_stamped.get_subscription_count():
                     message = self._joint_messages[self.y_hat_std_stamped]
                     set_stamp(message.header.stamp, sample.time)
                     message.position[0] = std

@@ -44,7 +44,7 @@ import numpy as np
 
 from lenn_ros import bag as bags
 from lenn_ros import topics
-from lenn_ros.bag.vectors import read_test_start, read_vector_samples
+from lenn_ros.bag.vectors import read_test_start
 from lenn_ros.config import (
     NODE_PARAMETERS,
     build_identifier,
@@ -264,18 +264,12 @@ def make_session(identifier: Identifier, values: dict[str, Any]) -> Session:
 
 def _recorded_samples(path: str, identifier: Identifier | MimoIdentifier) -> tuple[np.ndarray, ...] | None:
     """The identifier's own samples, sorted by index (a repeated index: the first, as live)."""
-    if isinstance(identifier, MimoIdentifier):
-        vectors = read_vector_samples(path, identifier.structure.n_u, identifier.structure.n_y)
-        return None if vectors is None else (vectors.index, vectors.u, vectors.y, vectors.learn)
-    samples = bags.read_samples(path)
+    shape = (identifier.structure.n_u, identifier.structure.n_y) if isinstance(identifier, MimoIdentifier) else (1, 1)
+    samples = bags.read_samples(path, None, *shape)
     if samples is None or samples.index.size == 0:
         return None
-    learn = samples.learn if samples.learn is not None else np.ones(samples.index.size, dtype=bool)
-    order = np.argsort(samples.index, kind="stable")
-    index = samples.index[order]
-    keep = np.r_[True, np.diff(index) > 0]
-    pick = order[keep]
-    return samples.index[pick], samples.u[pick], samples.y_p[pick], learn[pick]
+    index, _time, u, y, learn = samples.ordered()
+    return index, u, y, learn
 
 
 def _raw_losses(path: str) -> dict[str, int]:

@@ -118,7 +118,11 @@ def read_run(
 
 @dataclass(frozen=True)
 class SampleSeries:
-    """The identifier's ``samples`` topic: the pairs it formed, one row per sample (see topics.SAMPLES)."""
+    """The identifier's ``samples`` topic: the pairs it formed, one row per sample (see topics.SAMPLES).
+
+    One row layout for any number of channels: ``[index, time, u.., y_p.., learn]``; ``u`` and
+    ``y_p`` are (N,) for one channel, (N, channels) for several.
+    """
 
     index: np.ndarray  # int64, 1-based sample index
     time: np.ndarray  # seconds, the sample's time
@@ -128,9 +132,18 @@ class SampleSeries:
     log_time_ns: np.ndarray
     topic: str
 
+    def ordered(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(index, time, u, y_p, learn) sorted by index, a repeated index keeping its first row (as live)."""
+        learn = self.learn if self.learn is not None else np.ones(self.index.size, dtype=bool)
+        order = np.argsort(self.index, kind="stable")
+        pick = order[np.r_[True, np.diff(self.index[order]) > 0]] if order.size else order
+        return self.index[pick], self.time[pick], self.u[pick], self.y_p[pick], learn[pick]
 
-def read_samples(path: str | Path, namespace: str | None = None) -> SampleSeries | None:
-    """The ``samples`` topic as arrays (columns ``topics.SAMPLE_LABELS``); None if the bag has none."""
+
+def read_samples(path: str | Path, namespace: str | None = None, n_u: int = 1, n_y: int = 1) -> SampleSeries | None:
+    """The ``samples`` topic as arrays, rows ``[index, time, u.., y_p.., learn]`` of a model of ``n_u`` inputs and
+    ``n_y`` outputs; None if the bag has none. A width that does not fit is a BagError (another configuration
+    recorded it); one channel each also reads rows without the learn flag (older bags)."""
     path = Path(path)
     file, summary = read_summary(path)
     available = _types(summary)
@@ -139,17 +152,23 @@ def read_samples(path: str | Path, namespace: str | None = None) -> SampleSeries
         return None
     _check_type(path, topic, topics.SAMPLES, available)
     series = read_series(path, file, summary, topic)
-    values = series.values if series.values is not None and series.values.size else np.empty((0, 5))
-    if values.ndim != 2 or values.shape[1] < 4:
+    width = 3 + n_u + n_y
+    values = series.values if series.values is not None and series.values.size else np.empty((0, width))
+    values = np.asarray(values, dtype=np.float64)
+    single = n_u == 1 and n_y == 1
+    if values.ndim != 2 or not (values.shape[1] == width or (single and values.shape[1] == width - 1)):
+        expected = ", ".join(topics.SAMPLE_LABELS) if single else f"{width} (index, time, u.., y_p.., learn)"
         raise BagError(
-            f"{path}: {topic!r} rows have {values.shape[-1]} values, expected {', '.join(topics.SAMPLE_LABELS)}"
+            f"{path}: {topic!r} rows have {values.shape[-1]} values, expected {expected} for a model of {n_u} "
+            f"input(s) and {n_y} output(s): pass the --params it ran with"
         )
+    u, y_p = values[:, 2 : 2 + n_u], values[:, 2 + n_u : 2 + n_u + n_y]
     return SampleSeries(
         index=values[:, 0].astype(np.int64),
         time=values[:, 1].copy(),
-        u=values[:, 2].copy(),
-        y_p=values[:, 3].copy(),
-        learn=values[:, 4] != 0 if values.shape[1] > 4 else None,
+        u=u[:, 0].copy() if n_u == 1 else u.copy(),
+        y_p=y_p[:, 0].copy() if n_y == 1 else y_p.copy(),
+        learn=values[:, width - 1] != 0 if values.shape[1] == width else None,
         log_time_ns=series.log_time_ns,
         topic=topic,
     )

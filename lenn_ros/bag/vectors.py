@@ -20,19 +20,17 @@ from lenn_ros import topics
 from lenn_ros.bag.errors import BagError
 from lenn_ros.bag.msgtypes import TYPESTORE
 from lenn_ros.bag.reader import _types, find_topic, iter_messages, read_summary
-from lenn_ros.bag.run import RawPairs, pair_raw
+from lenn_ros.bag.run import RawPairs, pair_raw, read_samples
 from lenn_ros.bag.scalars import Series, read_series
 from lenn_ros.bag.writer import BagWriter
 
 __all__ = [
     "VectorPairs",
     "VectorRun",
-    "VectorSamples",
     "is_vector_run",
     "pair_vector_run",
     "read_test_start",
     "read_vector_run",
-    "read_vector_samples",
     "vector_message",
     "write_vector_run",
 ]
@@ -139,44 +137,6 @@ def _labels(path: Path, topic: str, width: int, kind: str) -> tuple[str, ...]:
 
 
 @dataclass(frozen=True)
-class VectorSamples:
-    """A MIMO identifier's own ``samples``: index, time (s), u (N, n_u), y (N, n_y), learn; sorted by index."""
-
-    index: np.ndarray
-    time: np.ndarray
-    u: np.ndarray
-    y: np.ndarray
-    learn: np.ndarray
-
-
-def read_vector_samples(path: str | Path, n_u: int, n_y: int) -> VectorSamples | None:
-    """The ``samples`` rows ``[index, time, u.<name>.., y_p.<name>.., learn]`` of a MIMO run; None if absent.
-
-    A repeated index keeps its first row, as live. A width that does not fit the channel
-    counts is a BagError (another configuration recorded it).
-    """
-    path = Path(path)
-    file, summary = read_summary(path)
-    topic = find_topic(_types(summary), topics.SAMPLES)
-    if topic is None:
-        return None
-    values = read_series(path, file, summary, topic).values
-    if values is None or not len(values):
-        return None
-    values = np.asarray(values, dtype=np.float64).reshape(len(values), -1)
-    if values.shape[1] != 3 + n_u + n_y:
-        raise BagError(
-            f"{path}: {topic!r} rows have {values.shape[1]} values; a model of {n_u} inputs and {n_y} outputs "
-            f"records {3 + n_u + n_y} (index, time, u.., y_p.., learn): pass the --params it ran with"
-        )
-    order = np.argsort(values[:, 0], kind="stable")
-    index = values[order, 0].astype(np.int64)
-    rows = values[order[np.r_[True, np.diff(index) > 0]]]
-    u, y = rows[:, 2 : 2 + n_u], rows[:, 2 + n_u : 2 + n_u + n_y]
-    return VectorSamples(rows[:, 0].astype(np.int64), rows[:, 1], u, y, rows[:, -1] != 0)
-
-
-@dataclass(frozen=True)
 class VectorPairs:
     """Sample k of a vector recording at row k, for replay: ``pairs`` (indices, streams, which halves the
     recording holds, times, as :func:`~lenn_ros.bag.run.pair_raw` gives them) and the vectors, NaN rows
@@ -199,12 +159,17 @@ def pair_vector_run(path: str | Path, use_samples: bool = True) -> VectorPairs:
     """
     path = Path(path)
     (u_read, u_rows), (y_read, y_rows), names, test_start = _read_channels(path)
-    recorded = read_vector_samples(path, u_rows.shape[1], y_rows.shape[1]) if use_samples else None
-    if recorded is not None:
-        times = np.round(recorded.time * 1e9).astype(np.int64)
-        rows = np.arange(len(recorded.index), dtype=np.float64)
-        pairs = pair_raw(rows, rows, recorded.index, recorded.index, u_t=times, y_p_t=times, fill=True)
-        u_rows, y_rows, source = recorded.u, recorded.y, "the identifier's samples"
+    recorded = read_samples(path, None, u_rows.shape[1], y_rows.shape[1]) if use_samples else None
+    if recorded is not None and recorded.index.size:
+        index, time, u_samples, y_samples, _learn = recorded.ordered()
+        times = np.round(time * 1e9).astype(np.int64)
+        rows = np.arange(len(index), dtype=np.float64)
+        pairs = pair_raw(rows, rows, index, index, u_t=times, y_p_t=times, fill=True)
+        u_rows, y_rows, source = (
+            u_samples.reshape(len(index), -1),
+            y_samples.reshape(len(index), -1),
+            "the identifier's samples",
+        )
     else:
         pairs = pair_raw(
             np.arange(len(u_rows), dtype=np.float64),

@@ -39,7 +39,6 @@ import dataclasses
 import itertools
 import json
 import math
-import os
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -66,12 +65,14 @@ from lenn_ros.fit.selection import (
     Layout,
     Record,
     TermModel,
+    cores,
     fold_blocks,
     joint_block_score,
     loosen,
     order_candidates,
     out_of_fold_residuals,
     select_structure,
+    side_by_side,
     siso_view,
 )
 
@@ -379,12 +380,15 @@ def _fit_outputs(
             record = Record.of(values[:, where], breaks)
             specs = None if kind == "own" else _coupled_specs(fits["own"][j], record.n, len(where))
             layout = Layout(1, offsets, scales, names)
-            fitted = _fit_output(data.y_names[j], record, layout, refine, say if single else said.append, specs)
+            workers = cores() if n_y == 1 else 1  # one output: its candidates side by side; several: the outputs
+            fitted = _fit_output(
+                data.y_names[j], record, layout, refine, say if n_y == 1 else said.append, specs, workers
+            )
             fitted.columns = where
             return fitted, said
 
         fits[kind] = []
-        for fitted, said in _side_by_side(one, n_y):
+        for fitted, said in side_by_side(one, list(range(n_y)), cores()):
             for line in said:
                 say(line)
             fits[kind].append(fitted)
@@ -420,29 +424,19 @@ def _coupled_specs(alone: OutputFit, n: int, columns: int) -> list:
     return polynomial + [spec for spec in best if spec not in polynomial]
 
 
-def _side_by_side(work: Any, count: int) -> list:
-    """``work(j)`` for j < count on a thread per core (the selection's kernels and BLAS release the GIL), in
-    order; one runs here, on this thread."""
-    if count == 1:
-        return [work(0)]
-    from concurrent.futures import ThreadPoolExecutor
-
-    with ThreadPoolExecutor(max_workers=max(1, min(count, os.cpu_count() or 1))) as pool:
-        return list(pool.map(work, range(count)))
-
-
 def _finite(value: float) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
 def _fit_output(
-    name: str, record: Record, layout: Layout, refine: bool, say: Any, specs: list | None = None
+    name: str, record: Record, layout: Layout, refine: bool, say: Any, specs: list | None = None, workers: int = 1
 ) -> OutputFit:
-    """Select (and refine) one output's model over its view of the training samples (``specs``: the grid's)."""
-    candidates, warnings = _select(record, layout, say, specs)
+    """Select (and refine) one output's model over its view of the training samples (``specs``: the grid's;
+    ``workers``: threads for its candidates)."""
+    candidates, warnings = _select(record, layout, say, specs, workers)
     chosen, refinement = candidates[0], {"done": False}
     if refine:
-        chosen, refinement = _refine_best(candidates, record, say)
+        chosen, refinement = _refine_best(candidates, record, say, workers)
     return OutputFit(name, record, layout, candidates, chosen, refinement, warnings)
 
 
@@ -497,7 +491,9 @@ COUPLED_SPECS = 4
 REFINED_CANDIDATES = 3
 
 
-def _refine_best(candidates: list[Candidate], record: Record, say: Any) -> tuple[Candidate, dict[str, Any]]:
+def _refine_best(
+    candidates: list[Candidate], record: Record, say: Any, workers: int = 1
+) -> tuple[Candidate, dict[str, Any]]:
     """Refine the first REFINED_CANDIDATES usable candidates that feed back their output (iterations chosen on
     the blocks); keep the best of them and the input-only ones.
 
@@ -511,7 +507,9 @@ def _refine_best(candidates: list[Candidate], record: Record, say: Any) -> tuple
     refined = [c for c in usable if c.spec.family != "fir"][:REFINED_CANDIDATES]
     for candidate in refined:
         say(f"refining {candidate.spec.label} ({candidate.terms} terms) on simulation error")
-        result = cross_validated_refinement(candidate, record)
+    for candidate, result in zip(
+        refined, side_by_side(lambda c: cross_validated_refinement(c, record), refined, workers), strict=True
+    ):
         candidate.refinement = result.as_dict()
         candidate.rmse_validation = result.rmse_blocks_after
     contenders = refined + [c for c in usable if c.spec.family == "fir"]
@@ -535,7 +533,9 @@ def time_scale_note(candidate: Candidate) -> str:
     return f"lags {spec.lags} samples at the recorded rate"
 
 
-def _select(record: Record, layout: Layout, say: Any, specs: list | None = None) -> tuple[list[Candidate], list[str]]:
+def _select(
+    record: Record, layout: Layout, say: Any, specs: list | None = None, workers: int = 1
+) -> tuple[list[Candidate], list[str]]:
     """(candidates, warnings): the strict selection, else the loose one with a warning, else FitError."""
 
     def tell(candidate: Candidate) -> None:
@@ -546,7 +546,7 @@ def _select(record: Record, layout: Layout, say: Any, specs: list | None = None)
         )
         say(f"  {candidate.spec.label}: {shown}")
 
-    candidates = select_structure(record, layout, specs, progress=tell)
+    candidates = select_structure(record, layout, specs, progress=tell, workers=workers)
     warnings = []
     if not any(c.model is not None for c in candidates):
         # nothing passed the strict checks: the best that merely simulates the blocks,

@@ -420,7 +420,7 @@ def _coupled_specs(alone: OutputFit, n: int, columns: int) -> list:
     """The grid of an output's view with the other outputs: the polynomial family, and the COUPLED_SPECS
     structures that served it best alone."""
     best = [c.spec for c in alone.candidates if c.model is not None][:COUPLED_SPECS]
-    polynomial = [spec for spec in candidate_specs(n, columns) if spec.family == "polynomial"]
+    polynomial = [s for s in candidate_specs(n, columns) if s.family == "polynomial" and s.lags <= COUPLED_LAGS]
     return polynomial + [spec for spec in best if spec not in polynomial]
 
 
@@ -485,8 +485,10 @@ def _choices(fitted: OutputFit, blocks: int, gaps: int) -> dict[str, Any]:
     }
 
 
-#: structures (best first, from an output's own view) tried again reading the other outputs too
+#: structures (best first, from an output's own view) tried again reading the other outputs too, and the
+#: longest lags of the polynomial family offered with them
 COUPLED_SPECS = 4
+COUPLED_LAGS = 3
 #: candidates (best first) whose weights are refined on simulation error; the best refined one is kept
 REFINED_CANDIDATES = 3
 

@@ -647,7 +647,8 @@ def profile_identifier_callbacks(pairs: int, repeats: int) -> dict[str, Any]:
     # No publisher of u / y_p exists in this process's graph: without this the node would
     # hold every pair (and look the graph up per message) for its 5 s start grace, and
     # the profile would measure holding, not learning.
-    node._graph_checked = True
+    node.session.gate = None  # (publishers_known, nothing held)
+    node.session.holding = False
     try:
         u, y = example_series(1, 500 + pairs * (repeats + 1))
         messages = [(Float64(data=a), Float64(data=b)) for a, b in zip(u.tolist(), y.tolist(), strict=True)]

@@ -258,6 +258,72 @@ def test_sequence_pairing_refuses_halves_published_apart(series) -> None:
     assert any("published 4.000 s apart" in notice.text for notice in live.take_notices())
 
 
+def _offer_lockstep(live: Session, series, first: int, count: int) -> list:
+    samples = []
+    for k in range(first, first + count):
+        live.offer(U, series.u[k], k * 0.01, sequence=k + 1, source_time=k * 0.01)
+        samples += live.offer(Y, series.y[k], k * 0.01, sequence=k + 1, source_time=k * 0.01)
+    return samples
+
+
+def test_held_pairs_wait_for_readers_and_one_publisher_of_both_then_are_learnt_in_order(series) -> None:
+    """The hold's decisions, as the node hands over the graph: nothing learnt until the outputs have
+    their readers and the graph shows one node publishing u and y_p; then every held pair, in order."""
+    live = session()
+    live.hold_for({"y_hat": 1, "error": 0, "samples": 0}, grace=5.0)
+    assert live.holding and not live.publishers_known
+    assert _offer_lockstep(live, series, 0, 100) == [] and live.held == 100
+    assert live.release_ready({"y_hat": 0}, now=10.0) == []  # no reader yet
+    assert live.release_ready({"y_hat": 0}, now=16.0) == []
+    waiting = [n.text for n in live.take_notices() if n.kind == "holding"]
+    assert waiting == ["100 pairs held, not learnt, for 6 s: waiting until y_hat has 0 of 1 readers "
+                       "(lower wait_for_*_subscribers or start the readers)"]  # fmt: skip
+    assert live.release_ready({"y_hat": 1}, now=16.5) == []  # readers, but who publishes is not known yet
+    live.graph_publishers({U: {("/", "_NODE_NAME_UNKNOWN_")}, Y: {("/", "plant")}})  # discovery not done
+    assert not live.publishers_known and live.refusal is None
+    live.graph_publishers({U: {("/", "plant")}, Y: {("/", "plant")}})
+    assert live.publishers_known and live.refusal is None
+    released = live.release_ready({"y_hat": 1}, now=17.0)
+    assert [sample.index for sample in released] == list(range(1, 101)) and not live.holding
+    # every held pair after the model's history (Ex. 1: y(k-1), y(k-2)) is learnt
+    assert live.all_counters()["learned"] == 100 - live.identifier.structure.warm_up == 98
+    assert len(_offer_lockstep(live, series, 100, 10)) == 10  # afterwards: straight through
+
+
+def test_two_publishers_refuse_sequence_pairing_and_drop_what_was_held(series) -> None:
+    live = session()
+    live.hold_for({"y_hat": 0, "error": 0, "samples": 0})
+    _offer_lockstep(live, series, 0, 50)
+    live.graph_publishers({U: {("/robot", "driver")}, Y: {("/", "encoder")}})
+    assert live.held == 0 and live.all_counters()["refused"] == 50
+    assert live.refusal == (
+        "u (from /robot/driver) and y_p (from /encoder) come from different nodes: pairing 'sequence' needs one "
+        "lockstep publisher of both, nothing is paired; use pairing:=sample sample_period:=T (or pairing:=stamp)"
+    )
+    assert _offer_lockstep(live, series, 50, 10) == [] and live.all_counters()["learned"] == 0
+    live.graph_publishers({U: {("/", "plant")}, Y: {("/", "plant")}})  # one lockstep publisher now: lifted
+    assert live.refusal is None and _offer_lockstep(live, series, 60, 10) == []  # (held again: no release yet)
+    assert [s.index for s in live.release_ready({}, now=0.0)] == list(range(61, 71))
+
+
+def test_publishers_never_named_release_the_pairs_after_the_grace_with_a_warning(series) -> None:
+    live = session()
+    live.hold_for({"y_hat": 0, "error": 0, "samples": 0}, grace=5.0)
+    _offer_lockstep(live, series, 0, 20)
+    assert live.release_ready({}, now=100.0) == [] and live.release_ready({}, now=104.9) == []
+    assert len(live.release_ready({}, now=105.0)) == 20 and live.publishers_known
+    assert [n.kind for n in live.take_notices() if n.kind in ("unverified", "holding")] == ["unverified"]
+
+
+def test_stamp_and_sample_pairing_hold_only_for_readers() -> None:
+    for config in ({"pairing": "stamp"}, {"pairing": "sample", "sample_period": 0.01}):
+        live = session(**config)
+        live.hold_for({"y_hat": 0, "error": 0, "samples": 0})
+        assert not live.holding
+        live.hold_for({"y_hat": 0, "error": 2, "samples": 0})
+        assert live.holding
+
+
 def test_sequence_pairing_refuses_without_sequence_numbers(series) -> None:
     live = session()
     samples = []

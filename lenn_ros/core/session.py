@@ -47,6 +47,7 @@ import numpy as np
 from lenn_ros.core.alignment import GridSampler, Pair, StampAligner
 from lenn_ros.core.change import ACCEPTED, DEFAULT_THRESHOLD, RAISED, ChangeDetector
 from lenn_ros.core.evaluation import finite_rows
+from lenn_ros.core.holding import START_GRACE, HoldGate
 from lenn_ros.core.merging import TopicMerger, default_max_age
 from lenn_ros.core.metrics import ChannelsNMSE, RunningNMSE
 from lenn_ros.core.mimo import MimoIdentifier, MimoStepResult
@@ -238,6 +239,7 @@ class Session:
         self.phase_nmse = ChannelsNMSE(self.identifier.names) if self.mimo else RunningNMSE()
         self.refusal: str | None = None  # set by the caller when it knows pairing cannot work
         self.holding = False  # hold formed samples (unprocessed) until release()
+        self.gate: HoldGate | None = None  # live: what the hold waits for (hold_for)
         self._held: list[Pair] = []
         self._notices: list[Notice] = []
         self._last_seen: dict[str, float] = {}
@@ -444,6 +446,53 @@ class Session:
         self.counters["refused"] += dropped
         self._held = []
         return dropped
+
+    # -- the graph (live): hold until the outputs have readers and the publishers are known ---------
+    def hold_for(self, wanted: dict[str, int], grace: float = START_GRACE) -> None:
+        """Live: hold formed pairs until each output in ``wanted`` has that many readers and, in
+        ``sequence`` pairing, the graph has shown who publishes u and y_p (:mod:`~lenn_ros.core.holding`).
+
+        Offline there is no graph: a recording's session never calls this.
+        """
+        self.gate = HoldGate(self.config.pairing, dict(wanted), self.config.u_name, self.config.y_name, grace)
+        self.holding = self.gate.needed
+
+    @property
+    def publishers_known(self) -> bool:
+        """Whether the graph has shown both inputs' publishers (or the grace for them ran out)."""
+        return self.gate is None or self.gate.publishers_known
+
+    def graph_publishers(self, seen: dict[str, set[tuple[str, str]]]) -> None:
+        """The publishers (namespace, node) of each input ('u', 'y') the graph shows now.
+
+        In ``sequence`` pairing, two disjoint sets refuse every half from now on (said with
+        the fix, counted in ``refused``) and drop what is held; one node of both lifts it.
+        """
+        if self.gate is None:
+            return
+        decided, refusal = self.gate.publishers(seen)
+        if not decided:
+            return
+        self.refusal = refusal
+        if refusal is not None:
+            self.discard_held()
+
+    def release_ready(self, readers: dict[str, int], now: float) -> list[Sample]:
+        """The held samples, processed, once the outputs have their ``readers`` and the publishers are
+        vouched for (monotonic ``now``, s); else nothing, and what they wait for is said after the grace."""
+        gate = self.gate
+        if gate is None or not (self.holding and self._held):
+            return []
+        if not gate.readers_missing(readers):
+            vouched, unverified = gate.vouched(now)
+            if unverified is not None:
+                self._say("unverified", unverified)
+            if vouched:
+                return self.release()
+        waiting = gate.waiting_text(len(self._held), readers, now)
+        if waiting is not None:
+            self._say("holding", waiting)
+        return []
 
     def release_pairs(self) -> list[Pair]:
         """Stop holding and hand the formed pairs over unprocessed (offline: learnt in one batch)."""

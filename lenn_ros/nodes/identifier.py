@@ -65,17 +65,16 @@ from lenn_ros.core.fields import (
     has_header,
     stamp_seconds,
 )
+from lenn_ros.core.holding import START_GRACE
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.networks import ModelFileError
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.session import Notice, Sample, Session, SessionConfig, json_safe
 from lenn_ros.nodes import DRAIN_SECONDS, InputsNode, executor_choice, rclpy_internals, run_node
-from lenn_ros.nodes.identifier_outputs import IdentifierOutputs
+from lenn_ros.nodes.identifier_outputs import OUTPUTS, IdentifierOutputs
 
 #: Parameters set by rclpy itself or by the QoS override mechanism: not unknown.
 _FOREIGN_PARAMETERS = ("use_sim_time", "start_type_description_service", "qos_overrides.")
-#: Seconds after start in which a wrong message type on u / y_p stops the node (later: an error line).
-_START_GRACE = 5.0
 #: What ``qos_overrides./topic.subscription.*`` may set (rclpy's default set lacks durability).
 _QOS_OVERRIDES = QoSOverridingOptions(
     policy_kinds=(QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY)
@@ -174,12 +173,7 @@ class IdentifierNode(Node):
             )
         # Held until our outputs have readers and, in sequence mode, until the graph shows one
         # lockstep publisher of both inputs (equal indices from two nodes are not one sample).
-        self.session.holding = bool(
-            self.values["wait_for_y_hat_subscribers"]
-            or self.values["wait_for_error_subscribers"]
-            or self.values["wait_for_samples_subscribers"]
-            or self.values["pairing"] == "sequence"
-        )
+        self.session.hold_for({output: self.values[f"wait_for_{output}_subscribers"] for output in OUTPUTS})
         self._check_graph(at_start=True)
         self.add_on_set_parameters_callback(self._check_parameters)
         self.add_post_set_parameters_callback(self._apply_parameters)
@@ -573,7 +567,7 @@ class IdentifierNode(Node):
             return
         stamp = stamp_seconds(message) if self._stamped[channel] else None
         source = info.get("source_timestamp")
-        if not self._graph_checked:
+        if not self.session.publishers_known:
             self._check_graph()
         samples = self.session.offer(
             channel,
@@ -597,77 +591,20 @@ class IdentifierNode(Node):
         return self._now() - self.session.shedder.lag
 
     def _publish(self, samples: list[Sample]) -> None:
-        """Every output of each sample (:mod:`~lenn_ros.nodes.identifier_outputs`), once held pairs may go."""
-        if self.session.holding and self.session.held:  # (vouching starts with the first pair, not before)
-            if self._outputs_matched() and self._publishers_vouched():
-                samples = self.session.release() + samples
-            else:
-                self._say_holding()
+        """Every output of each sample (:mod:`~lenn_ros.nodes.identifier_outputs`), after the held pairs
+        the session lets go (it decides, :mod:`~lenn_ros.core.holding`; the node only counts the readers)."""
+        if self.session.held:
+            samples = self.session.release_ready(self._readers(), time.monotonic()) + samples
         self.outputs.publish(samples)
 
     def _readers(self) -> dict[str, int]:
         """Matched readers of each output that can hold the first pairs back."""
         return self.outputs.readers()
 
-    _holding_since: float | None = None
-
-    def _say_holding(self) -> None:
-        """Held pairs are not learnt: after the start grace, say what they wait for (called with pairs held)."""
-        now = time.monotonic()
-        if self._holding_since is None:
-            self._holding_since = now
-        if now - self._holding_since < _START_GRACE:
-            return
-        readers = self._readers()
-        waiting = [
-            f"{output} has {readers[output]} of {self.values[f'wait_for_{output}_subscribers']} readers"
-            for output in readers
-            if readers[output] < self.values[f"wait_for_{output}_subscribers"]
-        ] or ["the graph to show who publishes u and y_p"]
-        self._log(
-            Notice(
-                "holding",
-                f"{self.session.held} pairs held, not learnt, for {now - self._holding_since:.0f} s: waiting until "
-                f"{'; '.join(waiting)} (lower wait_for_*_subscribers or start the readers)",
-            )
-        )
-
-    def _outputs_matched(self) -> bool:
-        """Our outputs are VOLATILE: what is published before a reader matched is lost to it."""
-        return all(count >= self.values[f"wait_for_{output}_subscribers"] for output, count in self._readers().items())
-
     # -- the graph: types, publishers, QoS --------------------------------------------------------
-    _graph_checked = False  # both inputs' publishers seen, with their node names
-    _graph_unverified_since: float | None = None
-
-    def _publishers_vouched(self) -> bool:
-        """Sequence mode learns only once the graph shows both inputs from one node.
-
-        Node names arrive with discovery, a moment after the first messages can; until
-        then pairs are held, not learnt. If the names never come (a publisher that left
-        before they did), the pairs are released after a grace period with a warning:
-        the skew check on source times still refuses halves published apart.
-        """
-        if self.values["pairing"] != "sequence" or self._graph_checked:
-            return True
-        now = time.monotonic()
-        if self._graph_unverified_since is None:
-            self._graph_unverified_since = now
-        if now - self._graph_unverified_since < _START_GRACE:
-            return False
-        self._log(
-            Notice(
-                "unverified",
-                f"the publishers of {self.u_name} and {self.y_name} could not be told from the graph within "
-                f"{_START_GRACE:.0f} s: pairing by sequence number unverified "
-                "(pairs published apart are still refused)",
-            )
-        )
-        self._graph_checked = True
-        return True
-
     def _check_graph(self, at_start: bool = False) -> None:
-        """Compare what the graph offers on u / y_p with what we were told to expect."""
+        """What the graph offers on u / y_p: a wrong type is said here (or stops the node at its
+        start); who publishes goes to the session, which decides about pairing by sequence number."""
         publishers: dict[str, set] = {U: set(), Y: set()}
         for channel, _, topic in self.inputs:
             key = "u_type" if channel == U else "y_type"
@@ -680,29 +617,11 @@ class IdentifierNode(Node):
                     f"{name} is published as {', '.join(wrong)}, not {key} {self.values[key]}: "
                     f"pass -p {key}:={wrong[0]} and a matching -p {key[0]}_field:=..."
                 )
-                if at_start or time.monotonic() - self._started < _START_GRACE:
+                if at_start or time.monotonic() - self._started < START_GRACE:
                     raise SystemExit(f"identifier: {text}")  # discovery takes a moment: still "at start"
                 self.node_counters["type_mismatch"] += 1
                 self._log(Notice("type", text))
-        known = all(not name.startswith("_NODE_") for nodes in publishers.values() for _, name in nodes)
-        if not (publishers[U] and publishers[Y] and known):
-            return  # (node names read _NODE_NAME_UNKNOWN_ until discovery completes)
-        self._graph_checked = True
-        if self.values["pairing"] != "sequence":
-            return
-        if publishers[U].isdisjoint(publishers[Y]):
-
-            def names(nodes: set) -> str:
-                return ", ".join(f"{ns.rstrip('/')}/{node}" for ns, node in sorted(nodes))
-
-            self.session.refusal = (
-                f"{self.u_name} (from {names(publishers[U])}) and {self.y_name} (from {names(publishers[Y])}) "
-                "come from different nodes: pairing 'sequence' needs one lockstep publisher of both, nothing is "
-                "paired; use pairing:=sample sample_period:=T (or pairing:=stamp)"
-            )
-            self.session.discard_held()
-        else:
-            self.session.refusal = None
+        self.session.graph_publishers(publishers)
 
     def _on_incompatible_qos(self, channel: str) -> None:
         name = self.u_name if channel == U else self.y_name

@@ -28,6 +28,9 @@ from std_msgs.msg import Float64, Float64MultiArray
 from lenn_ros import topics
 from lenn_ros.core.session import Sample
 
+#: The outputs a ``wait_for_<output>_subscribers`` parameter can hold the first pairs back for.
+OUTPUTS = ("y_hat", "error", "samples")
+
 
 def set_stamp(stamp: Any, seconds: float) -> None:
     """``stamp`` (builtin_interfaces/Time) := ``seconds``, as ``Time(nanoseconds=...).to_msg()`` gives it.
@@ -85,11 +88,7 @@ class IdentifierOutputs:
 
     def readers(self) -> dict[str, int]:
         """Matched readers of each output that can hold the first pairs back."""
-        return {
-            "y_hat": self.y_hat.get_subscription_count(),
-            "error": self.error.get_subscription_count(),
-            "samples": self.samples.get_subscription_count(),
-        }
+        return {output: getattr(self, output).get_subscription_count() for output in OUTPUTS}
 
     def publish(self, samples: list[Sample]) -> None:
         """Every output of each sample, y_hat first: one output as Float64, several as one vector message

@@ -400,7 +400,13 @@ class FunctionalLinkNetwork(OnlineRegressor):
 
     @property
     def n_weights(self) -> int:
-        """Weights incl. one bias per branch: Table I's n1 N0 per output node."""
+        """Weights incl. one bias per branch: Table I's n1 N0 per output node.
+
+        Read on every compiled step (the RLS trace bound): once the weights exist, their
+        count, instead of summing the expansion's size over the branches again."""
+        weights = self.__dict__.get("weights_")
+        if weights is not None:
+            return weights.size
         if self.exponents is not None:
             return len(self.exponents)
         return sum(1 + feature_count(len(b), self.order, self.cross_degree) for b in self.branch_inputs_)

@@ -18,7 +18,7 @@ is plain Python on those arrays.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -328,6 +328,8 @@ class StepPlan:
     solver: int
     tanh_output: bool
     n_branches: int
+    rule: np.ndarray = field(default_factory=lambda: np.zeros(6))  # the rule's hyper-parameters (see run)
+    rule_key: tuple = ()  # the model's values they were filled from
 
     @classmethod
     def for_model(cls, model: object, structure: object) -> StepPlan | None:
@@ -377,11 +379,18 @@ class StepPlan:
         several-channel model sees (an array).
         """
         state = self.state
-        rule = np.array(
-            [model.alpha, model.beta, model.output_scale, model.nlms_step, model.forgetting, model.trace_bound],
-            dtype=np.float64,
-        )
-        state.u_now[:] = u
+        # the hyper-parameters are read on every call (alpha, forgetting may change live); the
+        # array the kernel reads is refilled only when one of them changed (a tuple compare is
+        # a third of the refill, which needs the trace bound's arithmetic)
+        key = (model.alpha, model.beta, model.output_scale, model.nlms_step, model.forgetting,
+               model.max_trace, model.initial_covariance)  # fmt: skip
+        if key != self.rule_key:
+            self.rule[:] = (key[0], key[1], key[2], key[3], key[4], model.trace_bound)
+            self.rule_key = key
+        if type(u) is float:
+            state.u_now[0] = u  # (one channel: an item store, not a slice assignment)
+        else:
+            state.u_now[:] = u
         functional_link_step(
             state.u_now,
             float(y),
@@ -407,7 +416,7 @@ class StepPlan:
             model.covariance_,
             model.feature_branch_,
             self.n_branches,
-            rule,
+            self.rule,
             self.tanh_output,
             state.out,
         )

@@ -193,7 +193,7 @@ class Notice:
     subject: str = ""
 
 
-@dataclass
+@dataclass(slots=True)
 class Sample:
     """A paired sample and what the model did with it (``result`` None: refused/skipped)."""
 
@@ -822,7 +822,7 @@ class Session:
             result.y_hat_std = self._next_std
             spread.update(error)
             if self.config.change_alarm and self.change is not None:
-                event = self.change.update(error, pair.index, float(pair.y))
+                event = self.change.update(error, pair.index, pair.y)  # (one output: a float already)
                 if event:
                     self._say_change(event, pair.index, pair.time)
         if result.y_hat_next is not None:

@@ -10,7 +10,6 @@ arithmetic either way.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
@@ -159,7 +158,7 @@ class ModelStructure:
         return x[:-1], targets, linear[:-1]
 
 
-@dataclass
+@dataclass(slots=True)
 class StepResult:
     """What one paired sample (u(k), y_p(k)) produced."""
 
@@ -307,24 +306,25 @@ class Identifier:
 
     def _step_compiled(self, plan: StepPlan, u: float, y: float, learn: bool, result: StepResult) -> None:
         """:meth:`step`'s scoring, learning and prediction in one compiled call (same numbers)."""
-        learn = self._may_learn(learn, bool(plan.state.counts[1]), result)
-        out = plan.run(self.model, u, y, learn, score=True)
+        if learn and self.diverged:  # (the common case costs no call: this runs for every sample)
+            learn = self._may_learn(learn, bool(plan.state.counts[1]), result)
+        out = plan.run(self.model, u, y, learn, score=True).tolist()  # Python floats: cheaper to read
         if out[STATUS] == DIVERGED:
             self._on_divergence()
             learn = False
             result.event = "diverged"
-            self._record_score(result, y, float(out[LINEAR_PREVIOUS]), float(out[PRIOR]), False)
-            out = plan.run(self.model, u, y, False, score=False)
-        elif not math.isnan(out[PRIOR]):
-            self._record_score(result, y, float(out[LINEAR_PREVIOUS]), float(out[PRIOR]), learn)
+            self._record_score(result, y, out[LINEAR_PREVIOUS], out[PRIOR], False)
+            out = plan.run(self.model, u, y, False, score=False).tolist()
+        elif out[PRIOR] == out[PRIOR]:  # (not nan)
+            self._record_score(result, y, out[LINEAR_PREVIOUS], out[PRIOR], learn)
         if out[STATUS] == NON_FINITE:
             raise ValueError("non-finite network input")
         if out[CLIPPED]:
             self.counters["clipped"] += int(out[CLIPPED])
             self.model.n_clipped_ = getattr(self.model, "n_clipped_", 0) + int(out[CLIPPED])
-        if not math.isnan(out[Y_HAT_NEXT]):
-            result.y_hat_next = float(out[Y_HAT_NEXT])
-            result.leverage = float(out[LEVERAGE])
+        if out[Y_HAT_NEXT] == out[Y_HAT_NEXT]:
+            result.y_hat_next = out[Y_HAT_NEXT]
+            result.leverage = out[LEVERAGE]
 
     def _score_pending(self, y: float, learn: bool, result: StepResult) -> None:
         """y_p(k) has arrived: score the prediction made at k-1 and learn from its error.

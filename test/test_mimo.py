@@ -292,8 +292,7 @@ def test_the_compiled_mimo_step_equals_the_python_step(monkeypatch, settings: di
 
 
 def test_the_compiled_joint_free_run_equals_the_python_one_and_flags_the_same_divergence(monkeypatch) -> None:
-    from lenn_ros.core import kernels
-    from lenn_ros.core.mimo import MimoIdentifier
+    from lenn_ros.core import free_run, kernels
 
     if not kernels.JIT:
         pytest.skip("numba is not installed: there is no compiled free run")
@@ -303,7 +302,7 @@ def test_the_compiled_joint_free_run_equals_the_python_one_and_flags_the_same_di
     runs = []
     for compiled in (True, False):
         if not compiled:
-            monkeypatch.setattr(MimoIdentifier, "_compiled_free_run", lambda self, *args: None)
+            monkeypatch.setattr(free_run, "_compiled", free_run._python)  # the MLP's path, on the same model
         before = [output.counters["clipped_free_run"] for output in identifier.outputs]
         y_free = identifier.free_run(series.u, series.y, 3000)
         after = [output.counters["clipped_free_run"] for output in identifier.outputs]
@@ -316,7 +315,7 @@ def test_the_compiled_joint_free_run_equals_the_python_one_and_flags_the_same_di
         model.weights_ *= 40.0  # an unstable model: both runs must stop at the same sample
     fast = identifier.free_run(series.u, series.y, 3000)
     fast_at = identifier.last_free_run["diverged_at"]
-    monkeypatch.setattr(MimoIdentifier, "_compiled_free_run", lambda self, *args: None)
+    monkeypatch.setattr(free_run, "_compiled", free_run._python)
     slow = identifier.free_run(series.u, series.y, 3000)
     assert fast_at is not None and fast_at == identifier.last_free_run["diverged_at"]
     np.testing.assert_array_equal(np.isnan(fast), np.isnan(slow))

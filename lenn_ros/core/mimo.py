@@ -17,7 +17,6 @@ output is fed the *model's* other outputs: :meth:`MimoIdentifier.free_run`.
 
 from __future__ import annotations
 
-import math
 import os
 import re
 from collections.abc import Sequence
@@ -25,7 +24,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lenn_ros.core.structure import FREE_RUN_DIVERGENCE_BOUND, Identifier, StepResult
+from lenn_ros.core.free_run import OutputRun, free_run_outputs
+from lenn_ros.core.structure import Identifier, StepResult
 
 COUPLING_PRESETS = ("full", "diagonal")
 _CHANNEL = re.compile(r"([uy])(\d+)")
@@ -97,6 +97,16 @@ class ChannelStructure:
     @property
     def n_inputs(self) -> int:
         return self.y_lags + sum(self.other_lags)
+
+    def input_channels(self) -> list[tuple[int, float, float]]:
+        """(lags, offset, scale) of each channel the network reads, in regressor order: the output, then
+        the others (as :meth:`~lenn_ros.core.structure.ModelStructure.input_channels`)."""
+        others = zip(self.other_lags, self.other_offsets, self.other_scales, strict=True)
+        return [(self.y_lags, self.y_offset, self.y_scale), *others]
+
+    def known_parts(self) -> list[tuple[float, ...]]:
+        """No known linear part (the several-channel node refuses them): one empty tuple per channel."""
+        return [()] * (1 + len(self.other_lags))
 
     @property
     def warm_up(self) -> int:
@@ -349,92 +359,6 @@ class MimoIdentifier:
             event=event,
         )
 
-    def _python_free_run(self, u: np.ndarray, y_model: np.ndarray, start: int, window: int) -> tuple[list, int | None]:
-        """The free run one output and sample at a time (the reference; MLP outputs)."""
-        structure = self.structure
-        channels = [identifier.structure for identifier in self.outputs]
-        clipped, diverged_at = [0] * structure.n_y, None
-        for k in range(start - 1, len(u) - 1):
-            rows = slice(k - window + 1, k + 1)
-            values = np.empty(structure.n_y)
-            for j, identifier in enumerate(self.outputs):
-                x, linear = channels[j].regressors(structure.other_values(j, u[rows], y_model[rows]), y_model[rows, j])
-                clipped[j] += int(np.count_nonzero(np.abs(x[-1]) > 1.0))
-                values[j] = float(linear[-1] + identifier.model.predict(np.clip(x[-1:], -1.0, 1.0))[0])
-            bounds = [FREE_RUN_DIVERGENCE_BOUND * channel.y_scale for channel in channels]
-            offsets = [channel.y_offset for channel in channels]
-            if not all(math.isfinite(v) and abs(v - o) <= b for v, o, b in zip(values, offsets, bounds, strict=True)):
-                y_model[k + 1 :] = np.nan
-                diverged_at = k + 1
-                break
-            y_model[k + 1] = values
-        return clipped, diverged_at
-
-    def _compiled_free_run(self, u: np.ndarray, y_model: np.ndarray, start: int) -> tuple[list, int | None] | None:
-        """The joint free run in one compiled call, where every output is a functional-link network (else None)."""
-        from lenn_ros.core import kernels
-
-        models = self.models
-        if not kernels.JIT or not all(
-            getattr(m, "term_exponents", None) is not None and m.basis in kernels.BASIS_CODES for m in models
-        ):
-            return None
-        if len({m.basis for m in models}) != 1:
-            return None
-        for model in models:
-            if not model.is_initialised:
-                model._initialise()
-        terms = [model.term_exponents() for model in models]
-        picks = [self.structure.picks(j) for j in range(self.structure.n_y)]
-        entries = [_channel_inputs(i.structure, j, picks[j]) for j, i in enumerate(self.outputs)]
-        width = max(len(rows) for rows in entries)
-        exponents = np.zeros((sum(len(t[0]) for t in terms), width), dtype=np.int64)
-        factors = np.zeros((len(exponents), width + 2))
-        row = 0
-        for (rows, _branch), model in zip(terms, models, strict=True):
-            exponents[row : row + len(rows), : rows.shape[1]] = rows
-            own = model.term_factors()
-            if len(own):
-                factors[row : row + len(rows), : own.shape[1]] = own
-            row += len(rows)
-        if not factors[:, 0].any():
-            factors = factors[:0]
-        flat = [entry for rows in entries for entry in rows]
-        values = np.ascontiguousarray(np.concatenate((y_model, u), axis=1))
-        clipped = np.zeros(len(models), dtype=np.int64)
-        branches = np.concatenate([t[1] for t in terms]).astype(np.int64)
-        no_known = np.zeros(0, dtype=np.int64)
-        diverged_at = kernels.free_run(
-            values,
-            int(start),
-            self.structure.n_y,
-            np.cumsum([0] + [len(rows) for rows in entries]).astype(np.int64),
-            np.array([entry[0] for entry in flat], dtype=np.int64),
-            np.array([entry[1] for entry in flat], dtype=np.int64),
-            np.array([entry[2] for entry in flat], dtype=np.float64),
-            np.array([entry[3] for entry in flat], dtype=np.float64),
-            np.zeros(self.structure.n_y + 1, dtype=np.int64),  # no known linear parts (the MIMO node refuses them)
-            no_known,
-            no_known,
-            np.zeros(0),
-            np.cumsum([0] + [len(t[0]) for t in terms]).astype(np.int64),
-            exponents,
-            factors,
-            np.ascontiguousarray(np.concatenate([m.weights_.reshape(-1) for m in models]), dtype=np.float64),
-            branches,
-            int(branches.max(initial=0)) + 1,
-            np.array([m.output == "tanh" for m in models]),
-            np.array([float(m.output_scale) for m in models]),
-            np.array([i.structure.output_offset for i in self.outputs], dtype=np.float64),
-            np.array([i.structure.y_offset for i in self.outputs], dtype=np.float64),
-            np.array([i.structure.y_scale for i in self.outputs], dtype=np.float64),
-            kernels.BASIS_CODES[models[0].basis],
-            FREE_RUN_DIVERGENCE_BOUND,
-            clipped,
-        )
-        y_model[:] = values[:, : self.structure.n_y]
-        return clipped.tolist(), (int(diverged_at) if diverged_at >= 0 else None)
-
     def set_structure(self, structure: MimoStructure) -> None:
         """Take learnt scales and offsets (a session's warm-up) before the first sample: every output's channels."""
         for j, identifier in enumerate(self.outputs):
@@ -472,8 +396,13 @@ class MimoIdentifier:
         window = max(identifier.structure.warm_up for identifier in self.outputs)
         if start < window:
             raise ValueError(f"free run needs {window} samples of history before it starts")
-        compiled = self._compiled_free_run(u, y_model, start)
-        clipped, diverged_at = compiled if compiled is not None else self._python_free_run(u, y_model, start, window)
+        values = np.concatenate((y_model, u), axis=1)
+        runs = [
+            OutputRun(identifier.structure, identifier.model, j, tuple(int(c) for c in structure.picks(j)))
+            for j, identifier in enumerate(self.outputs)
+        ]
+        clipped, diverged_at = free_run_outputs(runs, values, int(start))
+        y_model = values[:, : structure.n_y]
         for identifier, count in zip(self.outputs, clipped, strict=True):
             identifier.counters["clipped_free_run"] += count
         self.last_free_run = {
@@ -547,14 +476,6 @@ class MimoIdentifier:
         for model, entry, state in zip(self.models, saved, states, strict=True):
             model._install(state, entry, path)
         self.mark_healthy()
-
-
-def _channel_inputs(channel: ChannelStructure, output: int, picks: np.ndarray) -> list[tuple[int, int, float, float]]:
-    """(column of [y, u], lag, offset, scale) of each network input of one output, in regressor order."""
-    entries = [(output, lag, channel.y_offset, channel.y_scale) for lag in range(channel.y_lags)]
-    for c, lags in enumerate(channel.other_lags):
-        entries += [(int(picks[c]), lag, channel.other_offsets[c], channel.other_scales[c]) for lag in range(lags)]
-    return entries
 
 
 def build_mimo_identifier(

@@ -312,9 +312,9 @@ class StepPlan:
 
     The learned arrays and the rule's hyper-parameters are read from the model on every
     call: a rollback replaces the arrays, and alpha or the forgetting factor may be
-    changed live. One plan for any structure: a single-channel ``ModelStructure`` is the
-    case of one input channel, with its known linear parts; a ``ChannelStructure`` (one
-    output of a several-channel model) sees the other channels.
+    changed live. One plan for any structure, read through its ``input_channels()`` and
+    ``known_parts()``: a single-channel ``ModelStructure`` is the case of one input
+    channel; a ``ChannelStructure`` (one output of a several-channel model) reads the others.
     """
 
     state: StepState
@@ -349,19 +349,20 @@ class StepPlan:
         if not model.is_initialised:
             model._initialise()
         exponents, _branch_of = term_exponents()
-        if hasattr(structure, "other_lags"):  # one output of a several-channel model: the other channels
-            offsets, scales, lags = structure.other_offsets, structure.other_scales, structure.other_lags
-            known_a, known_b = np.zeros(0), np.zeros((len(lags), 0))
-        else:
-            offsets, scales, lags = [structure.u_offset], [structure.u_scale], [structure.u_lags]
-            known_a, known_b = structure.known_a, np.asarray(structure.known_b, dtype=np.float64).reshape(1, -1)
-        geometry = [structure.y_offset, structure.y_scale, structure.output_offset]
-        for offset, scale in zip(offsets, scales, strict=True):
+        # the output's channel, then those it reads (u; or the other channels of a several-channel model)
+        (y_lags, y_offset, y_scale), *others = structure.input_channels()
+        known_a, *known_others = structure.known_parts()
+        lags = [channel[0] for channel in others]
+        known_b = np.zeros((len(others), max((len(k) for k in known_others), default=0)))
+        for c, weights in enumerate(known_others):
+            known_b[c, : len(weights)] = weights
+        geometry = [y_offset, y_scale, structure.output_offset]
+        for _lags, offset, scale in others:
             geometry += [offset, scale]
         return cls(
             state=StepState.empty(structure.warm_up, structure.n_inputs, exponents.shape[0], channels=len(lags)),
             geometry=np.array(geometry, dtype=np.float64),
-            lags=np.array([structure.y_lags, *lags], dtype=np.int64),
+            lags=np.array([y_lags, *lags], dtype=np.int64),
             known_a=np.asarray(known_a, dtype=np.float64),
             known_b=np.ascontiguousarray(known_b, dtype=np.float64),
             exponents=np.ascontiguousarray(exponents, dtype=np.int64),

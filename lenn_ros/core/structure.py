@@ -16,6 +16,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from lenn_ros.core.free_run import OutputRun, free_run_outputs
 from lenn_ros.core.networks import DivergenceError, OnlineRegressor
 from lenn_ros.core.online_step import (
     CLIPPED,
@@ -85,6 +86,17 @@ class ModelStructure:
     def warm_up(self) -> int:
         """Samples needed before the first regressor is complete."""
         return max(self.y_history, self.u_history)
+
+    def input_channels(self) -> list[tuple[int, float, float]]:
+        """(lags, offset, scale) of each channel the network reads, in regressor order: the output, then u.
+
+        The description every path shares with one output of a several-channel model
+        (:class:`~lenn_ros.core.mimo.ChannelStructure`): the compiled step and the free run."""
+        return [(self.y_lags, self.y_offset, self.y_scale), (self.u_lags, self.u_offset, self.u_scale)]
+
+    def known_parts(self) -> list[tuple[float, ...]]:
+        """The known linear weights on each channel's lags, in :meth:`input_channels` order."""
+        return [tuple(self.known_a), tuple(self.known_b)]
 
     def branches(self) -> list[list[int]] | None:
         """Network input groups: [[y inputs], [u inputs]] for Model 3, else one group."""
@@ -589,69 +601,16 @@ class Identifier:
         whether (and where) the run diverged. Functional-link models run compiled.
         """
         u = np.asarray(u, dtype=np.float64)
-        y_model = np.array(y, dtype=np.float64, copy=True)
         window = self.structure.warm_up
         if start < window:
             raise ValueError(f"free run needs {window} samples of history before it starts")
-        term_exponents = getattr(self.model, "term_exponents", None)
-        if term_exponents is not None:
-            clipped, diverged_at = self._compiled_free_run(u, y_model, start, term_exponents)
-        else:
-            clipped, diverged_at = 0, -1
-            bound = FREE_RUN_DIVERGENCE_BOUND * self.structure.y_scale
-            for k in range(start - 1, len(u) - 1):
-                x, linear = self.structure.regressors(u[k - window + 1 : k + 1], y_model[k - window + 1 : k + 1])
-                clipped += int(np.count_nonzero(np.abs(x[-1]) > 1.0))
-                value = float(linear[-1] + self.model.predict(np.clip(x[-1:], -1.0, 1.0))[0])
-                if not np.isfinite(value) or abs(value - self.structure.y_offset) > bound:
-                    y_model[k + 1 :] = np.nan
-                    diverged_at = k + 1
-                    break
-                y_model[k + 1] = value
-        self.counters["clipped_free_run"] += clipped
+        values = np.column_stack([np.asarray(y, dtype=np.float64), u])
+        clipped, diverged_at = free_run_outputs([OutputRun(self.structure, self.model, 0, (1,))], values, int(start))
+        self.counters["clipped_free_run"] += clipped[0]
         self.last_free_run = {
             "samples": len(u) - start,
-            "clipped_inputs": clipped,
-            "diverged": diverged_at >= 0,
-            "diverged_at": diverged_at if diverged_at >= 0 else None,
+            "clipped_inputs": clipped[0],
+            "diverged": diverged_at is not None,
+            "diverged_at": diverged_at,
         }
-        return y_model[start:]
-
-    def _compiled_free_run(self, u: np.ndarray, y_model: np.ndarray, start: int, term_exponents) -> tuple[int, int]:
-        from lenn_ros.core import kernels
-
-        model, structure = self.model, self.structure
-        if not model.is_initialised:
-            model._initialise()
-        exponents, branch_of = term_exponents()
-        clipped, diverged_at = kernels.free_run_functional_link(
-            u,
-            y_model,
-            int(start),
-            structure.y_lags,
-            structure.u_lags,
-            float(structure.y_offset),
-            float(structure.y_scale),
-            float(structure.u_offset),
-            float(structure.u_scale),
-            float(structure.output_offset),
-            np.asarray(structure.known_a, dtype=np.float64),
-            np.asarray(structure.known_b, dtype=np.float64),
-            exponents,
-            model.term_factors(),
-            np.ascontiguousarray(model.weights_, dtype=np.float64),
-            branch_of,
-            int(branch_of.max(initial=0)) + 1,
-            kernels.BASIS_CODES[model.basis],
-            model.output == "tanh",
-            float(model.output_scale),
-            FREE_RUN_DIVERGENCE_BOUND,
-            y_model,
-        )
-        return int(clipped), int(diverged_at)
-
-
-#: a free-run output further than this many scale units from the offset is divergence:
-#: the network's inputs span one unit each side, so ten is far beyond any output it was
-#: built for (a model that only saturates at the clipped inputs shows as clipped inputs)
-FREE_RUN_DIVERGENCE_BOUND = 10.0
+        return values[start:, 0]

@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from lenn_ros.core import kernels
-from lenn_ros.core.structure import FREE_RUN_DIVERGENCE_BOUND
+from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND
 from lenn_ros.fit.selection import Candidate, Record, TermModel, fold_blocks, runs
 
 #: most Levenberg-Marquardt iterations tried per fold (and then on all samples)

@@ -43,8 +43,9 @@ import numpy as np
 
 from lenn_ros.core import kernels
 from lenn_ros.core.expansions import checked_factors, format_terms, term_features
+from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND
 from lenn_ros.core.scaling import Scaling
-from lenn_ros.core.structure import FREE_RUN_DIVERGENCE_BOUND, ModelStructure
+from lenn_ros.core.structure import ModelStructure
 from lenn_ros.fit.families import Dictionary, Spec, candidate_specs
 
 #: relative simulation error a term (or a candidate's extra terms) must buy to be kept

@@ -544,12 +544,10 @@ def _build_mimo(values: dict[str, Any], network: str) -> MimoIdentifier:
 
 def mimo_channels(structure: MimoStructure, output: int) -> list[tuple[str, int]]:
     """Output ``output``'s network inputs as terms name them: its own lags (``y1_1``..), then each channel
-    it sees (``u0_1``.., ``y0_1``..), in the regressor's order (:class:`~lenn_ros.core.mimo.ChannelStructure`)."""
+    it sees (``u0_1``.., ``y0_1``..), in the regressor's order (``MimoStructure.channel``'s input channels)."""
     channel = structure.channel(output)
-    others = [
-        (f"{kind}{index}", lags)
-        for (kind, index), lags in zip(structure.others(output), channel.other_lags, strict=True)
-    ]
+    lags = [count for count, _, _ in channel.input_channels()[1:]]  # (reading no other channel: one u of no lags)
+    others = [(f"{kind}{index}", lags[c]) for c, (kind, index) in enumerate(structure.others(output))]
     return [(f"y{output}", channel.y_lags), *others]
 
 

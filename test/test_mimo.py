@@ -44,7 +44,7 @@ def test_channel_structure_sees_the_configured_channels_in_order() -> None:
     assert structure.others(0) == [("u", 1)]
     assert structure.others(1) == [("y", 0), ("u", 0)]
     channel = structure.channel(1)
-    assert (channel.y_lags, channel.other_lags, channel.n_inputs, channel.warm_up) == (2, (2, 1), 5, 2)
+    assert [c[0] for c in channel.input_channels()] == [2, 2, 1] and (channel.n_inputs, channel.warm_up) == (5, 2)
     u = np.arange(10.0).reshape(5, 2)
     y = 100 + np.arange(10.0).reshape(5, 2)
     x, _ = channel.regressors(structure.other_values(1, u, y), y[:, 1])

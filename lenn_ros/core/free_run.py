@@ -35,7 +35,7 @@ class OutputRun:
     """One output of a free run: its structure and model, its column of ``values`` and those its
     other channels are read from, in its structure's regressor order."""
 
-    structure: Any  # ModelStructure or ChannelStructure: input_channels(), known_parts(), output_offset
+    structure: Any  # a ModelStructure: input_channels(), known_parts(), output_offset, y_offset, y_scale
     model: Any
     column: int
     others: tuple[int, ...]

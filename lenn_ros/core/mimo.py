@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from lenn_ros.core.free_run import OutputRun, free_run_outputs
-from lenn_ros.core.structure import Identifier, StepResult
+from lenn_ros.core.structure import Identifier, ModelStructure, StepResult
 
 COUPLING_PRESETS = ("full", "diagonal")
 _CHANNEL = re.compile(r"([uy])(\d+)")
@@ -63,82 +63,6 @@ def parse_couplings(text: str, n_u: int, n_y: int) -> tuple[tuple[str, ...], ...
             raise ValueError(f"couplings of y{j}: empty; name at least one of {', '.join(names_y + names_u)}")
         result.append(tuple(dict.fromkeys(group)))
     return tuple(result)
-
-
-@dataclass(frozen=True)
-class ChannelStructure:
-    """Output j's regressor: its own lags, then the lags of each other channel it sees.
-
-    Stands in for :class:`~lenn_ros.core.structure.ModelStructure` where the Identifier uses
-    one (regressors, warm-up; the compiled step is ``functional_link_step`` with these channels): the
-    network input is (value - offset) / scale per channel and lag; ``u`` handed to
-    :meth:`regressors` is the matrix of the other channels (one column each), ``y``
-    output j itself. ``history`` is the MIMO model's common warm-up, so every output
-    predicts from the same sample on.
-    """
-
-    y_lags: int
-    other_lags: tuple[int, ...]
-    y_scale: float = 1.0
-    y_offset: float = 0.0
-    other_scales: tuple[float, ...] = ()
-    other_offsets: tuple[float, ...] = ()
-    history: int = 1
-    output_offset: float = 0.0
-
-    def __post_init__(self) -> None:
-        if self.n_inputs == 0:
-            raise ValueError("an output's model needs at least one input channel")
-        if not len(self.other_lags) == len(self.other_scales) == len(self.other_offsets):
-            raise ValueError("one lag count, scale and offset per other channel")
-        if self.y_scale <= 0 or any(scale <= 0 for scale in self.other_scales):
-            raise ValueError("scale factors must be positive")
-
-    @property
-    def n_inputs(self) -> int:
-        return self.y_lags + sum(self.other_lags)
-
-    def input_channels(self) -> list[tuple[int, float, float]]:
-        """(lags, offset, scale) of each channel the network reads, in regressor order: the output, then
-        the others (as :meth:`~lenn_ros.core.structure.ModelStructure.input_channels`)."""
-        others = zip(self.other_lags, self.other_offsets, self.other_scales, strict=True)
-        return [(self.y_lags, self.y_offset, self.y_scale), *others]
-
-    def known_parts(self) -> list[tuple[float, ...]]:
-        """No known linear part (the several-channel node refuses them): one empty tuple per channel."""
-        return [()] * (1 + len(self.other_lags))
-
-    @property
-    def warm_up(self) -> int:
-        return max(self.history, self.y_lags, *self.other_lags, 1)
-
-    def regressors(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Network inputs x(k) for k = warm_up - 1 .. N - 1; ``u``: (N, channels), ``y``: (N,)."""
-        u = np.asarray(u, dtype=np.float64).reshape(len(y), -1) if len(y) else np.empty((0, len(self.other_lags)))
-        y = np.asarray(y, dtype=np.float64)
-        first = self.warm_up - 1
-        count = max(len(y) - first, 0)
-        columns = [(y[first - i : len(y) - i] - self.y_offset) / self.y_scale for i in range(self.y_lags)]
-        for c, lags in enumerate(self.other_lags):
-            values = u[:, c]
-            columns += [
-                (values[first - i : len(y) - i] - self.other_offsets[c]) / self.other_scales[c] for i in range(lags)
-            ]
-        x = np.stack(columns, axis=1) if count else np.empty((0, self.n_inputs))
-        return x, np.full(count, float(self.output_offset))
-
-    def regressor_row(self, u_past: list, y_past: list[float]) -> tuple[np.ndarray, float]:
-        """The last row of :meth:`regressors` from histories kept newest first (same arithmetic)."""
-        row = [(y_past[i] - self.y_offset) / self.y_scale for i in range(self.y_lags)]
-        for c, lags in enumerate(self.other_lags):
-            row += [(u_past[i][c] - self.other_offsets[c]) / self.other_scales[c] for i in range(lags)]
-        return np.array([row], dtype=np.float64), float(self.output_offset)
-
-    def pairs_from_regressors(
-        self, x: np.ndarray, linear: np.ndarray, y: np.ndarray
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        targets = np.asarray(y, dtype=np.float64)[self.warm_up :] - linear[:-1]
-        return x[:-1], targets, linear[:-1]
 
 
 @dataclass(frozen=True)
@@ -203,17 +127,24 @@ class MimoStructure:
         seen = [(match.group(1), int(match.group(2))) for match in map(_CHANNEL.fullmatch, self.couplings[output])]
         return [channel for channel in seen if channel != ("y", output)]
 
-    def channel(self, output: int) -> ChannelStructure:
-        others = self.others(output)
+    def channel(self, output: int) -> ModelStructure:
+        """Output ``output``'s structure: its own lags, then each channel it sees (the first in the u
+        fields, the rest in ``others``), all predicting from the model's common warm-up."""
         own = f"y{output}" in self.couplings[output]
         scale, offset = self._scale("y", output)
-        return ChannelStructure(
+        channels = []
+        for kind, index in self.others(output):
+            other_scale, other_offset = self._scale(kind, index)
+            channels.append((self.y_lags if kind == "y" else self.u_lags, other_offset, other_scale))
+        first = channels[0] if channels else (0, 0.0, 1.0)
+        return ModelStructure(
             y_lags=self.y_lags if own else 0,
-            other_lags=tuple(self.y_lags if kind == "y" else self.u_lags for kind, _ in others),
+            u_lags=first[0],
+            u_offset=first[1],
+            u_scale=first[2],
             y_scale=scale,
             y_offset=offset,
-            other_scales=tuple(self._scale(kind, index)[0] for kind, index in others),
-            other_offsets=tuple(self._scale(kind, index)[1] for kind, index in others),
+            others=tuple(channels[1:]),
             history=max(self.y_lags, self.u_lags, 1),
             output_offset=offset,
         )

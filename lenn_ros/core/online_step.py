@@ -312,9 +312,9 @@ class StepPlan:
 
     The learned arrays and the rule's hyper-parameters are read from the model on every
     call: a rollback replaces the arrays, and alpha or the forgetting factor may be
-    changed live. One plan for any structure, read through its ``input_channels()`` and
-    ``known_parts()``: a single-channel ``ModelStructure`` is the case of one input
-    channel; a ``ChannelStructure`` (one output of a several-channel model) reads the others.
+    changed live. One plan for any ``ModelStructure``, read through its ``input_channels()``
+    and ``known_parts()``: one input channel, or (one output of a several-channel model)
+    the other channels its couplings name.
     """
 
     state: StepState
@@ -388,10 +388,10 @@ class StepPlan:
         if key != self.rule_key:
             self.rule[:] = (key[0], key[1], key[2], key[3], key[4], model.trace_bound)
             self.rule_key = key
-        if type(u) is float:
+        if type(u) is float or np.ndim(u) == 0:
             state.u_now[0] = u  # (one channel: an item store, not a slice assignment)
-        else:
-            state.u_now[:] = u
+        else:  # the channels one output of a several-channel model reads (none: its u slot has no lags)
+            state.u_now[: len(u)] = u
         functional_link_step(
             state.u_now,
             float(y),

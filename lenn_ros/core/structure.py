@@ -44,6 +44,15 @@ class ModelStructure:
     - ``output_offset``: a known constant in y^(k+1), so a gradient-trained network
       learns the deviation from the operating point rather than climbing to it.
     - ``separate``: Model 3's N1[y] + N2[u], two networks summed, rather than one.
+    - ``others``: further channels the network reads after u, (lags, offset, scale) each. One
+      output of a several-channel model is this structure: it reads the other outputs and
+      the inputs its couplings name, the first of them in the ``u_*`` fields, the rest here;
+      the ``u`` its methods take is then a matrix, one column per channel after the output.
+    - ``history``: samples of history before the first prediction, at least (the outputs of
+      a several-channel model all predict from the same sample on).
+
+    One description for any number of channels: the compiled step and the free run read
+    it through :meth:`input_channels` and :meth:`known_parts`.
     """
 
     y_lags: int = 0
@@ -56,23 +65,25 @@ class ModelStructure:
     y_offset: float = 0.0
     u_offset: float = 0.0
     output_offset: float = 0.0
+    others: tuple[tuple[int, float, float], ...] = ()
+    history: int = 1
 
     def __post_init__(self) -> None:
-        if self.y_lags < 0 or self.u_lags < 0 or self.y_lags + self.u_lags == 0:
+        if min(self.y_lags, self.u_lags, *(lags for lags, _, _ in self.others)) < 0 or self.n_inputs == 0:
             raise ValueError("the network needs at least one input: y_lags + u_lags >= 1")
-        if self.y_scale < 0 or self.u_scale < 0:
+        if min(self.y_scale, self.u_scale, *(scale for _, _, scale in self.others)) < 0:
             raise ValueError("scale factors must be positive (0: not yet known, learnt by a session's warm-up)")
         if self.separate and (self.y_lags == 0 or self.u_lags == 0):
             raise ValueError("separate N1[y] + N2[u] needs both y_lags and u_lags >= 1")
 
     @property
     def scaled(self) -> bool:
-        """Whether both scale factors are known (0: to be learnt from the first data, core.warmup)."""
-        return self.y_scale > 0 and self.u_scale > 0
+        """Whether every scale factor is known (0: to be learnt from the first data, core.warmup)."""
+        return self.y_scale > 0 and self.u_scale > 0 and all(scale > 0 for _, _, scale in self.others)
 
     @property
     def n_inputs(self) -> int:
-        return self.y_lags + self.u_lags
+        return self.y_lags + self.u_lags + sum(lags for lags, _, _ in self.others)
 
     @property
     def y_history(self) -> int:
@@ -85,18 +96,18 @@ class ModelStructure:
     @property
     def warm_up(self) -> int:
         """Samples needed before the first regressor is complete."""
-        return max(self.y_history, self.u_history)
+        return max(self.y_history, self.u_history, self.history, *(lags for lags, _, _ in self.others))
 
     def input_channels(self) -> list[tuple[int, float, float]]:
         """(lags, offset, scale) of each channel the network reads, in regressor order: the output, then u.
 
         The description every path shares with one output of a several-channel model
-        (:class:`~lenn_ros.core.mimo.ChannelStructure`): the compiled step and the free run."""
-        return [(self.y_lags, self.y_offset, self.y_scale), (self.u_lags, self.u_offset, self.u_scale)]
+        (the compiled step and the free run), for one input or several."""
+        return [(self.y_lags, self.y_offset, self.y_scale), (self.u_lags, self.u_offset, self.u_scale), *self.others]
 
     def known_parts(self) -> list[tuple[float, ...]]:
         """The known linear weights on each channel's lags, in :meth:`input_channels` order."""
-        return [tuple(self.known_a), tuple(self.known_b)]
+        return [tuple(self.known_a), tuple(self.known_b), *([()] * len(self.others))]
 
     def branches(self) -> list[list[int]] | None:
         """Network input groups: [[y inputs], [u inputs]] for Model 3, else one group."""
@@ -121,14 +132,17 @@ class ModelStructure:
         def lag(a: np.ndarray, i: int) -> np.ndarray:
             return a[first - i : len(y) - i] if sliced else a[k - i]
 
+        # one input: u a vector; several (one output of a several-channel model): a column per channel
+        channels = [u[:, c] for c in range(u.shape[1])] if u.ndim == 2 else [u]
         columns = [(lag(y, i) - self.y_offset) / self.y_scale for i in range(self.y_lags)]
-        columns += [(lag(u, i) - self.u_offset) / self.u_scale for i in range(self.u_lags)]
+        for c, (lags, offset, scale) in enumerate(self.input_channels()[1:]):
+            columns += [(lag(channels[c], i) - offset) / scale for i in range(lags)]
         x = np.stack(columns, axis=1) if len(k) else np.empty((0, self.n_inputs))
         linear = np.full(len(k), float(self.output_offset))
         for i, a in enumerate(self.known_a):
             linear = linear + a * lag(y, i)
         for i, b in enumerate(self.known_b):
-            linear = linear + b * lag(u, i)
+            linear = linear + b * lag(channels[0], i)
         return x, linear
 
     def regressor_row(self, u_past: list[float], y_past: list[float]) -> tuple[np.ndarray, float]:
@@ -138,12 +152,17 @@ class ModelStructure:
         agree bit for bit), without building arrays of the whole history.
         """
         row = [(y_past[i] - self.y_offset) / self.y_scale for i in range(self.y_lags)]
-        row += [(u_past[i] - self.u_offset) / self.u_scale for i in range(self.u_lags)]
+        vector = len(u_past) > 0 and np.ndim(u_past[0]) > 0  # an entry holds every channel after the output
+        if vector:
+            for c, (lags, offset, scale) in enumerate(self.input_channels()[1:]):
+                row += [(u_past[i][c] - offset) / scale for i in range(lags)]
+        else:
+            row += [(u_past[i] - self.u_offset) / self.u_scale for i in range(self.u_lags)]
         linear = float(self.output_offset)
         for i, a in enumerate(self.known_a):
             linear = linear + a * y_past[i]
         for i, b in enumerate(self.known_b):
-            linear = linear + b * u_past[i]
+            linear = linear + b * (u_past[i][0] if vector else u_past[i])
         return np.array([row], dtype=np.float64), linear
 
     def training_pairs(self, u: np.ndarray, y: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -310,7 +329,7 @@ class Identifier:
         self._plan_model = self._plan = None
 
     def _check_scaled(self) -> None:
-        if not getattr(self.structure, "scaled", True):  # (a MIMO output's ChannelStructure: always scaled)
+        if not self.structure.scaled:
             raise ValueError(
                 "y_scale / u_scale are 0 (to be learnt): step the identifier through a Session, whose warm-up "
                 "learns them, or give them"

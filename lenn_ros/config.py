@@ -510,7 +510,6 @@ def _build_mimo(values: dict[str, Any], network: str) -> MimoIdentifier:
     unsupported = [
         name
         for name, given in (
-            ("separate", bool(values.get("separate", False))),
             ("known_a", any(float(a) for a in values.get("known_a", [0.0]))),
             ("known_b", any(float(b) for b in values.get("known_b", [0.0]))),
         )
@@ -518,13 +517,15 @@ def _build_mimo(values: dict[str, Any], network: str) -> MimoIdentifier:
     ]
     if unsupported:
         raise ConfigError(
-            f"{', '.join(unsupported)}: SISO structure options, not supported with several channels (the paper's "
-            "examples set them: example:=0 for a model of your own plant)"
+            f"{', '.join(unsupported)}: a known linear part is a single-channel option (which of several inputs "
+            "would known_b weigh?), not supported with several channels (the paper's examples set them: "
+            "example:=0 for a model of your own plant)"
         )
     problem = unlearnt_mimo_scales(values)
     if problem:
         raise ConfigError(problem)
     n_u, n_y = len(u_names), len(y_names)
+    separate = bool(values.get("separate", False))
     structure = MimoStructure(
         n_u=n_u,
         n_y=n_y,
@@ -535,10 +536,20 @@ def _build_mimo(values: dict[str, Any], network: str) -> MimoIdentifier:
         u_scale=_per_channel(values, "u_scale", n_u),
         u_offset=_per_channel(values, "u_offset", n_u),
         couplings=parse_couplings(str(values.get("couplings", "full")), n_u, n_y),
+        separate=separate,
     )
     selected = mimo_terms(values, structure) if network == "lenn" else [(None, None)] * n_y
+    if separate and any(rows is not None for rows, _ in selected):
+        raise ConfigError("terms select one combiner over all inputs: set separate: false")
+    try:
+        channels = [structure.channel(j) for j in range(n_y)]  # (each output's structure checks itself)
+    except ValueError as error:
+        why = "separate: every output needs its own past and another channel in couplings"
+        raise ConfigError(f"{error} ({why})") from None
     return build_mimo_identifier(
-        structure, lambda n_inputs, output: _make_model(values, network, n_inputs, None, *selected[output]), y_names
+        structure,
+        lambda n_inputs, output: _make_model(values, network, n_inputs, channels[output].branches(), *selected[output]),
+        y_names,
     )
 
 

@@ -236,7 +236,9 @@ def test_the_one_sample_expansion_with_cross_terms_equals_the_batch_bit_for_bit(
         ({"terms": ["y1"]}, "each term names its output first, e.g. 'y0: u1_2*y0_1' (outputs y0, y1)"),
         ({"terms": ["y0: 1"]}, "terms name no term for y1"),
         ({"terms": ["y0: 1", "y1: u5_1"]}, "terms of y1: term 'u5_1': no input 'u5_1'"),
-        ({"separate": True}, "separate: SISO structure options"),
+        ({"known_a": [0.3, 0.6]}, "known_a: a known linear part is a single-channel option"),
+        ({"separate": True, "terms": ["y0: u0_1", "y1: u1_1"]}, "terms select one combiner over all inputs"),
+        ({"separate": True, "couplings": "y0 u0; u1"}, "separate N1[y] + N2[u] needs both y_lags and u_lags >= 1"),
         ({"u_topics": ["/a", "/b"], "u_field": "data[*]"}, "list the fields instead of [*]"),
     ],
 )
@@ -339,3 +341,40 @@ def test_all_joints_are_picked_by_name_never_by_position() -> None:
         extract(SimpleNamespace(name=["elbow", "shoulder"], position=[0.3]))
     array = compile_vector("data[*]", ["a", "b"])  # no name list: the array as it is
     assert array(SimpleNamespace(data=[1.0, 2.0])).tolist() == [1.0, 2.0]
+
+
+def test_separate_networks_work_with_several_channels(monkeypatch) -> None:
+    """Model 3 per output (N1[own past] + N2[the channels it sees]): built from the parameters, two
+    branches each, the compiled step and free run equal to the Python ones, and it learns the plant."""
+    from lenn_ros.config import build_identifier, identifier_parameters
+    from lenn_ros.core import free_run, kernels, structure
+
+    if not kernels.JIT:
+        pytest.skip("numba is not installed: there is no compiled step")
+    values = {p.name: p.default for p in identifier_parameters(0, "lenn")}
+    values.update({"u_field": "data[0], data[1]", "y_field": "position[a], position[b]", "u_topics": [""],
+                   "separate": True, "solver": "sgd", "output": "linear", "alpha": 0.05, "y_scales": [2.0, 1.6],
+                   "u_scales": [1.0, 1.0]})  # fmt: skip
+    series = simulate_mimo(narendra_mimo_plant(), -30.0, seed=2, train_samples=3000, test_samples=400)
+    learn = np.arange(len(series.u)) < 3000
+    runs = []
+    for compiled in (True, False):
+        if not compiled:
+            monkeypatch.setattr(structure.StepPlan, "for_model", classmethod(lambda cls, model, shape: None))
+            monkeypatch.setattr(free_run, "_compiled", free_run._python)
+        identifier = build_identifier(values, "lenn")
+        assert [len(model.branch_inputs_) for model in identifier.models] == [2, 2]
+        results = [identifier.step(k + 1, series.u[k], series.y[k], bool(learn[k])) for k in range(len(learn))]
+        y_hat = np.array([r.y_hat if r.y_hat is not None else np.full(2, np.nan) for r in results])
+        free = identifier.free_run(series.u, series.y, 3000)
+        runs.append((y_hat, free, [m.weights_.copy() for m in identifier.models]))
+    (fast_hat, fast_free, fast_w), (slow_hat, slow_free, slow_w) = runs
+    np.testing.assert_array_equal(fast_hat, slow_hat)
+    np.testing.assert_allclose(fast_free, slow_free, rtol=0, atol=1e-12)
+    for a, b in zip(fast_w, slow_w, strict=True):
+        np.testing.assert_array_equal(a, b)
+    test = slice(3001, None)
+    nmse = [10 * np.log10(np.mean((series.y[test, j] - fast_hat[test, j]) ** 2) / np.var(series.y[test, j]))
+            for j in range(2)]  # fmt: skip
+    # measured -16.3 / -10.6 dB (seeds 0, 1, 3: -14.4 to -15.0 / -9.0 to -9.6): one-step, learning off
+    assert nmse[0] < -14.0 and nmse[1] < -9.0, nmse

@@ -82,6 +82,7 @@ class MimoStructure:
     u_scale: tuple[float, ...] = ()
     u_offset: tuple[float, ...] = ()
     couplings: tuple[tuple[str, ...], ...] = ()
+    separate: bool = False  # each output N1[its own past] + N2[the other channels it sees] (Model 3)
 
     def __post_init__(self) -> None:
         if self.n_u < 1 or self.n_y < 1:
@@ -147,6 +148,7 @@ class MimoStructure:
             others=tuple(channels[1:]),
             history=max(self.y_lags, self.u_lags, 1),
             output_offset=offset,
+            separate=self.separate,
         )
 
     def other_values(self, output: int, u: np.ndarray, y: np.ndarray) -> np.ndarray:

@@ -38,7 +38,7 @@ from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescri
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.node import Node
 from rclpy.parameter import Parameter as RosParameter
-from rclpy.qos import HistoryPolicy, QoSPolicyKind, QoSProfile, ReliabilityPolicy
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSPolicyKind, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 from rclpy.serialization import deserialize_message
 from std_msgs.msg import Int64, String
@@ -416,20 +416,24 @@ class IdentifierNode(Node):
         for channel, part, name in self.inputs:
             events = SubscriptionEventCallbacks(incompatible_qos=lambda event, c=channel: self._on_incompatible_qos(c))
             callback = lambda message, info, c=channel, p=part: self._on_message(c, message, info, p)  # noqa: E731
-            subscription = self.create_subscription(
-                message_types[channel],
-                name,
-                callback,
-                profile,
-                event_callbacks=events,
-                qos_overriding_options=_QOS_OVERRIDES,
-                raw=True,  # read once admitted (_offer)
-            )
-            if inputs is not None:  # declared here (its QoS overrides are our parameters), received there
-                topic, qos = subscription.topic_name, subscription.qos_profile
-                self.destroy_subscription(subscription)
+            if inputs is None:
+                subscription = self.create_subscription(
+                    message_types[channel],
+                    name,
+                    callback,
+                    profile,
+                    event_callbacks=events,
+                    qos_overriding_options=_QOS_OVERRIDES,
+                    raw=True,  # read once admitted (_offer)
+                )
+            else:  # its QoS overrides are our parameters; the subscription is the inputs' node's only
                 subscription = inputs.create_subscription(
-                    message_types[channel], topic, callback, qos, event_callbacks=events, raw=True
+                    message_types[channel],
+                    self.resolve_topic_name(name),
+                    callback,
+                    self._overridden_qos(name, profile),
+                    event_callbacks=events,
+                    raw=True,
                 )
             self._data_subscriptions[channel, part] = subscription
         if inputs is not None:
@@ -439,6 +443,41 @@ class IdentifierNode(Node):
         kept = [s.qos_profile for s in self._data_subscriptions.values()]
         keep_last = all(qos.history != HistoryPolicy.KEEP_ALL for qos in kept)
         self.session.config.queue_depth = min(qos.depth for qos in kept) if keep_last else 0
+
+    def _overridden_qos(self, topic: str, profile: QoSProfile) -> QoSProfile:
+        """``profile`` with the user's ``qos_overrides.<topic>.subscription.*``, declared on this node as
+        rclpy declares them for a subscription of its own (read-only, the profile's value as default).
+
+        For a subscription that lives on the inputs' node. It used to be created here first and
+        destroyed once its QoS was read: a publisher waiting for subscribers could match that
+        transient one and send its first messages to it, and they were lost (a lockstep
+        simulator's, a two-second run's warm-up). Done through the public parameter API.
+        """
+        name = self.resolve_topic_name(topic)
+        qos = QoSProfile(
+            history=profile.history, depth=profile.depth, reliability=profile.reliability,
+            durability=profile.durability,
+        )  # fmt: skip
+        enums = {"history": HistoryPolicy, "reliability": ReliabilityPolicy, "durability": DurabilityPolicy}
+        for kind in _QOS_OVERRIDES.policy_kinds:
+            policy = kind.name.lower()
+            current = getattr(qos, policy)
+            key = f"qos_overrides.{name}.subscription.{policy}"
+            if self.has_parameter(key):
+                value = self.get_parameter(key).value
+            else:
+                descriptor = ParameterDescriptor(
+                    description=f"{policy} for subscription `{name}` with id `None`", read_only=True
+                )
+                default = current.name.lower() if policy in enums else current
+                value = self.declare_parameter(key, default, descriptor).value
+            if policy in enums:
+                try:
+                    value = enums[policy][str(value).upper()]
+                except KeyError:
+                    raise SystemExit(f"identifier: {key} = {value!r} is no {policy} policy") from None
+            setattr(qos, policy, value)
+        return qos
 
     # -- parameters ----------------------------------------------------------------------------
     def _check_parameters(self, parameters: list[RosParameter]) -> SetParametersResult:

@@ -355,9 +355,11 @@ def _name(info: object) -> str:
     return f"{namespace}/{info.node_name}"
 
 
-def test_qos_overrides_take_durability_and_name_typos(graph: Graph) -> None:
+@pytest.mark.parametrize("apart", [False, True], ids=["one participant", "inputs apart"])
+def test_qos_overrides_take_durability_and_name_typos(graph: Graph, apart: bool, monkeypatch) -> None:
     from rclpy.qos import DurabilityPolicy
 
+    monkeypatch.setenv("LENN_ROS_INPUTS_PARTICIPANT", "1" if apart else "0")  # apart: declared by us, used there
     identifier = start_node(
         "identifier",
         "pairing:=sample",
@@ -370,6 +372,7 @@ def test_qos_overrides_take_durability_and_name_typos(graph: Graph) -> None:
     graph.spin()
     try:
         owner = graph.wait(lambda s: True)["inputs_node"]  # the node that holds the inputs, as the identifier says
+        assert owner == ("/identifier_inputs" if apart else "/identifier")
         deadline = time.monotonic() + 20
         infos: list = []
         while not infos and time.monotonic() < deadline:
@@ -383,10 +386,14 @@ def test_qos_overrides_take_durability_and_name_typos(graph: Graph) -> None:
     assert final_status(err)["counters"]["unknown_parameters"] == 1
 
 
-def test_qos_overrides_by_the_name_before_remapping_apply_to_the_remapped_topic(graph: Graph) -> None:
+@pytest.mark.parametrize("apart", [False, True], ids=["one participant", "inputs apart"])
+def test_qos_overrides_by_the_name_before_remapping_apply_to_the_remapped_topic(
+    graph: Graph, apart: bool, monkeypatch
+) -> None:
     """-r u:=/robot/cmd with the README's qos_overrides./u...: applied to /robot/cmd, not refused as unknown."""
     from rclpy.qos import DurabilityPolicy
 
+    monkeypatch.setenv("LENN_ROS_INPUTS_PARTICIPANT", "1" if apart else "0")  # apart: declared by us, used there
     identifier = start_node(
         "identifier",
         "pairing:=sample",
@@ -399,6 +406,7 @@ def test_qos_overrides_by_the_name_before_remapping_apply_to_the_remapped_topic(
     graph.spin()
     try:
         owner = graph.wait(lambda s: True)["inputs_node"]  # the node that holds the inputs, as the identifier says
+        assert owner == ("/identifier_inputs" if apart else "/identifier")
         deadline = time.monotonic() + 20
         infos: list = []
         while not infos and time.monotonic() < deadline:

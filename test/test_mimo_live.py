@@ -85,7 +85,7 @@ def test_robot_vector_topics_from_two_nodes_are_learnt_per_named_joint(domain: i
         y_pub.publish(state)
 
     try:
-        graph.wait(lambda s: True)  # the identifier is up
+        graph.ready(u_pub, y_pub)  # the identifier is up, our publishers matched
         publish_for(4.0, 100, send)
         publish_for(0.3, 100, lambda k: u_pub.publish(Float64MultiArray(data=[0.1, 0.2, 0.3])))
         status = graph.wait(lambda s: s["counters"]["learned"] > 400 and s["counters"]["field_errors"] >= 10)
@@ -215,7 +215,7 @@ def test_each_channel_on_its_own_topic_from_its_own_node_is_merged_and_a_silent_
             publishers["/robot/right"].publish(Float64(data=0.3 * b))
 
     try:
-        graph.wait(lambda s: True)  # the identifier is up
+        graph.ready(*publishers.values())  # the identifier is up, our publishers matched
         publish_for(3.0, 100, send)
         learned = graph.wait(lambda s: s["counters"]["learned"] > 300)["counters"]["learned"]
         publish_for(1.0, 100, lambda k: send(k, right=False))  # the right driver has stopped

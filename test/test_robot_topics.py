@@ -73,6 +73,19 @@ class Graph:
             time.sleep(0.1)
         raise AssertionError(f"status never satisfied the condition; last: {self.status}")
 
+    def ready(self, *publishers, timeout: float = 30.0) -> dict:
+        """The identifier is up and each of our ``publishers`` is matched both ways: it counts the
+        identifier's subscription, and the identifier's ``status["publishers"]`` counts it. A message
+        published before that is lost to discovery, which has nothing to do with what a test checks."""
+        deadline = time.monotonic() + timeout
+        status = self.wait(
+            lambda s: all(s.get("publishers", {}).get(p.topic_name, 0) >= 1 for p in publishers), timeout
+        )
+        while any(p.get_subscription_count() < 1 for p in publishers):
+            assert time.monotonic() < deadline, [(p.topic_name, p.get_subscription_count()) for p in publishers]
+            time.sleep(0.05)
+        return status
+
     def close(self) -> None:
         self.executor.shutdown()
         if self.thread is not None:
@@ -108,7 +121,7 @@ def test_separate_publishers_are_refused_in_sequence_mode(graph: Graph) -> None:
     graph.listen()
     graph.spin()
     try:
-        graph.wait(lambda s: True)  # the identifier is up
+        graph.ready(u_pub, y_pub)  # the identifier is up, our publishers matched
         publish_for(0.5, 100, lambda k: u_pub.publish(Float64(data=0.1 * (k % 7))))
         publish_for(3.0, 100, lambda k: (u_pub.publish(Float64(data=0.1)), y_pub.publish(Float64(data=0.2))))
         status = graph.wait(lambda s: s["counters"]["refused"] > 50)
@@ -159,7 +172,7 @@ def test_u_without_y_p_is_said_and_counted(graph: Graph) -> None:
     graph.listen()
     graph.spin()
     try:
-        graph.wait(lambda s: True)  # the identifier is up
+        graph.ready(publisher)  # the identifier is up, our publishers matched
         publish_for(4.0, 50, lambda k: publisher.publish(Float64(data=0.1)))
         graph.wait(lambda s: s["counters"]["lone_u"] > 20, timeout=20)
     finally:
@@ -181,7 +194,7 @@ def test_y_p_whose_field_cannot_be_read_is_said_as_such_not_as_silence(graph: Gr
     graph.listen()
     graph.spin()
     try:
-        graph.wait(lambda s: True)  # the identifier is up
+        graph.ready(u_pub, y_pub)  # the identifier is up, our publishers matched
         publish_for(4.0, 50, lambda k: (u_pub.publish(Float64(data=0.1)),
                                         y_pub.publish(JointState(name=["pendulum"], position=[0.2]))))  # fmt: skip
         status = graph.wait(lambda s: s["counters"]["lone_u"] > 20 and s["counters"]["field_errors"] > 20, timeout=20)
@@ -203,7 +216,7 @@ def test_pairs_held_for_missing_readers_are_said_and_counted(graph: Graph) -> No
     graph.listen()
     graph.spin()
     try:
-        graph.wait(lambda s: True)  # the identifier is up
+        graph.ready(u_pub, y_pub)  # the identifier is up, our publishers matched
         publish_for(7.0, 50, lambda k: (u_pub.publish(Float64(data=0.1)), y_pub.publish(Float64(data=0.2))))
         status = graph.wait(lambda s: s["held"] > 100)
     finally:
@@ -289,7 +302,7 @@ def test_stamped_vector_topics_pair_by_stamp_and_outputs_carry_the_sample_time(g
     graph.spin()
     sent = []
     try:
-        graph.wait(lambda s: True)  # the identifier is up
+        graph.ready(u_pub, y_pub)  # the identifier is up, our publishers matched
         for k in range(300):
             stamp = graph.nodes[0].get_clock().now().to_msg()
             command = PointStamped()
@@ -320,7 +333,7 @@ def test_each_kind_of_warning_has_its_own_throttle(graph: Graph) -> None:
     graph.listen()
     graph.spin()
     try:
-        graph.wait(lambda s: True)
+        graph.ready(publisher)  # the identifier is up, our publishers matched
         publish_for(3.0, 50, lambda k: publisher.publish(Float64(data=float("nan"))))
         graph.wait(lambda s: s["counters"]["lone_u"] > 10 and s["counters"]["nan"] > 50, timeout=20)
     finally:
@@ -443,7 +456,7 @@ def test_a_stalled_driver_is_said_as_a_stall_with_its_length(graph: Graph) -> No
             u_pub.publish(Float64(data=0.02 * (k % 25)))
 
     try:
-        graph.wait(lambda s: True)  # the identifier is up
+        graph.ready(u_pub, y_pub)  # the identifier is up, our publishers matched
         publish_for(2.0, 100, both)
         publish_for(0.5, 100, lambda k: u_pub.publish(Float64(data=0.1)) if k % 2 == 0 else None)  # the stall
         publish_for(2.0, 100, both)

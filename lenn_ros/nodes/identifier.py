@@ -636,6 +636,14 @@ class IdentifierNode(Node):
             samples = self.session.release_ready(self._readers(), time.monotonic()) + samples
         self.outputs.publish(samples)
 
+    def _publishers_matched(self) -> dict[str, int]:
+        """Publishers each input topic's subscription has matched: nothing arrives from one not counted
+        here yet (DDS discovery), so a script that publishes as soon as the node is up can wait for it."""
+        return {
+            subscription.topic_name: subscription.get_publisher_count()
+            for subscription in self._data_subscriptions.values()
+        }
+
     def _readers(self) -> dict[str, int]:
         """Matched readers of each output that can hold the first pairs back."""
         return self.outputs.readers()
@@ -705,6 +713,7 @@ class IdentifierNode(Node):
         status["topics"] = {"u": self.u_name, "y_p": self.y_name}
         status["inputs_node"] = self._inputs_node_name  # whom `ros2 topic info -v` names as u's and y_p's subscriber
         status["readers"] = self._readers()
+        status["publishers"] = self._publishers_matched()
         status["held"] = self.session.held
         status["acknowledged"] = self._outputs_acknowledged()
         if self.mimo:
@@ -815,9 +824,9 @@ def main(args: list[str] | None = None, exit_process: bool = True) -> int:
     """The node's program; ``exit_process=False`` returns instead of ending the process (see run_node)."""
 
     def nodes() -> list[Node]:
-        # opt-in (LENN_ROS_INPUTS_PARTICIPANT=1): with it on, test_hosts lost 130 of 2300 y_p over the
-        # network namespaces (2026-12-03), not only the last ones at exit
-        node = IdentifierNode(separate_inputs=os.environ.get("LENN_ROS_INPUTS_PARTICIPANT") == "1")
+        # the inputs on a participant of their own unless LENN_ROS_INPUTS_PARTICIPANT=0: under a flood
+        # of them, parameter calls then take tens of ms instead of seconds (docs/nodes.md)
+        node = IdentifierNode(separate_inputs=os.environ.get("LENN_ROS_INPUTS_PARTICIPANT", "1") != "0")
         return [node, *node.companions]
 
     return run_node(nodes, "identifier", args, executor=executor_choice(EXECUTOR), exit_process=exit_process)

@@ -153,11 +153,8 @@ class ModelStructure:
         """
         row = [(y_past[i] - self.y_offset) / self.y_scale for i in range(self.y_lags)]
         vector = len(u_past) > 0 and np.ndim(u_past[0]) > 0  # an entry holds every channel after the output
-        if vector:
-            for c, (lags, offset, scale) in enumerate(self.input_channels()[1:]):
-                row += [(u_past[i][c] - offset) / scale for i in range(lags)]
-        else:
-            row += [(u_past[i] - self.u_offset) / self.u_scale for i in range(self.u_lags)]
+        for c, (lags, offset, scale) in enumerate(self.input_channels()[1:]):
+            row += [((u_past[i][c] if vector else u_past[i]) - offset) / scale for i in range(lags)]
         linear = float(self.output_offset)
         for i, a in enumerate(self.known_a):
             linear = linear + a * y_past[i]

@@ -227,20 +227,13 @@ class TermModel:
         return term_features(x, self.exponents, self.basis, self.factors), targets
 
     def free_run(self, view: np.ndarray, start: int, weights: np.ndarray | None = None) -> tuple[np.ndarray, int, int]:
-        """Compiled simulation of column 0 from ``start`` (measured before it): (y^(start..), clipped, diverged_at)."""
-        values = np.array(np.asarray(view, dtype=np.float64).reshape(len(view), -1), copy=True)
+        """Compiled simulation of column 0 from ``start`` (measured before it): (y^(start..), clipped, diverged_at).
+
+        The one-output case of :func:`simulate_joint`, every column of the view read in its place."""
+        view = np.asarray(view, dtype=np.float64).reshape(len(view), -1)
         w = self.weights if weights is None else weights
-        source, lag, offset, scale = self.layout.arrays()
-        n_inputs, n_terms = len(source), len(self.exponents)
-        clipped = np.zeros(1, dtype=np.int64)
-        diverged_at = kernels.free_run(
-            values, int(start), 1, np.array([0, n_inputs]), source, lag, offset, scale, np.zeros(2, dtype=np.int64),
-            np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), np.array([0, n_terms]),
-            self.exponents, self.factors, np.ascontiguousarray(w, dtype=np.float64), np.zeros(n_terms, dtype=np.int64),
-            1, np.zeros(1, dtype=np.bool_), np.ones(1), np.zeros(1), np.array([self.layout.y_offset]),
-            np.array([self.layout.y_scale]), kernels.BASIS_CODES[self.basis], FREE_RUN_DIVERGENCE_BOUND, clipped,
-        )  # fmt: skip
-        return values[start:, 0], int(clipped[0]), int(diverged_at)
+        values, clipped, diverged_at = simulate_joint([self], [list(range(view.shape[1]))], [w], view, start)
+        return values[start:, 0], clipped, diverged_at
 
 
 def forward_regression(features: np.ndarray, targets: np.ndarray, max_terms: int) -> tuple[list[int], list[float]]:

@@ -463,8 +463,9 @@ def test_one_output_free_run_is_the_several_output_path_compiled_or_not(example:
     """A single-output identifier runs the one free-run path (core.free_run) with its known linear part
     (Ex. 1, 2, 4) and its two branches (Ex. 3): compiled and in Python, the same outputs, clipping and
     divergence. The Python path is the MLP's; here it runs the same LeNN so the two can be compared."""
+    from free_run_check import assert_same_divergence, assert_same_free_run
+
     from lenn_ros import config
-    from lenn_ros.core import free_run
 
     if not kernels.JIT:
         pytest.skip("numba is not installed: there is no compiled free run")
@@ -473,21 +474,8 @@ def test_one_output_free_run_is_the_several_output_path_compiled_or_not(example:
     values, network = config.resolve({"example": example})
     identifier = config.build_identifier(values, network)
     identifier.run(series.u, series.y, np.arange(len(series.y)) < 1500)
-    runs = []
-    for compiled in (True, False):
-        if not compiled:
-            monkeypatch.setattr(free_run, "_compiled", free_run._python)
-        y_free = identifier.free_run(series.u, series.y, 1500)
-        runs.append((y_free, dict(identifier.last_free_run)))
-    (fast, fast_info), (slow, slow_info) = runs
-    assert np.isfinite(fast).all() and fast_info == slow_info
-    np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-12)
-    monkeypatch.undo()
+    fast, _info = assert_same_free_run(identifier, series.u, series.y, 1500, monkeypatch)
+    assert np.isfinite(fast).all()
     identifier.model.weights_ *= 1e4  # far beyond the output range: both stop at the same sample
     identifier.model.output_scale *= 1e4  # (a tanh output is bounded by its scale)
-    fast = identifier.free_run(series.u, series.y, 1500)
-    fast_at = identifier.last_free_run["diverged_at"]
-    monkeypatch.setattr(free_run, "_compiled", free_run._python)
-    slow = identifier.free_run(series.u, series.y, 1500)
-    assert fast_at is not None and fast_at == identifier.last_free_run["diverged_at"]
-    np.testing.assert_array_equal(np.isnan(fast), np.isnan(slow))
+    assert_same_divergence(identifier, series.u, series.y, 1500, monkeypatch)

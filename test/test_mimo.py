@@ -294,33 +294,20 @@ def test_the_compiled_mimo_step_equals_the_python_step(monkeypatch, settings: di
 
 
 def test_the_compiled_joint_free_run_equals_the_python_one_and_flags_the_same_divergence(monkeypatch) -> None:
-    from lenn_ros.core import free_run, kernels
+    from free_run_check import assert_same_divergence, assert_same_free_run
+
+    from lenn_ros.core import kernels
 
     if not kernels.JIT:
         pytest.skip("numba is not installed: there is no compiled free run")
     series = simulate_mimo(narendra_mimo_plant(), -20.0, seed=5, train_samples=3000, test_samples=600)
     identifier = _identifier(seed=5, scales=(1.6, 1.4))  # tight scales: some inputs get clipped
     identifier.run(series.u, series.y, np.arange(len(series.y)) < 3000)
-    runs = []
-    for compiled in (True, False):
-        if not compiled:
-            monkeypatch.setattr(free_run, "_compiled", free_run._python)  # the MLP's path, on the same model
-        before = [output.counters["clipped_free_run"] for output in identifier.outputs]
-        y_free = identifier.free_run(series.u, series.y, 3000)
-        after = [output.counters["clipped_free_run"] for output in identifier.outputs]
-        runs.append((y_free, dict(identifier.last_free_run), [a - b for a, b in zip(after, before, strict=True)]))
-    (fast, fast_info, fast_clipped), (slow, slow_info, slow_clipped) = runs
-    np.testing.assert_allclose(fast, slow, rtol=0, atol=1e-12)
-    assert fast_info == slow_info and fast_info["clipped_inputs"] > 0 and fast_clipped == slow_clipped
-    monkeypatch.undo()
+    _fast, info = assert_same_free_run(identifier, series.u, series.y, 3000, monkeypatch)
+    assert info["clipped_inputs"] > 0
     for model in identifier.models:
         model.weights_ *= 40.0  # an unstable model: both runs must stop at the same sample
-    fast = identifier.free_run(series.u, series.y, 3000)
-    fast_at = identifier.last_free_run["diverged_at"]
-    monkeypatch.setattr(free_run, "_compiled", free_run._python)
-    slow = identifier.free_run(series.u, series.y, 3000)
-    assert fast_at is not None and fast_at == identifier.last_free_run["diverged_at"]
-    np.testing.assert_array_equal(np.isnan(fast), np.isnan(slow))
+    assert_same_divergence(identifier, series.u, series.y, 3000, monkeypatch)
 
 
 # -- name[*] picks joints by name only (issue 18, item 4) ---------------------------------------

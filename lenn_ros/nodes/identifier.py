@@ -824,9 +824,9 @@ def main(args: list[str] | None = None, exit_process: bool = True) -> int:
     """The node's program; ``exit_process=False`` returns instead of ending the process (see run_node)."""
 
     def nodes() -> list[Node]:
-        # the inputs on a participant of their own unless LENN_ROS_INPUTS_PARTICIPANT=0: under a flood
+        # the inputs on a participant of their own only with LENN_ROS_INPUTS_PARTICIPANT=1: under a flood
         # of them, parameter calls then take tens of ms instead of seconds (docs/nodes.md)
-        node = IdentifierNode(separate_inputs=os.environ.get("LENN_ROS_INPUTS_PARTICIPANT", "1") != "0")
+        node = IdentifierNode(separate_inputs=os.environ.get("LENN_ROS_INPUTS_PARTICIPANT") == "1")
         return [node, *node.companions]
 
     return run_node(nodes, "identifier", args, executor=executor_choice(EXECUTOR), exit_process=exit_process)

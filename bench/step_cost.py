@@ -35,8 +35,12 @@ REFERENCE = "325f0e8"  # main when issue 19 was filed: two paths, the per-sample
 PINNED = {"example": 0, "y_lags": 2, "u_lags": 2, "order": 4, "cross_degree": 0, "y_scale": 3.0, "u_scale": 1.5}
 CASES = {
     "lenn sgd, 2+2 lags, order 4": {**PINNED, "solver": "sgd", "output": "tanh"},
-    "lenn rls, 2+2 lags, order 4 (robot settings)": {**PINNED, "solver": "rls", "output": "linear",
-                                                     "forgetting": 0.999},
+    "lenn rls, 2+2 lags, order 4 (robot settings)": {
+        **PINNED,
+        "solver": "rls",
+        "output": "linear",
+        "forgetting": 0.999,
+    },
     "lenn Ex. 1 preset": {"example": 1},
 }
 

@@ -574,3 +574,24 @@ def test_evaluate_of_raw_u_y_p_applies_the_recorded_changes_and_says_what_it_can
     notes = [note for note in offline.notices if note.startswith("parameter change")]
     assert len(notes) == 4 and sum("applied offline at that sample" in note for note in notes) == 3
     assert any("u_limit=50.0 from sample 2500" in note and "NOT applied offline" in note for note in notes), notes
+
+
+def test_a_test_start_that_comes_after_its_sample_is_said_and_counted_once(series) -> None:
+    """Learning from test samples cannot be undone: the late index is said in one line and counted.
+
+    The same index again (a latched topic re-matched) is not a second fault; one that comes in
+    time is none at all.
+    """
+    live = session()
+    live.set_test_start(300)  # in time
+    for k in range(1, 201):
+        live.offer(U, series.u[k - 1], k * 0.01, sequence=k)
+        live.offer(Y, series.y[k - 1], k * 0.01, sequence=k)
+    assert live.counters["test_start_late"] == 0
+    assert [n for n in live.take_notices() if n.kind == "test_start_late"] == []
+    live.set_test_start(150)  # samples 150..200 were learnt from
+    live.set_test_start(150)
+    notices = [n for n in live.take_notices() if n.kind == "test_start_late"]
+    assert live.counters["test_start_late"] == 1 and len(notices) == 1
+    assert "samples 150..200 were learnt from" in notices[0].text
+    assert not live._learns(201)  # frozen from now on

@@ -68,9 +68,10 @@ def free_run_outputs(runs: Sequence[OutputRun], values: np.ndarray, start: int) 
     from lenn_ros.core import kernels
 
     models = [run.model for run in runs]
-    compiled = all(
-        getattr(m, "term_exponents", None) is not None and m.basis in kernels.BASIS_CODES for m in models
-    ) and len({m.basis for m in models}) == 1
+    compiled = (
+        all(getattr(m, "term_exponents", None) is not None and m.basis in kernels.BASIS_CODES for m in models)
+        and len({m.basis for m in models}) == 1
+    )
     if compiled:
         return _compiled(runs, values, start)
     return _python(runs, values, start)

@@ -61,7 +61,7 @@ PAIRING_MODES = ("sequence", "stamp", "sample")
 SESSION_COUNTERS = (
     "u_messages", "y_messages", "nan", "out_of_range", "clipped",
     "no_sequence", "misaligned", "refused", "lone_u", "lone_y", "clock_offset", "held_overflow", "shed",
-    "field_errors", "warm_up_discarded", "change_alarms",
+    "field_errors", "warm_up_discarded", "change_alarms", "test_start_late",
 )  # fmt: skip
 #: Pairs held (not yet learnt) while the outputs wait for readers: beyond this the oldest are dropped.
 MAX_HELD = 10_000
@@ -426,8 +426,28 @@ class Session:
         return []
 
     def set_test_start(self, index: int) -> None:
-        """Sequence index of the first test sample (from the simulator's latched topic)."""
-        self.test_start = int(index)
+        """Sequence index of the first test sample (from the simulator's latched topic).
+
+        It must come before that sample: one that comes after it cannot undo the learning
+        from test samples already stepped, so it is said in one line and counted.
+        """
+        index = int(index)
+        late = (
+            index != self.test_start
+            and self.config.learning
+            and self.config.follow_test_start
+            and self.config.pairing == "sequence"
+            and self.last_index is not None
+            and self.last_index >= index
+        )
+        self.test_start = index
+        if late:
+            self.counters["test_start_late"] += 1
+            self._say(
+                "test_start_late",
+                f"test_start {index} came after sample {self.last_index}: samples {index}..{self.last_index} were "
+                "learnt from (its publisher did not wait for this reader); the frozen phase is shorter",
+            )
 
     @property
     def held(self) -> int:

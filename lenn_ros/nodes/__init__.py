@@ -13,6 +13,7 @@ from typing import Any
 
 import rclpy
 from rclpy.context import Context
+from rclpy.duration import Duration
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
@@ -30,6 +31,22 @@ _TURN_SECONDS = 0.1
 #: A few handlers may run before a service's (bench/overload.py: 5 ms keeps a call within
 #: 100 ms under a flood on 2 cores; the cost per turn of waiting again is ~0.1 ms).
 DRAIN_SECONDS = 0.005
+
+
+def latched_readers_matched(node: Node, publisher: Any, data_topic: str, wanted: int) -> bool:
+    """Every reader the graph shows on ``publisher``'s latched topic is matched, and has its message.
+
+    A lockstep publisher (simulator, replay) checks this before sample 1: an identifier whose
+    ``test_start`` comes after that sample has learnt from test samples, and a latched
+    message reaches a reader only once the two have matched, each reader on its own time.
+    ``wanted`` readers of ``data_topic`` in the graph first: then their nodes' other readers
+    (created before the data readers) are in the graph too.
+    """
+    if node.count_subscribers(data_topic) < wanted:
+        return False
+    if publisher.get_subscription_count() < node.count_subscribers(publisher.topic_name):
+        return False
+    return bool(publisher.wait_for_all_acked(Duration(seconds=0)))
 
 
 def executor_choice(default: str) -> str:

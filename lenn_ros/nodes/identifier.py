@@ -190,12 +190,6 @@ class IdentifierNode(Node):
         self._alias_qos_overrides()
         self._subscribe(message_types)
         self._warn_unknown_qos_overrides()
-        # on the inputs' participant: matched with the data, so a lockstep publisher's latched
-        # test_start is in before its samples (a participant of its own matched it seconds later)
-        owner = self.companions[0] if self.companions else self
-        self._test_start_subscription = owner.create_subscription(
-            Int64, self.resolve_topic_name(topics.TEST_START), self._on_test_start, topics.latched_qos()
-        )
         self.create_timer(self.values["status_period"], self._on_status_timer)
         if self.values["pairing"] != "sequence":
             self.create_timer(min(0.05, self.values["sample_period"] or 0.05), self._on_poll_timer)
@@ -413,6 +407,11 @@ class IdentifierNode(Node):
         profile = QoSProfile(depth=topics.DATA_DEPTH, reliability=reliability)
         self._data_subscriptions: dict[tuple[str, int], Any] = {}
         inputs = InputsNode(self) if self._separate_inputs else None
+        # first, and on the inputs' participant: a lockstep publisher that sees our data readers
+        # in the graph sees this one too, and waits until it has the latched index before sample 1
+        self._test_start_subscription = (inputs or self).create_subscription(
+            Int64, self.resolve_topic_name(topics.TEST_START), self._on_test_start, topics.latched_qos()
+        )
         for channel, part, name in self.inputs:
             events = SubscriptionEventCallbacks(incompatible_qos=lambda event, c=channel: self._on_incompatible_qos(c))
             callback = lambda message, info, c=channel, p=part: self._on_message(c, message, info, p)  # noqa: E731
@@ -824,9 +823,9 @@ def main(args: list[str] | None = None, exit_process: bool = True) -> int:
     """The node's program; ``exit_process=False`` returns instead of ending the process (see run_node)."""
 
     def nodes() -> list[Node]:
-        # the inputs on a participant of their own only with LENN_ROS_INPUTS_PARTICIPANT=1: under a flood
+        # the inputs on a participant of their own unless LENN_ROS_INPUTS_PARTICIPANT=0: under a flood
         # of them, parameter calls then take tens of ms instead of seconds (docs/nodes.md)
-        node = IdentifierNode(separate_inputs=os.environ.get("LENN_ROS_INPUTS_PARTICIPANT") == "1")
+        node = IdentifierNode(separate_inputs=os.environ.get("LENN_ROS_INPUTS_PARTICIPANT") != "0")
         return [node, *node.companions]
 
     return run_node(nodes, "identifier", args, executor=executor_choice(EXECUTOR), exit_process=exit_process)

@@ -22,7 +22,7 @@ from rclpy.node import Node
 from std_msgs.msg import Float64, Float64MultiArray, Int64
 
 from lenn_ros import topics
-from lenn_ros.nodes import run_node
+from lenn_ros.nodes import latched_readers_matched, run_node
 from lenn_ros.paper.examples import get_example
 from lenn_ros.paper.expression import ExpressionError
 from lenn_ros.paper.plants import MIMO_PLANTS, MimoPlant, Plant, plant_from_expressions
@@ -120,6 +120,7 @@ class PlantSimulator(Node):
         if self.excitation.test_start is not None:
             self.test_start_publisher.publish(Int64(data=self.excitation.test_start + 1))
         self.started: float | None = None
+        self._inputs_ready_at: float | None = None  # when u and y_p had their readers (test_start may lag)
         self.done = False
         self.timer = self.create_timer(self._period(), self._tick)
         self.get_logger().info(
@@ -194,9 +195,25 @@ class PlantSimulator(Node):
         self.acknowledged += 1
 
     def _ready(self) -> bool:
-        """The data topics are VOLATILE: a reader that has not matched yet would miss sample 1."""
+        """The data topics are VOLATILE: a reader that has not matched yet would miss sample 1.
+
+        With a test phase, every test_start reader has its index too: one that gets it after
+        that sample has learnt from test samples. That wait is bounded (``stall_timeout``)
+        and said when it runs out, for a reader that never matches.
+        """
         needed = self.get_parameter("wait_for_subscribers").value
-        return min(self.u_publisher.get_subscription_count(), self.y_publisher.get_subscription_count()) >= needed
+        if min(self.u_publisher.get_subscription_count(), self.y_publisher.get_subscription_count()) < needed:
+            return False
+        if self.excitation.test_start is None or not needed:
+            return True
+        if latched_readers_matched(self, self.test_start_publisher, topics.U, needed):
+            return True
+        now = time.monotonic()
+        self._inputs_ready_at = self._inputs_ready_at or now
+        if now - self._inputs_ready_at < self.get_parameter("stall_timeout").value:
+            return False
+        self.get_logger().warning("a test_start reader unmatched at sample 1: it may learn from test samples")
+        return True
 
     def _tick(self) -> None:
         if self.done:

@@ -76,6 +76,7 @@ from lenn_ros import topics
 from lenn_ros.bag import BagError, read_run
 from lenn_ros.bag.run import RawPairs, pair_raw, read_samples
 from lenn_ros.bag.vectors import is_vector_run, pair_vector_run
+from lenn_ros.nodes import latched_readers_matched
 
 SOURCES = ("auto", "samples", "raw")
 
@@ -298,8 +299,7 @@ class Replay(Node):
             return
         end = time.monotonic() + self._settle_timeout()
         while not self.stop.is_set() and time.monotonic() < end:
-            graph_caught_up = self.count_subscribers(topics.U) >= wanted  # the matched readers' nodes are known
-            if graph_caught_up and self.pub_start.get_subscription_count() >= self.count_subscribers(topics.TEST_START):
+            if latched_readers_matched(self, self.pub_start, topics.U, wanted):
                 return
             executor.spin_once(timeout_sec=0.02)
         self.get_logger().warning("a test_start reader unmatched at sample 1: it may learn from test samples")

@@ -50,10 +50,11 @@ def test_a_robot_day_with_the_defaults(tmp_path: Path, domain: int, solver: str 
     for name in ("moving, alpha changed", "moving after the burst"):
         assert phases[name]["learned"] > 0.5 * phases[name]["paired"] > 0, phases[name]
     assert result["alpha_call"]["accepted"] and result["learning_false_call"]["accepted"]
-    # every call answered, most within 100 ms (measured p50 31 ms). Not asserted: the max of 0.5 s.
-    # Measured 78 ms in one run and 1 403 ms in another: a driver publishing as fast as it can (12-30 k/s)
-    # delays the service requests in the middleware, while the node's own loop stays on time.
+    # every call answered within the 0.5 s. With the inputs on the identifier's own participant
+    # (up to 2.9 s: the flood delayed the service requests in the middleware) that failed; with them apart
+    # (the default) measured max 73.1 / 76.8 ms, p50 27.9 / 30.1 ms (defaults / rls, 2026-12-04)
     assert result["burst_calls_unanswered"] == 0 and result["burst_call_p50_ms"] < 100.0
+    assert result["burst_call_max_ms"] < 500.0, result["burst_call_max_ms"]
     assert phases["burst"]["shed"] > 0  # overloaded, it shed (counted), and it says so
     assert any("shed" in line for line in result["identifier_log"])
     assert result["live_test_nmse_db"] is not None and result["live_test_nmse_db"] <= -30.0

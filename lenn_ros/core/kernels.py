@@ -478,13 +478,14 @@ def free_run(
     n = values.shape[0]
     plan = _sparse_terms(exponents, factors)
     need = plan[6]
+    read_start, read = _inputs_read(input_start, input_source, need, n_y)
     table = np.empty((exponents.shape[1], max(1, _top_degree(exponents)) + 1))
     sums = np.zeros(n_branches)
     for k in range(start - 1, n - 1):
         for j in range(n_y):
             clipped[j] += _input_table(
-                values, k, input_start[j], input_start[j + 1], input_source, input_lag, input_offset, input_scale,
-                n_y, basis, need, table,
+                values, k, input_start[j], read[read_start[j] : read_start[j + 1]], input_source, input_lag,
+                input_offset, input_scale, basis, need, table,
             )  # fmt: skip
             out = constant[j] + _term_network_output(
                 table, plan, factors, term_start[j], term_start[j + 1], weights, feature_branch, tanh_output[j],
@@ -501,38 +502,54 @@ def free_run(
     return -1
 
 
+@njit(cache=True, nogil=True)
+def _inputs_read(input_start: np.ndarray, source: np.ndarray, need: np.ndarray, simulated: int):
+    """(read_start, read): per output, the network inputs (local indices, in order) a sample must read.
+
+    Those some term reads (``need`` > 0), and the fed-back outputs (a column below
+    ``simulated``), whose clipping is counted even where no term reads them. A measured
+    input that no term reads (a long lag span's middle lags) cannot matter: listing the
+    others once, instead of skipping those every sample, is what keeps a model of many
+    channels' long lags (hundreds of inputs, a dozen terms) as cheap as its terms.
+    """
+    n_out = len(input_start) - 1
+    read_start = np.zeros(n_out + 1, dtype=np.int64)
+    read = np.empty(input_start[n_out] - input_start[0], dtype=np.int64)
+    count = 0
+    for j in range(n_out):
+        for i in range(input_start[j + 1] - input_start[j]):
+            if need[i] > 0 or source[input_start[j] + i] < simulated:
+                read[count] = i
+                count += 1
+        read_start[j + 1] = count
+    return read_start, read[:count]
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _input_table(
     values: np.ndarray,
     k: int,
     first: int,
-    last: int,
+    read: np.ndarray,
     source: np.ndarray,
     lag: np.ndarray,
     offset: np.ndarray,
     scale: np.ndarray,
-    simulated: int,
     basis: int,
     need: np.ndarray,
     table: np.ndarray,
 ) -> int:
-    """table[i, n] = P_n(x_i(k)) for n <= need[i] of network inputs ``first..last`` of sample k; returns how
-    many were clipped.
+    """table[i, n] = P_n(x_i(k)) for n <= need[i] of the network inputs ``first + i``, i in ``read``
+    (:func:`_inputs_read`), of sample k; returns how many were clipped.
 
     Input ``first + i`` is column ``source`` of ``values`` at ``lag`` samples before k, as
     (value - offset) / scale clipped to [-1, 1]. Each input's polynomials are computed once
     per sample and shared by all terms, which is what makes a free run cost one pass over
-    the terms per sample. An input no term reads (a long lag span's middle lags) is only
-    checked for clipping where it is a fed-back output (a column below ``simulated``): a
-    measured one that no term reads cannot matter, and skipping it is what keeps a model
-    of many channels' long lags as cheap as its terms. The one place a free run turns a
-    sample into network inputs.
+    the terms per sample. The one place a free run turns a sample into network inputs.
     """
     clipped = 0
-    for i in range(last - first):
+    for i in read:
         entry = first + i
-        if need[i] == 0 and source[entry] >= simulated:
-            continue
         x = (values[k - lag[entry], source[entry]] - offset[entry]) / scale[entry]
         if x > 1.0:
             x = 1.0
@@ -842,8 +859,9 @@ def free_run_jacobian(
     alive = np.zeros(y_lags, dtype=np.bool_)
     y_offset, y_scale = offset[0], scale[0]
     clipped = 0
+    read = _inputs_read(np.array([0, len(source)]), source, need, 1)[1]
     for k in range(start - 1, n - 1):
-        clipped += _input_table(values, k, 0, len(source), source, lag, offset, scale, 1, basis, need, table)
+        clipped += _input_table(values, k, 0, read, source, lag, offset, scale, basis, need, table)
         out = _term_network_output(table, plan, factors, 0, n_terms, weights, branch, False, 1.0, sums)
         for i in range(y_lags):
             value = (values[k - i, 0] - y_offset) / y_scale

@@ -435,8 +435,7 @@ class Session:
         late = (
             index != self.test_start
             and self.config.learning
-            and self.config.follow_test_start
-            and self.config.pairing == "sequence"
+            and self._follows_test_start()
             and self.last_index is not None
             and self.last_index >= index
         )
@@ -798,11 +797,14 @@ class Session:
             "warm_up": len(self._warming),
         }
 
+    def _follows_test_start(self) -> bool:
+        """test_start is a sequence number: followed in sequence pairing only, and when asked to."""
+        return self.config.follow_test_start and self.config.pairing == "sequence"
+
     def _learns(self, index: int) -> bool:
         if not self.config.learning:
             return False
-        following = self.config.follow_test_start and self.config.pairing == "sequence"
-        return not (following and self.test_start is not None and index >= self.test_start)
+        return not (self._follows_test_start() and self.test_start is not None and index >= self.test_start)
 
     def _step(self, pair: Pair) -> Sample:
         self.last_index = pair.index

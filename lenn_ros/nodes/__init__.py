@@ -33,6 +33,10 @@ _TURN_SECONDS = 0.1
 DRAIN_SECONDS = 0.005
 
 
+#: What a lockstep publisher says when it gives up waiting for :func:`latched_readers_matched`.
+TEST_START_UNMATCHED = "a test_start reader unmatched at sample 1: it may learn from test samples"
+
+
 def latched_readers_matched(node: Node, publisher: Any, data_topic: str, wanted: int) -> bool:
     """Every reader the graph shows on ``publisher``'s latched topic is matched, and has its message.
 

@@ -22,7 +22,7 @@ from rclpy.node import Node
 from std_msgs.msg import Float64, Float64MultiArray, Int64
 
 from lenn_ros import topics
-from lenn_ros.nodes import latched_readers_matched, run_node
+from lenn_ros.nodes import TEST_START_UNMATCHED, latched_readers_matched, run_node
 from lenn_ros.paper.examples import get_example
 from lenn_ros.paper.expression import ExpressionError
 from lenn_ros.paper.plants import MIMO_PLANTS, MimoPlant, Plant, plant_from_expressions
@@ -212,7 +212,7 @@ class PlantSimulator(Node):
         self._inputs_ready_at = self._inputs_ready_at or now
         if now - self._inputs_ready_at < self.get_parameter("stall_timeout").value:
             return False
-        self.get_logger().warning("a test_start reader unmatched at sample 1: it may learn from test samples")
+        self.get_logger().warning(TEST_START_UNMATCHED)
         return True
 
     def _tick(self) -> None:

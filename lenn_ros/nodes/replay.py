@@ -76,7 +76,7 @@ from lenn_ros import topics
 from lenn_ros.bag import BagError, read_run
 from lenn_ros.bag.run import RawPairs, pair_raw, read_samples
 from lenn_ros.bag.vectors import is_vector_run, pair_vector_run
-from lenn_ros.nodes import latched_readers_matched
+from lenn_ros.nodes import TEST_START_UNMATCHED, latched_readers_matched
 
 SOURCES = ("auto", "samples", "raw")
 
@@ -302,7 +302,7 @@ class Replay(Node):
             if latched_readers_matched(self, self.pub_start, topics.U, wanted):
                 return
             executor.spin_once(timeout_sec=0.02)
-        self.get_logger().warning("a test_start reader unmatched at sample 1: it may learn from test samples")
+        self.get_logger().warning(TEST_START_UNMATCHED)
 
     def _wait_identifier_idle(self, executor: SingleThreadedExecutor, quiet: float = 0.3) -> None:
         """With an identifier on the graph: wait until its y_hat stops coming (it has caught up).

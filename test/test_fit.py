@@ -26,6 +26,7 @@ from lenn_ros.fit.families import Spec
 from lenn_ros.fit.selection import (
     NONLINEAR_GAIN,
     PARSIMONY,
+    TRAINING_RANGE,
     Candidate,
     Folds,
     Layout,
@@ -34,9 +35,12 @@ from lenn_ros.fit.selection import (
     fold_blocks,
     forward_regression,
     order_candidates,
+    reads_outputs,
     runs,
+    shuffled_run,
     siso_view,
     soundness_problem,
+    stress_views,
 )
 from lenn_ros.paper.examples import get_example
 
@@ -290,6 +294,47 @@ def test_soundness_rejects_a_model_that_runs_away_on_its_own_data_or_on_its_inpu
     shuffled = Record.of(siso_view(steps, drift))
     assert shuffled.simulate(integrator, 0, 1500).problem("in-sample") == ""
     assert "shuffled in blocks" in soundness_problem(integrator, shuffled)
+
+
+def test_an_input_only_models_soundness_runs_are_its_predictions_and_its_seams() -> None:
+    """An input-only model's in-sample free run is its one-step predictions, and on the shuffled view it
+    simulates only around the seams (block starts and breaks moved with their blocks): the verdicts are
+    those of the whole runs, pass or fail."""
+    rng = np.random.default_rng(3)
+    n, lags = 1200, 8
+    phase = np.select([np.arange(n) < 250, np.arange(n) < 905], [0.0, 2.0], 4.0)  # the record jumps at its breaks
+    u = np.sin(2 * np.pi * np.arange(n) / 700 + phase) + 0.02 * rng.standard_normal(n)  # slow: shuffling jumps
+    y = np.convolve(u, np.ones(lags) / lags, mode="full")[:n] + 0.01 * rng.standard_normal(n)
+    scaling = Scaling.from_training(u, y)
+    layout = Layout.of(lags, scaling)
+    terms = parse_terms(["1", "u7", "u8", "u4", "u2*u8", "u1*u5*u7"], siso_channels(lags, lags))[0]
+    record = Record.of(siso_view(u, y), [250, 905])
+    base = TermModel(layout, terms)
+    assert not reads_outputs(base)
+    assert reads_outputs(TermModel(layout, parse_terms(["y2", "u1"], siso_channels(lags, lags))[0]))
+    difference = np.array([0.0, 1.0, -1.0, 0.0, 0.0, 0.0])  # large only a warm-up after a jump: a seam's last
+    verdicts = set()
+    for trial in range(80):
+        size = scaling.y_scale * (0.2 + 0.1 * (trial // 2))
+        weights = size * (difference if trial % 2 else rng.standard_normal(len(terms)))
+        model = base.with_weights(weights)
+        whole = record.simulate(model, 0, record.n, bound=TRAINING_RANGE)
+        features, _ = model.regression(record.values)  # its one-step predictions are its in-sample free run
+        valid = record.valid_rows(model.warm_up)
+        rows = record.simulation_of(
+            np.arange(model.warm_up, record.n)[valid], (features @ weights)[valid], model, bound=TRAINING_RANGE
+        )
+        assert rows.diverged == whole.diverged and rows.samples == whole.samples
+        assert rows.diverged or rows.rmse == pytest.approx(whole.rmse, rel=1e-12)
+        for view, seams in stress_views(record):
+            _, clipped, diverged_at = model.free_run(view, model.warm_up, bound=TRAINING_RANGE)
+            full_fails = bool(clipped or diverged_at >= 0)
+            clipped, diverged_at = shuffled_run(model, view, seams)
+            seams_fail = bool(clipped or diverged_at >= 0)
+            in_sample_fails = bool(whole.clipped or whole.diverged)
+            assert full_fails == (in_sample_fails or seams_fail)
+            verdicts.add((in_sample_fails, seams_fail, full_fails))
+    assert {(False, False, False), (False, True, True)} <= verdicts  # both outcomes reached, and the seams alone
 
 
 def test_blocks_breaks_and_fold_weights() -> None:

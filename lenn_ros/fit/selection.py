@@ -226,13 +226,15 @@ class TermModel:
         x, targets = self.inputs(view)
         return term_features(x, self.exponents, self.basis, self.factors), targets
 
-    def free_run(self, view: np.ndarray, start: int, weights: np.ndarray | None = None) -> tuple[np.ndarray, int, int]:
+    def free_run(
+        self, view: np.ndarray, start: int, weights: np.ndarray | None = None, bound: float = FREE_RUN_DIVERGENCE_BOUND
+    ) -> tuple[np.ndarray, int, int]:
         """Compiled simulation of column 0 from ``start`` (measured before it): (y^(start..), clipped, diverged_at).
 
         The one-output case of :func:`simulate_joint`, every column of the view read in its place."""
         view = np.asarray(view, dtype=np.float64).reshape(len(view), -1)
         w = self.weights if weights is None else weights
-        values, clipped, diverged_at = simulate_joint([self], [list(range(view.shape[1]))], [w], view, start)
+        values, clipped, diverged_at = simulate_joint([self], [list(range(view.shape[1]))], [w], view, start, bound)
         return values[start:, 0], clipped, diverged_at
 
 
@@ -352,11 +354,34 @@ class Record:
                 found.append((first, b))
         return found
 
-    def simulate(self, model: TermModel, start: int, stop: int, weights: np.ndarray | None = None) -> Simulation:
-        """Free run of samples [start, stop): one run per contiguous piece, each from its measured warm-up."""
+    def simulate(
+        self,
+        model: TermModel,
+        start: int,
+        stop: int,
+        weights: np.ndarray | None = None,
+        bound: float = FREE_RUN_DIVERGENCE_BOUND,
+    ) -> Simulation:
+        """Free run of samples [start, stop): one run per contiguous piece, each from its measured warm-up
+        (``bound``: the scale units from its offset where the output counts as diverged and a run ends)."""
         result = Simulation()
-        for measured, y_sim, clipped, diverged in self._free_runs(model, start, stop, weights):
+        for measured, y_sim, clipped, diverged in self._free_runs(model, start, stop, weights, bound):
             result.add(measured, y_sim, clipped, diverged, model.layout.n_inputs)
+        return result
+
+    def simulation_of(
+        self, samples: np.ndarray, values: np.ndarray, model: TermModel, bound: float = FREE_RUN_DIVERGENCE_BOUND
+    ) -> Simulation:
+        """:meth:`simulate` of the whole record by an input-only ``model`` from its one-step predictions
+        (``values`` of ``samples``, sorted, every sample of its pieces): the same pieces, and a piece ends
+        where an output is further than ``bound`` of its scales from its offset, as a free run does."""
+        result = Simulation()
+        layout = model.layout
+        for first, b in self.pieces(0, self.n, model.warm_up):
+            low, high = np.searchsorted(samples, [first, b])
+            simulated = values[low:high]
+            outside = ~(np.abs(simulated - layout.y_offset) <= bound * layout.y_scale)
+            result.add(self.y[first:b], simulated, 0, bool(outside.any()), layout.n_inputs)
         return result
 
     def residuals(self, model: TermModel, start: int, stop: int, weights: np.ndarray | None = None) -> np.ndarray:
@@ -376,12 +401,19 @@ class Record:
             parts.append(features @ w - targets)
         return np.concatenate(parts) if parts else np.empty(0)
 
-    def _free_runs(self, model: TermModel, start: int, stop: int, weights: np.ndarray | None):
+    def _free_runs(
+        self,
+        model: TermModel,
+        start: int,
+        stop: int,
+        weights: np.ndarray | None,
+        bound: float = FREE_RUN_DIVERGENCE_BOUND,
+    ):
         """(measured, simulated, clipped inputs, diverged) of each contiguous piece of [start, stop)."""
         w = model.weights if weights is None else weights
         warm = model.warm_up
         for first, b in self.pieces(start, stop, warm):
-            y_sim, clipped, diverged_at = model.free_run(self.values[first - warm : b], warm, w)
+            y_sim, clipped, diverged_at = model.free_run(self.values[first - warm : b], warm, w, bound)
             yield self.y[first:b], y_sim, clipped, diverged_at >= 0
 
     def _break_in(self, a: int, b: int) -> bool:
@@ -526,38 +558,96 @@ def _finite(value: float) -> float | None:
     return float(value) if math.isfinite(value) else None
 
 
-def _stress_views(values: np.ndarray, seed: int = 0) -> list[np.ndarray]:
+def stress_views(record: Record, seed: int = 0) -> list[tuple[np.ndarray, np.ndarray]]:
     """The view with what the output reads (columns 1..) cut into STRESS_BLOCKS blocks and shuffled,
-    STRESS_RUNS times (fixed seed); column 0, the output, stays (only its first samples seed a run)."""
+    STRESS_RUNS times (fixed seed); column 0, the output, stays (only its first samples seed a run).
+
+    Each view comes with its seams: the samples where the inputs' history stops being a
+    stretch of one run of the record (a block's start, a break carried with its block)."""
+    values, n = record.values, record.n
     rng = np.random.default_rng(seed)
-    edges = np.linspace(0, len(values), STRESS_BLOCKS + 1).round().astype(int)
-    pieces = [values[a:b, 1:] for a, b in itertools.pairwise(edges)]
-    return [
-        np.column_stack([values[:, 0], np.concatenate([pieces[i] for i in rng.permutation(len(pieces))])])
-        for _ in range(STRESS_RUNS)
-    ]
+    edges = np.linspace(0, n, STRESS_BLOCKS + 1).round().astype(int)
+    views = []
+    for _ in range(STRESS_RUNS):
+        order = rng.permutation(STRESS_BLOCKS)
+        shuffled = np.concatenate([values[edges[i] : edges[i + 1], 1:] for i in order])
+        seams, position = [], 0
+        for i in order:
+            a, b = int(edges[i]), int(edges[i + 1])
+            inner = record.breaks[(record.breaks > a) & (record.breaks < b)]
+            seams.extend([position, *(position + inner - a).tolist()])
+            position += b - a
+        views.append((np.column_stack([values[:, 0], shuffled]), np.array(sorted(set(seams) - {0}), dtype=np.int64)))
+    return views
 
 
-def soundness_problem(model: TermModel, record: Record) -> str:
+def reads_outputs(model: TermModel) -> bool:
+    """Whether some term reads the output fed back (column 0's lags): an input-only model does not."""
+    lags = model.layout.lags
+    return bool(model.exponents[:, :lags].any() or (len(model.factors) and model.factors[:, 2 : 2 + lags].any()))
+
+
+def shuffled_run(model: TermModel, view: np.ndarray, seams: np.ndarray) -> tuple[int, int]:
+    """(clipped, diverged_at or -1) of the free run of a shuffled view, ending outside the training range.
+
+    An input-only model's output at a sample depends on the inputs' last lags alone, so
+    wherever those are a stretch of the record the run repeats the in-sample run (which
+    :func:`soundness_problem` checked first): only the samples within one warm-up after a
+    seam are new, and only those are simulated, each seam's from its own warm-up. A model
+    that reads its output is run whole: its state carries the seam's effect on."""
+    warm = model.warm_up
+    if reads_outputs(model):
+        _, clipped, diverged_at = model.free_run(view, warm, bound=TRAINING_RANGE)
+        return clipped, diverged_at
+    for seam in seams.tolist():
+        low, high = max(0, seam - warm), min(len(view), seam + warm)
+        if high - low <= warm:
+            continue
+        _, clipped, diverged_at = model.free_run(view[low:high], warm, bound=TRAINING_RANGE)
+        if clipped or diverged_at >= 0:
+            return clipped, diverged_at
+    return 0, -1
+
+
+#: where a soundness free run has left the training range: an output further from its offset than its
+#: scale (the training range widened by the scaling's margin), where its lags would clip
+TRAINING_RANGE = 1.0
+
+
+def soundness_problem(
+    model: TermModel, record: Record, predictions: tuple[np.ndarray, np.ndarray] | None = None
+) -> str:
     """What is wrong with a model fitted to all training samples (``""``: nothing).
 
     Its free run over the whole training record (each contiguous run from its measured
-    start) must not diverge, clip or do worse than the mean: this is the easiest
-    simulation the model will ever face. And driven by the training input shuffled in
-    blocks it must stay bounded (not diverge, not clip): an input like the ones it was
+    start) must stay in the training range and do better than the mean: this is the
+    easiest simulation the model will ever face. And driven by the training input
+    shuffled in blocks it must stay in the training range: an input like the ones it was
     built for, in an order it has not seen. One seed, fixed, so the verdict is repeatable.
+
+    The inputs of these runs are training samples, so only a fed-back output can clip:
+    each run ends at the first output outside the training range (``TRAINING_RANGE``),
+    with the verdict a whole run would give. The prefixes that fail here are mostly the
+    long ones that overshoot early, and they are tried one after another
+    (:func:`_choose_prefix`): stopping there is what keeps that search cheap.
+
+    ``predictions``: (samples, values) of an input-only model's one-step predictions over
+    the record's regression rows, which are its in-sample free run (it feeds nothing
+    back); given, that run is read from them instead of simulated again.
     """
-    whole = record.simulate(model, 0, record.n)
+    if predictions is not None:
+        whole = record.simulation_of(*predictions, model, bound=TRAINING_RANGE)
+    else:
+        whole = record.simulate(model, 0, record.n, bound=TRAINING_RANGE)
+    if whole.diverged or whole.clipped:
+        return "in-sample free run left the training range"
     problem = whole.problem("in-sample")
     if problem:
         return problem
-    warm = model.warm_up
-    for shuffled in _stress_views(record.values):
-        _, clipped, diverged_at = model.free_run(shuffled, warm)
+    for shuffled, seams in stress_views(record):
+        clipped, diverged_at = shuffled_run(model, shuffled, seams)
         if diverged_at >= 0 or clipped > 0:
-            return "free run on the training input shuffled in blocks " + (
-                "diverged" if diverged_at >= 0 else "left the training range"
-            )
+            return "free run on the training input shuffled in blocks left the training range"
     return ""
 
 
@@ -574,16 +664,13 @@ class Design:
     energy: float
 
     @classmethod
-    def of(cls, spec: Spec, record: Record, layout: Layout) -> Design:
+    def of(cls, spec: Spec, record: Record, layout: Layout, inputs: tuple | None = None) -> Design:
+        """``inputs``: :func:`valid_inputs` of the spec's lags when already at hand."""
         layout = layout.with_lags(spec.lags)
-        base = TermModel(layout, np.zeros((1, layout.n_inputs), dtype=np.int64))
-        x, targets = base.inputs(record.values)
-        valid = record.valid_rows(base.warm_up)
-        x, targets = x[valid], targets[valid]
+        x, targets, predicted = inputs if inputs is not None else valid_inputs(record, layout)
         dictionary = spec.dictionary(x)
         features = term_features(x, dictionary.exponents, "legendre", dictionary.factors)
         targets = targets - dictionary.pass_through(x, layout)
-        predicted = np.arange(base.warm_up, record.n)[valid]
         return cls(dictionary, features, targets, predicted, features.T @ features, features.T @ targets,
                    float(targets @ targets))  # fmt: skip
 
@@ -617,8 +704,9 @@ def evaluate_candidate(spec: Spec, record: Record, layout: Layout, design: Desig
     if not ranked:
         candidate.rejected = "no usable term"
         return candidate
-    prefixes = Prefixes(base, dictionary, ranked, Folds.of(design.features[:, ranked], design.targets,
-                        design.predicted, fold_blocks(record.n, warm), warm))  # fmt: skip
+    features = design.features[:, ranked]
+    folds = Folds.of(features, design.targets, design.predicted, fold_blocks(record.n, warm), warm)
+    prefixes = Prefixes(base, dictionary, ranked, folds, features, design.predicted)
     scores, loose_scores, reasons, loose_reasons = _score_prefixes(prefixes, record)
     _choose_prefix(candidate, prefixes, record, scores if strict else loose_scores,
                    reasons if strict else loose_reasons, strict)  # fmt: skip
@@ -658,6 +746,8 @@ class Prefixes:
     dictionary: Dictionary
     ranked: list[int]
     folds: Folds
+    features: np.ndarray  # the ranked terms' features over the design's rows
+    predicted: np.ndarray  # the sample each row predicts
 
     def __post_init__(self) -> None:
         d, n = self.dictionary, self.base.layout.n_inputs
@@ -683,6 +773,13 @@ class Prefixes:
         if weights is None:
             return None
         return np.hstack([weights, np.broadcast_to(self.passing, (len(weights), len(self.passing)))])
+
+    def in_sample(self, m: int, weights: np.ndarray, model: TermModel) -> tuple[np.ndarray, np.ndarray] | None:
+        """(samples, one-step predictions) of prefix ``m`` with ``weights`` over the record, when that is the
+        in-sample free run of ``model`` (the prefix delivered): it reads no output fed back. Else None."""
+        if self.dictionary.increment or reads_outputs(model):
+            return None
+        return self.predicted, self.features[:, :m] @ weights
 
     def model(self, m: int, weights: np.ndarray) -> TermModel:
         """The model delivered for prefix ``m`` with its own (least-squares) weights, the pass-through folded in."""
@@ -756,7 +853,7 @@ def _choose_prefix(candidate, prefixes: Prefixes, record: Record, scores, reason
             problem = "singular"
         else:
             model = prefixes.model(m, weights)
-            problem = soundness_problem(model, record) if strict else ""
+            problem = soundness_problem(model, record, prefixes.in_sample(m, weights, model)) if strict else ""
         if not problem:
             candidate.terms, candidate.rmse_validation, candidate.block_rmse = m, preferred[1], preferred[2]
             candidate.fold_weights = [prefixes.model(m, folds.weights(m, f)).weights for f in range(len(folds.blocks))]
@@ -813,19 +910,33 @@ def cores() -> int:
     return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
+def valid_inputs(record: Record, layout: Layout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(network inputs clipped, target y(k+1), the sample each row predicts) of every regressor of the
+    layout's lags whose window crosses no break: what every design over those lags starts from."""
+    base = TermModel(layout, np.zeros((1, layout.n_inputs), dtype=np.int64))
+    x, targets = base.inputs(record.values)
+    valid = record.valid_rows(base.warm_up)
+    return x[valid], targets[valid], np.arange(base.warm_up, record.n)[valid]
+
+
 def _designs(specs: list[Spec], record: Record, layout: Layout) -> dict[Spec, Design]:
-    """Each spec's design; a family's lower degrees at the same lags reuse its highest degree's features."""
+    """Each spec's design; a family's lower degrees at the same lags reuse its highest degree's features.
+
+    The network inputs are built once per lag span, not once per spec: on a 40 000-sample
+    record of seven columns, building them was a third of the designs' time."""
     designs: dict[Spec, Design] = {}
-    for spec in sorted(specs, key=lambda s: (s.family, s.lags, -s.degree)):
+    inputs: dict[int, tuple] = {}
+    for spec in sorted(specs, key=lambda s: (s.lags, s.family, -s.degree)):
+        if spec.lags not in inputs:
+            inputs.clear()  # one span at a time: a long span's inputs are hundreds of MB
+            inputs[spec.lags] = valid_inputs(record, layout.with_lags(spec.lags))
         top = next((d for other, d in designs.items() if (other.family, other.lags) == (spec.family, spec.lags)), None)
         if top is not None:
-            base = TermModel(layout.with_lags(spec.lags), np.zeros((1, spec.lags * layout.n_columns), dtype=np.int64))
-            x = base.inputs(record.values)[0][record.valid_rows(base.warm_up)]
-            shared = top.leading(spec.dictionary(x))
+            shared = top.leading(spec.dictionary(inputs[spec.lags][0]))
             if shared is not None:
                 designs[spec] = shared
                 continue
-        designs[spec] = Design.of(spec, record, layout)
+        designs[spec] = Design.of(spec, record, layout, inputs[spec.lags])
     return designs
 
 
@@ -881,11 +992,17 @@ def order_candidates(candidates: list[Candidate]) -> list[Candidate]:
 
 
 def simulate_joint(
-    models: list[TermModel], columns: list[list[int]], weights: list[np.ndarray], values: np.ndarray, start: int
+    models: list[TermModel],
+    columns: list[list[int]],
+    weights: list[np.ndarray],
+    values: np.ndarray,
+    start: int,
+    bound: float = FREE_RUN_DIVERGENCE_BOUND,
 ) -> tuple[np.ndarray, int, int]:
     """Free run of several outputs together: output j is ``models[j]``, its view's column c column
     ``columns[j][c]`` of ``values`` (whose first len(models) columns are the outputs, each fed the model's own
-    from ``start`` on). Every model over the same lags. (values simulated, clipped inputs, diverged_at or -1).
+    from ``start`` on). Every model over the same lags. (values simulated, clipped inputs, diverged_at or -1;
+    an output further than ``bound`` of its scales from its offset diverges and ends the run).
     """
     values = np.array(values, dtype=np.float64, copy=True)
     arrays = [model.layout.arrays() for model in models]
@@ -906,7 +1023,7 @@ def simulate_joint(
         np.ascontiguousarray(factors_all), np.ascontiguousarray(np.concatenate(weights), dtype=np.float64),
         np.zeros(terms, dtype=np.int64), 1, np.zeros(n_y, dtype=np.bool_), np.ones(n_y), np.zeros(n_y),
         np.array([model.layout.y_offset for model in models]), np.array([model.layout.y_scale for model in models]),
-        kernels.BASIS_CODES[models[0].basis], FREE_RUN_DIVERGENCE_BOUND, clipped,
+        kernels.BASIS_CODES[models[0].basis], bound, clipped,
     )  # fmt: skip
     return values, int(clipped.sum()), int(diverged_at)
 

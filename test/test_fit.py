@@ -17,8 +17,10 @@ import pytest
 import yaml
 
 from lenn_ros.config import ConfigError, build_identifier, read_params_file, resolve
+from lenn_ros.core import kernels
 from lenn_ros.core.evaluation import free_run_problems
 from lenn_ros.core.expansions import format_terms, parse_terms, siso_channels
+from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND
 from lenn_ros.core.scaling import Scaling
 from lenn_ros.core.structure import Identifier
 from lenn_ros.fit.build import Data, fit
@@ -30,8 +32,14 @@ from lenn_ros.fit.selection import (
     Candidate,
     Folds,
     Layout,
+    Prefixes,
     Record,
     TermModel,
+    _block_pieces,
+    _designs,
+    _score_from_rows,
+    _score_prefixes,
+    evaluate_candidate,
     fold_blocks,
     forward_regression,
     order_candidates,
@@ -335,6 +343,54 @@ def test_an_input_only_models_soundness_runs_are_its_predictions_and_its_seams()
             assert full_fails == (in_sample_fails or seams_fail)
             verdicts.add((in_sample_fails, seams_fail, full_fails))
     assert {(False, False, False), (False, True, True)} <= verdicts  # both outcomes reached, and the seams alone
+
+
+def test_input_only_prefixes_score_from_their_predictions_as_the_free_runs_do(monkeypatch) -> None:
+    """An input-only prefix's blocks are scored from its out-of-fold one-step predictions: the same
+    scores, clipped counts and verdicts as the compiled free runs, pass or fail, on a record with gaps."""
+    rng = np.random.default_rng(4)
+    n = 3000
+    u = np.convolve(rng.uniform(-1, 1, n), np.ones(4) / 4, mode="same")
+    y = np.convolve(np.tanh(2 * u), 0.8 ** np.arange(12), mode="full")[:n] + 0.05 * rng.standard_normal(n)
+    u[1900:2100] *= 6.0  # an excursion that saturates the plant up to a gap: the other blocks overshoot it
+    scaling = Scaling.from_training(u, y)
+    record = Record.of(siso_view(u, y), [700, 2100])
+    layout = Layout.of(1, scaling)
+    compared = clipped = 0
+    for spec in (Spec("fir", 10, 1), Spec("fir", 10, 2), Spec("polynomial", 3, 2)):
+        design = _designs([spec], record, layout)[spec]
+        by_rows = evaluate_candidate(spec, record, layout, design)
+        with monkeypatch.context() as patched:
+            patched.setattr(Prefixes, "input_only", lambda self, m: False)
+            by_runs = evaluate_candidate(spec, record, layout, design)
+        rows_scores, rows_loose, rows_why, rows_loose_why = _score_prefixes(by_rows.fallback[0], record)
+        with monkeypatch.context() as patched:
+            patched.setattr(Prefixes, "input_only", lambda self, m: False)
+            runs_scores, runs_loose, runs_why, runs_loose_why = _score_prefixes(by_runs.fallback[0], record)
+        for mine, theirs in ((rows_scores, runs_scores), (rows_loose, runs_loose)):
+            assert [e[0] for e in mine] == [e[0] for e in theirs]
+            for a, b in zip(mine, theirs, strict=True):
+                assert a[1] == pytest.approx(b[1], rel=1e-9) and a[2] == pytest.approx(b[2], rel=1e-9)
+        assert (rows_why, rows_loose_why) == (runs_why, runs_loose_why)
+        assert (by_rows.terms, by_rows.rejected) == (by_runs.terms, by_runs.rejected)
+        compared += sum(by_rows.fallback[0].input_only(m) for m in range(1, len(by_rows.fallback[0].ranked) + 1))
+        if spec.family == "fir":  # failures compared too, the loose rule's on the count of clipped inputs
+            assert "held-out free run left the training range" in rows_loose_why
+        prefixes = by_rows.fallback[0]
+        warm = prefixes.base.warm_up
+        pieces = _block_pieces(record, prefixes.folds.blocks, warm)
+        source, lag, offset, scale = prefixes.base.layout.arrays()
+        for m in range(1, prefixes.reading_from + 1):  # what the kernel gives, clipped inputs counted alike
+            weights = prefixes.fold_weights(m)
+            mine, theirs = np.zeros((len(prefixes.folds.blocks), 5)), np.zeros((len(prefixes.folds.blocks), 5))
+            _score_from_rows(prefixes, record, m, weights, pieces, mine)
+            exponents, factors = prefixes.arrays(m)
+            kernels.simulate_pieces(record.values, *pieces, warm, source, lag, offset, scale, exponents, factors,
+                                    weights, 0, FREE_RUN_DIVERGENCE_BOUND, theirs)  # fmt: skip
+            assert np.array_equal(mine[:, [1, 3, 4]], theirs[:, [1, 3, 4]])  # samples, clipped, diverged
+            assert mine[:, [0, 2]] == pytest.approx(theirs[:, [0, 2]], rel=1e-9)
+            clipped += int(mine[:, 3].sum())
+    assert compared > 10 and clipped > 0
 
 
 def test_blocks_breaks_and_fold_weights() -> None:

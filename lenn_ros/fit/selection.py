@@ -751,6 +751,10 @@ class Prefixes:
 
     def __post_init__(self) -> None:
         d, n = self.dictionary, self.base.layout.n_inputs
+        lags = self.base.layout.lags
+        reading = d.exponents[self.ranked][:, :lags].any(axis=1) | d.factors[self.ranked][:, 2 : 2 + lags].any(axis=1)
+        #: the prefixes of up to this many terms read no output fed back: input-only (:meth:`input_only`)
+        self.reading_from = 0 if d.increment else (int(np.argmax(reading)) if reading.any() else len(reading))
         rows = d.exponents[self.ranked]
         factors = d.factors[self.ranked]
         self.passing = np.zeros(0)
@@ -774,12 +778,15 @@ class Prefixes:
             return None
         return np.hstack([weights, np.broadcast_to(self.passing, (len(weights), len(self.passing)))])
 
-    def in_sample(self, m: int, weights: np.ndarray, model: TermModel) -> tuple[np.ndarray, np.ndarray] | None:
-        """(samples, one-step predictions) of prefix ``m`` with ``weights`` over the record, when that is the
-        in-sample free run of ``model`` (the prefix delivered): it reads no output fed back. Else None."""
-        if self.dictionary.increment or reads_outputs(model):
-            return None
-        return self.predicted, self.features[:, :m] @ weights
+    def input_only(self, m: int) -> bool:
+        """Whether prefix ``m`` reads no output fed back (nor passes y(k) through): its free run from any
+        start is its one-step prediction."""
+        return m <= self.reading_from
+
+    def in_sample(self, m: int, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+        """(samples, one-step predictions) of prefix ``m`` with ``weights`` over the record when that is its
+        in-sample free run (:meth:`input_only`), else None."""
+        return (self.predicted, self.features[:, :m] @ weights) if self.input_only(m) else None
 
     def model(self, m: int, weights: np.ndarray) -> TermModel:
         """The model delivered for prefix ``m`` with its own (least-squares) weights, the pass-through folded in."""
@@ -802,7 +809,8 @@ def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], li
     """(m, pooled RMSE, per-block RMSE) of every prefix usable under the strict rules, the same under the
     loose ones, and why the others failed under each.
 
-    Each prefix's blocks are simulated in one compiled call (:func:`kernels.simulate_pieces`).
+    Each prefix's blocks are simulated in one compiled call (:func:`kernels.simulate_pieces`),
+    or for an input-only prefix read from its one-step predictions (:func:`_score_from_rows`).
     """
     base, blocks = prefixes.base, prefixes.folds.blocks
     warm = base.warm_up
@@ -819,12 +827,15 @@ def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], li
             reasons.append("singular")
             loose_reasons.append("singular")
             continue
-        exponents, factors = prefixes.arrays(m)
         out = np.zeros((len(blocks), 5))
-        kernels.simulate_pieces(
-            record.values, first, stop, group, warm, source, lag, offset, scale, exponents, factors, weights,
-            kernels.BASIS_CODES[base.basis], FREE_RUN_DIVERGENCE_BOUND, out,
-        )  # fmt: skip
+        if prefixes.input_only(m):
+            _score_from_rows(prefixes, record, m, weights, (first, stop, group), out)
+        else:
+            exponents, factors = prefixes.arrays(m)
+            kernels.simulate_pieces(
+                record.values, first, stop, group, warm, source, lag, offset, scale, exponents, factors, weights,
+                kernels.BASIS_CODES[base.basis], FREE_RUN_DIVERGENCE_BOUND, out,
+            )  # fmt: skip
         runs_of = [Simulation(r[0], int(r[1]), r[2], int(r[3]), int(r[1]) * width, bool(r[4])) for r in out]
         pooled = math.sqrt(float(out[:, 0].sum()) / float(out[:, 1].sum()))
         entry = (m, pooled, [run.rmse for run in runs_of])
@@ -841,6 +852,34 @@ def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], li
     return scores, loose, reasons, loose_reasons
 
 
+def _score_from_rows(
+    prefixes: Prefixes, record: Record, m: int, weights: np.ndarray, pieces: tuple, out: np.ndarray
+) -> None:
+    """:func:`kernels.simulate_pieces` of an input-only prefix, from the out-of-fold one-step predictions.
+
+    Such a model's free run of a piece is its one-step prediction of each sample by the
+    fold's weights (nothing is fed back), so the runs are products of the design's rows.
+    ``out`` gets what the kernel gives: squared errors, samples, squares about each
+    piece's mean, clipped inputs, diverged. The inputs read are training samples, inside
+    the range, so what clips is the fed-back output's lags a term never reads: a sample
+    outside the range is read by the next ``lags`` samples of its piece, and each counts it.
+    """
+    layout = prefixes.base.layout
+    offset, scale = layout.y_offset, layout.y_scale
+    for a, b, g in zip(*pieces, strict=True):
+        rows = np.searchsorted(prefixes.predicted, [a, b])
+        simulated = prefixes.features[rows[0] : rows[1], :m] @ weights[g, :m]
+        measured = record.y[a:b]
+        if not np.all(np.abs(simulated - offset) <= FREE_RUN_DIVERGENCE_BOUND * scale):
+            out[g, 4] = 1.0  # non-finite or diverged: the kernel stops there, the block fails
+        x = (simulated - offset) / scale
+        outside = np.flatnonzero((x > 1.0) | (x < -1.0))
+        out[g, 0] += float(np.sum((simulated - measured) ** 2))
+        out[g, 1] += b - a
+        out[g, 2] += float(np.sum((measured - measured.mean()) ** 2))
+        out[g, 3] += float(np.minimum(layout.lags, b - 1 - (a + outside)).sum())
+
+
 def _choose_prefix(candidate, prefixes: Prefixes, record: Record, scores, reasons, strict: bool) -> None:
     """The fewest terms within PARSIMONY of the lowest score that passes :func:`soundness_problem`."""
     folds = prefixes.folds
@@ -853,7 +892,7 @@ def _choose_prefix(candidate, prefixes: Prefixes, record: Record, scores, reason
             problem = "singular"
         else:
             model = prefixes.model(m, weights)
-            problem = soundness_problem(model, record, prefixes.in_sample(m, weights, model)) if strict else ""
+            problem = soundness_problem(model, record, prefixes.in_sample(m, weights)) if strict else ""
         if not problem:
             candidate.terms, candidate.rmse_validation, candidate.block_rmse = m, preferred[1], preferred[2]
             candidate.fold_weights = [prefixes.model(m, folds.weights(m, f)).weights for f in range(len(folds.blocks))]

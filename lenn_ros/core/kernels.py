@@ -398,20 +398,6 @@ def factor_value(kind: int, z: float) -> float:
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _factor_of_row(factors: np.ndarray, t: int, x_row: np.ndarray) -> float:
-    """g_t(b_t + w_t . x) for one sample's network inputs ``x_row`` (1.0 for a term without a factor)."""
-    kind = int(factors[t, 0])
-    if kind == 0:
-        return 1.0
-    z = factors[t, 1]
-    for i in range(factors.shape[1] - 2):
-        w = factors[t, 2 + i]
-        if w != 0.0:
-            z += w * x_row[i]
-    return factor_value(kind, z)
-
-
-@njit(cache=True, nogil=True, inline="always")
 def _univariate_row(x: float, top: int, basis: int, out: np.ndarray) -> None:
     """out[0..top] = P_0(x)..P_top(x) in the numbered basis (same recursions as expansions)."""
     out[0] = 1.0
@@ -939,7 +925,7 @@ def _expand_block(
     x: np.ndarray,
     k0: int,
     count: int,
-    exponents: np.ndarray,
+    plan,
     factors: np.ndarray,
     basis: int,
     table: np.ndarray,
@@ -949,22 +935,44 @@ def _expand_block(
 
     1.0 first and the inputs in order is what ``expansions.term_features_reference``
     does (and ``expand``, whose single-input columns are 1.0 * P exactly), so the bits agree.
+    ``plan`` is :func:`_sparse_terms` of the terms: only the inputs some term reads get
+    polynomials, and each term visits only its own entries. A long lag span's dictionary
+    (hundreds of inputs, averages over dozens of them) costs what its terms read.
     """
-    top = table.shape[1] - 1
+    e_start, e_input, e_degree, f_start, f_input, f_weight, need = plan
     for i in range(x.shape[1]):
-        _univariate_block(x, k0, count, i, top, basis, table[i])
-    for t in range(exponents.shape[0]):
+        if need[i] > 0:
+            _univariate_block(x, k0, count, i, need[i], basis, table[i])
+    for t in range(e_start.shape[0] - 1):
         for b in range(count):
             phi[t, b] = 1.0
-        for i in range(exponents.shape[1]):
-            e = exponents[t, i]
-            if e:
-                for b in range(count):
-                    phi[t, b] *= table[i, e, b]
+        for e in range(e_start[t], e_start[t + 1]):
+            row = table[e_input[e], e_degree[e]]
+            for b in range(count):
+                phi[t, b] *= row[b]
+    _factor_block(x, k0, count, f_start, f_input, f_weight, factors, phi)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _factor_block(
+    x: np.ndarray,
+    k0: int,
+    count: int,
+    f_start: np.ndarray,
+    f_input: np.ndarray,
+    f_weight: np.ndarray,
+    factors: np.ndarray,
+    phi: np.ndarray,
+) -> None:
+    """phi[t, b] *= g_t(b_t + w_t . x(k0 + b)) for every term with a factor, over its non-zero weights in order."""
     for t in range(factors.shape[0]):
         if factors[t, 0] != 0.0:
+            kind = int(factors[t, 0])
             for b in range(count):
-                phi[t, b] *= _factor_of_row(factors, t, x[k0 + b])
+                z = factors[t, 1]
+                for f in range(f_start[t], f_start[t + 1]):
+                    z += f_weight[f] * x[k0 + b, f_input[f]]
+                phi[t, b] *= factor_value(kind, z)
 
 
 @njit(cache=True, nogil=True)
@@ -978,9 +986,10 @@ def term_expansion(x: np.ndarray, exponents: np.ndarray, basis: int, factors: np
     n_samples = x.shape[0]
     table = np.empty((x.shape[1], _top_degree(exponents) + 1, EXPANSION_BLOCK))
     phi = np.empty((exponents.shape[0], EXPANSION_BLOCK))
+    plan = _sparse_terms(exponents, factors)
     for k0 in range(0, n_samples, EXPANSION_BLOCK):
         count = min(EXPANSION_BLOCK, n_samples - k0)
-        _expand_block(x, k0, count, exponents, factors, basis, table, phi)
+        _expand_block(x, k0, count, plan, factors, basis, table, phi)
         for b in range(count):
             for t in range(exponents.shape[0]):
                 out[k0 + b, t] = phi[t, b]
@@ -991,7 +1000,7 @@ def _augmented_rows(
     x: np.ndarray,
     targets: np.ndarray,
     k0: int,
-    exponents: np.ndarray,
+    plan,
     factors: np.ndarray,
     basis: int,
     table: np.ndarray,
@@ -1003,9 +1012,9 @@ def _augmented_rows(
     The one place both least-squares kernels (normal equations and Givens QR) form the
     augmented rows they consume.
     """
-    n_terms = exponents.shape[0]
+    n_terms = phi.shape[0]
     count = min(EXPANSION_BLOCK, x.shape[0] - k0)
-    _expand_block(x, k0, count, exponents, factors, basis, table, phi)
+    _expand_block(x, k0, count, plan, factors, basis, table, phi)
     for b in range(count):
         for t in range(n_terms):
             rows[b, t] = phi[t, b]
@@ -1028,8 +1037,9 @@ def normal_equations(
     table = np.empty((x.shape[1], _top_degree(exponents) + 1, EXPANSION_BLOCK))
     rows = np.empty((EXPANSION_BLOCK, n_terms + 1))
     phi = np.empty((n_terms, EXPANSION_BLOCK))
+    plan = _sparse_terms(exponents, factors)
     for k0 in range(0, n_samples, EXPANSION_BLOCK):
-        count = _augmented_rows(x, targets, k0, exponents, factors, basis, table, phi, rows)
+        count = _augmented_rows(x, targets, k0, plan, factors, basis, table, phi, rows)
         for b in range(count):
             for i in range(n_terms + 1):
                 v = rows[b, i]
@@ -1054,8 +1064,9 @@ def qr_rows(
     table = np.empty((x.shape[1], _top_degree(exponents) + 1, EXPANSION_BLOCK))
     rows = np.empty((EXPANSION_BLOCK, n_terms + 1))
     phi = np.empty((n_terms, EXPANSION_BLOCK))
+    plan = _sparse_terms(exponents, factors)
     for k0 in range(0, n_samples, EXPANSION_BLOCK):
-        count = _augmented_rows(x, targets, k0, exponents, factors, basis, table, phi, rows)
+        count = _augmented_rows(x, targets, k0, plan, factors, basis, table, phi, rows)
         for b in range(count):
             _givens_row(r, rows[b])
 

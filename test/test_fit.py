@@ -386,11 +386,43 @@ def test_input_only_prefixes_score_from_their_predictions_as_the_free_runs_do(mo
             _score_from_rows(prefixes, record, m, weights, pieces, mine)
             exponents, factors = prefixes.arrays(m)
             kernels.simulate_pieces(record.values, *pieces, warm, source, lag, offset, scale, exponents, factors,
-                                    weights, 0, FREE_RUN_DIVERGENCE_BOUND, theirs)  # fmt: skip
+                                    weights, 0, FREE_RUN_DIVERGENCE_BOUND, theirs, np.full(5, np.inf))  # fmt: skip
             assert np.array_equal(mine[:, [1, 3, 4]], theirs[:, [1, 3, 4]])  # samples, clipped, diverged
             assert mine[:, [0, 2]] == pytest.approx(theirs[:, [0, 2]], rel=1e-9)
             clipped += int(mine[:, 3].sum())
     assert compared > 10 and clipped > 0
+
+
+def test_a_prefix_refused_in_one_block_is_not_simulated_further_and_scores_the_same(monkeypatch) -> None:
+    """The block runs stop at the first block that fails both rules: every score, and every reason given,
+    is what running all blocks gives."""
+    rng = np.random.default_rng(5)
+    n = 3000
+    u = np.convolve(rng.uniform(-1, 1, n), np.ones(4) / 4, mode="same")
+    u[200:500] *= 5.0  # the first block alone saturates: the others' fits run away on it
+    y = np.zeros(n)
+    for k in range(2, n):
+        y[k] = 0.6 * y[k - 1] + 0.2 * y[k - 2] + np.tanh(1.5 * u[k - 1])
+    record = Record.of(siso_view(u, y + 0.01 * rng.standard_normal(n)), [1400])
+    layout = Layout.of(1, Scaling.from_training(u, y))
+    simulate = kernels.simulate_pieces
+    stopped = []
+
+    def spy(*args) -> None:
+        simulate(*args)
+        stopped.append(not args[-2][:, 1].all())  # a block left unsimulated
+
+    def everything(*args) -> None:
+        simulate(*args[:-1], np.full(len(args[-1]), np.inf))
+
+    for spec in (Spec("polynomial", 3, 3), Spec("polynomial", 2, 2), Spec("hinge", 2, 2)):
+        design = _designs([spec], record, layout)[spec]
+        prefixes = evaluate_candidate(spec, record, layout, design).fallback[0]
+        monkeypatch.setattr(kernels, "simulate_pieces", spy)
+        early = _score_prefixes(prefixes, record)
+        monkeypatch.setattr(kernels, "simulate_pieces", everything)
+        assert _score_prefixes(prefixes, record) == early
+    assert any(stopped) and not all(stopped)
 
 
 def test_blocks_breaks_and_fold_weights() -> None:

@@ -646,6 +646,7 @@ def simulate_pieces(
     basis: int,
     divergence_bound: float,
     out: np.ndarray,
+    clip_limit: np.ndarray,
 ) -> None:
     """Free runs of column 0 of ``values`` over samples first[p]..stop[p], pooled per group.
 
@@ -656,7 +657,10 @@ def simulate_pieces(
     scale bound the divergence. Piece p is simulated with the weights ``weights[group[p]]``
     (a fold's); ``out[g]`` accumulates [sum of squared errors, samples, sum of squares
     about each piece's mean, clipped inputs, diverged (1.0)]. One call scores a prefix on
-    every block, so the selection pays no Python per simulation.
+    every block, so the selection pays no Python per simulation. The pieces come group by
+    group; once a group has diverged or clipped more than ``clip_limit[g]`` inputs, it is
+    finished and the call returns: the later groups' rows stay as they were (a prefix
+    already refused needs no more simulation).
     """
     longest = 0
     for p in range(len(first)):
@@ -699,6 +703,9 @@ def simulate_pieces(
         out[g, 3] += clipped[0]
         if diverged_at >= 0:
             out[g, 4] = 1.0
+        group_done = p + 1 == len(first) or group[p + 1] != g
+        if group_done and (out[g, 4] != 0.0 or out[g, 3] > clip_limit[g]):
+            return
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -819,6 +819,8 @@ def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], li
     warm = base.warm_up
     first, stop, group = _block_pieces(record, blocks, warm)
     width = base.layout.n_inputs
+    # a block that clips more than this fails both rules: the blocks after it cannot save the prefix
+    clip_limit = LOOSE_CLIPPED_FRACTION * np.bincount(group, stop - first, len(blocks)) * width
     source, lag, offset, scale = base.layout.arrays()
     scores, loose, reasons, loose_reasons = [], [], [], []
     best_m, lowest = 0, math.inf
@@ -837,7 +839,7 @@ def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], li
             exponents, factors = prefixes.arrays(m)
             kernels.simulate_pieces(
                 record.values, first, stop, group, warm, source, lag, offset, scale, exponents, factors, weights,
-                kernels.BASIS_CODES[base.basis], FREE_RUN_DIVERGENCE_BOUND, out,
+                kernels.BASIS_CODES[base.basis], FREE_RUN_DIVERGENCE_BOUND, out, clip_limit,
             )  # fmt: skip
         runs_of = [Simulation(r[0], int(r[1]), r[2], int(r[3]), int(r[1]) * width, bool(r[4])) for r in out]
         pooled = math.sqrt(float(out[:, 0].sum()) / float(out[:, 1].sum()))

@@ -356,8 +356,11 @@ def _fit_outputs(
     several times wider, so it is offered the polynomial family (where a coupling such as
     y1 / (1 + y2^2) is expressed) and the COUPLED_SPECS structures that served the output
     best alone, not the whole grid again (which cost 1.5x the first pass on a six-joint
-    robot). The outputs are fitted side by side on the machine's cores (the kernels release
-    the GIL); what each says is printed when it is done, in order.
+    robot). The two are judged on their least-squares models (the blocks' weights are
+    those in either case), and only the outputs of the one used are refined on simulation
+    error: refining the other's too cost a six-joint robot's fit a third of its time. The
+    outputs are fitted side by side on the machine's cores (the kernels release the GIL);
+    what each says is printed when it is done, in order.
     """
     y_offsets, y_scales, u_offsets, u_scales = scaling
     n_y, n_u = data.n_y, data.n_u
@@ -382,7 +385,7 @@ def _fit_outputs(
             layout = Layout(1, offsets, scales, names)
             workers = cores() if n_y == 1 else 1  # one output: its candidates side by side; several: the outputs
             fitted = _fit_output(
-                data.y_names[j], record, layout, refine, say if n_y == 1 else said.append, specs, workers
+                data.y_names[j], record, layout, refine and n_y == 1, say if n_y == 1 else said.append, specs, workers
             )
             fitted.columns = where
             return fitted, said
@@ -404,6 +407,8 @@ def _fit_outputs(
     kind = "coupled" if coupled < (1.0 - NONLINEAR_GAIN) * own else "own"
     say(f"outputs together on the blocks: mean NMSE {own:.4g} reading only their own past, {coupled:.4g} "
         f"reading the other outputs too: {'the latter' if kind == 'coupled' else 'the former'} is used")  # fmt: skip
+    if refine:
+        _refine_outputs(fits[kind], say)
     coupling = {
         "reads_other_outputs": kind == "coupled",
         "judged_by": "mean over outputs of the NMSE of all outputs simulated together on the blocks, each by the "
@@ -414,6 +419,19 @@ def _fit_outputs(
         },
     }
     return fits[kind], coupling
+
+
+def _refine_outputs(fits: list[OutputFit], say: Any) -> None:
+    """Refine each output's best candidates on simulation error (:func:`_refine_best`), the outputs side by side."""
+
+    def one(fitted: OutputFit) -> list[str]:
+        said: list[str] = []
+        fitted.chosen, fitted.refinement = _refine_best(fitted.candidates, fitted.record, said.append)
+        return said
+
+    for fitted, said in zip(fits, side_by_side(one, fits, cores()), strict=True):
+        for line in said:
+            say(f"output {fitted.name}: {line}")
 
 
 def _coupled_specs(alone: OutputFit, n: int, columns: int) -> list:

@@ -140,12 +140,11 @@ class Layout:
         view = np.asarray(view, dtype=np.float64).reshape(len(view), -1)
         n, first = len(view), self.warm_up - 1
         rows = max(n - 1 - first, 0)
-        columns = [
-            (view[first - i : n - 1 - i, c] - self.offsets[c]) / self.scales[c]
-            for c in range(self.n_columns)
-            for i in range(self.lags)
-        ]
-        x = np.stack(columns, axis=1) if rows else np.empty((0, self.n_inputs))
+        x = np.empty((rows, self.n_inputs))
+        for c in range(self.n_columns):  # written in place: a long span's inputs are hundreds of MB
+            for i in range(self.lags):
+                np.subtract(view[first - i : n - 1 - i, c], self.offsets[c], out=x[:, c * self.lags + i])
+            x[:, c * self.lags : (c + 1) * self.lags] /= self.scales[c]
         return x, view[self.warm_up :, 0]
 
 
@@ -222,7 +221,7 @@ class TermModel:
     def inputs(self, view: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(network inputs x(k) clipped to [-1, 1], target y(k+1)) of every complete regressor of ``view``."""
         x, targets = self.layout.regressors(view)
-        return np.clip(x, -1.0, 1.0), targets
+        return np.clip(x, -1.0, 1.0, out=x), targets
 
     def regression(self, view: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(features of every complete regressor, target y(k+1))."""
@@ -482,10 +481,10 @@ class Folds:
         ``warm_up`` after it (their regressors hold the block's measured outputs)."""
         grams, moments = [], []
         for a, b in blocks:
-            mask = (rows >= a) & (rows < b + warm_up)
-            f = features[mask]
+            low, high = np.searchsorted(rows, [a, b + warm_up])  # rows come in the order of what they predict
+            f = features[low:high]
             grams.append(f.T @ f)
-            moments.append(f.T @ targets[mask])
+            moments.append(f.T @ targets[low:high])
         gram, moment = features.T @ features, features.T @ targets
         return cls(list(blocks), gram, moment, grams, moments)
 

@@ -367,33 +367,38 @@ def _fit_outputs(
     single = n_u == 1 and n_y == 1
     values = np.column_stack([y, u])
     kinds = ["own"] if n_y == 1 else ["own", "coupled"]
-    fits: dict[str, list[OutputFit]] = {}
-    for kind in kinds:
 
-        def one(j: int, kind: str = kind) -> tuple[OutputFit, list[str]]:
-            others = [k for k in range(n_y) if k != j] if kind == "coupled" else []
-            where = [j, *others, *(n_y + i for i in range(n_u))]
-            names = ("y", "u") if single else tuple(f"y{c}" if c < n_y else f"u{c - n_y}" for c in where)
-            offsets = tuple(y_offsets[c] if c < n_y else u_offsets[c - n_y] for c in where)
-            scales = tuple(y_scales[c] if c < n_y else u_scales[c - n_y] for c in where)
-            said: list[str] = []
-            if not single:
-                reads = f"the other outputs' past and the {n_u} inputs" if others else f"the {n_u} inputs"
-                said.append(f"output {data.y_names[j]} ({names[0]}): its own past and {reads}")
-            record = Record.of(values[:, where], breaks)
-            specs = None if kind == "own" else _coupled_specs(fits["own"][j], record.n, len(where))
-            layout = Layout(1, offsets, scales, names)
-            workers = cores() if n_y == 1 else 1  # one output: its candidates side by side; several: the outputs
-            fitted = _fit_output(
-                data.y_names[j], record, layout, refine and n_y == 1, say if n_y == 1 else said.append, specs, workers
-            )
-            fitted.columns = where
-            return fitted, said
+    def view(j: int, kind: str, alone: OutputFit | None, said: list[str]) -> OutputFit:
+        others = [k for k in range(n_y) if k != j] if kind == "coupled" else []
+        where = [j, *others, *(n_y + i for i in range(n_u))]
+        names = ("y", "u") if single else tuple(f"y{c}" if c < n_y else f"u{c - n_y}" for c in where)
+        offsets = tuple(y_offsets[c] if c < n_y else u_offsets[c - n_y] for c in where)
+        scales = tuple(y_scales[c] if c < n_y else u_scales[c - n_y] for c in where)
+        if not single:
+            reads = f"the other outputs' past and the {n_u} inputs" if others else f"the {n_u} inputs"
+            said.append(f"output {data.y_names[j]} ({names[0]}): its own past and {reads}")
+        record = Record.of(values[:, where], breaks)
+        specs = None if alone is None else _coupled_specs(alone, record.n, len(where))
+        layout = Layout(1, offsets, scales, names)
+        workers = cores() if n_y == 1 else 1  # one output: its candidates side by side; several: the outputs
+        fitted = _fit_output(
+            data.y_names[j], record, layout, refine and n_y == 1, say if n_y == 1 else said.append, specs, workers
+        )
+        fitted.columns = where
+        return fitted
 
-        fits[kind] = []
-        for fitted, said in side_by_side(one, list(range(n_y)), cores()):
-            for line in said:
-                say(line)
+    def one(j: int) -> tuple[list[OutputFit], list[str]]:
+        """Output j's view of its own past, then (several outputs) the view with the others' past too: one
+        task, so no core waits for the slowest output between the two."""
+        said: list[str] = []
+        alone = view(j, "own", None, said)
+        return [alone] + ([view(j, "coupled", alone, said)] if n_y > 1 else []), said
+
+    fits: dict[str, list[OutputFit]] = {kind: [] for kind in kinds}
+    for both, said in side_by_side(one, list(range(n_y)), cores()):
+        for line in said:
+            say(line)
+        for kind, fitted in zip(kinds, both, strict=True):
             fits[kind].append(fitted)
     if n_y == 1:
         return fits["own"], {}
@@ -422,16 +427,17 @@ def _fit_outputs(
 
 
 def _refine_outputs(fits: list[OutputFit], say: Any) -> None:
-    """Refine each output's best candidates on simulation error (:func:`_refine_best`), the outputs side by side."""
-
-    def one(fitted: OutputFit) -> list[str]:
-        said: list[str] = []
-        fitted.chosen, fitted.refinement = _refine_best(fitted.candidates, fitted.record, said.append)
-        return said
-
-    for fitted, said in zip(fits, side_by_side(one, fits, cores()), strict=True):
-        for line in said:
-            say(f"output {fitted.name}: {line}")
+    """Refine each output's best candidates on simulation error (:func:`_refine_best`): every output's
+    candidates side by side in one pool, so no core waits for the output with the most to refine."""
+    targets = [(fitted, candidate) for fitted in fits for candidate in refinement_targets(fitted.candidates)]
+    for fitted, candidate in targets:
+        say(f"output {fitted.name}: refining {candidate.spec.label} ({candidate.terms} terms) on simulation error")
+    results = side_by_side(lambda pair: cross_validated_refinement(pair[1], pair[0].record), targets, cores())
+    for (_fitted, candidate), result in zip(targets, results, strict=True):
+        _take_refinement(candidate, result)
+    for fitted in fits:
+        refined = [candidate for owner, candidate in targets if owner is fitted]
+        fitted.chosen, fitted.refinement = _after_refinement(fitted.candidates, refined)
 
 
 def _coupled_specs(alone: OutputFit, n: int, columns: int) -> list:
@@ -511,33 +517,48 @@ COUPLED_LAGS = 3
 REFINED_CANDIDATES = 3
 
 
+def refinement_targets(candidates: list[Candidate]) -> list[Candidate]:
+    """The candidates refined on simulation error: the first REFINED_CANDIDATES usable ones that feed back
+    their output (an input-only ``fir`` one's least squares already minimise its free-run error)."""
+    return [c for c in candidates if c.model is not None and c.spec.family != "fir"][:REFINED_CANDIDATES]
+
+
+def _take_refinement(candidate: Candidate, result: Any) -> None:
+    candidate.refinement = result.as_dict()
+    candidate.rmse_validation = result.rmse_blocks_after
+
+
+def _after_refinement(candidates: list[Candidate], refined: list[Candidate]) -> tuple[Candidate, dict[str, Any]]:
+    """Choose again among the refined candidates and the input-only ones, with the same rules
+    (:func:`order_candidates`); the report's list puts them first, the chosen one leading."""
+    contenders = refined + [c for c in candidates if c.model is not None and c.spec.family == "fir"]
+    for candidate in contenders:
+        candidates.remove(candidate)
+    candidates[:0] = order_candidates(contenders)
+    chosen = candidates[0]
+    return chosen, {"done": True, **(chosen.refinement or {"iterations": 0, "tried": 0, "input_only": True})}
+
+
 def _refine_best(
     candidates: list[Candidate], record: Record, say: Any, workers: int = 1
 ) -> tuple[Candidate, dict[str, Any]]:
-    """Refine the first REFINED_CANDIDATES usable candidates that feed back their output (iterations chosen on
-    the blocks); keep the best of them and the input-only ones.
+    """Refine the :func:`refinement_targets` (iterations chosen on the blocks); keep the best of them and the
+    input-only ones.
 
     Refinement can reorder candidates (a hinge model that least squares left behind may
     simulate best once refined), so the choice among them is made again on the refined
-    block scores with the same rules (:func:`order_candidates`). An input-only model
+    block scores with the same rules (:func:`_after_refinement`). An input-only model
     (``fir``) is never refined, nor does it take a refinement's place: its least squares
     already minimise its simulation error (its free run is its one-step prediction).
     """
-    usable = [c for c in candidates if c.model is not None]
-    refined = [c for c in usable if c.spec.family != "fir"][:REFINED_CANDIDATES]
+    refined = refinement_targets(candidates)
     for candidate in refined:
         say(f"refining {candidate.spec.label} ({candidate.terms} terms) on simulation error")
     for candidate, result in zip(
         refined, side_by_side(lambda c: cross_validated_refinement(c, record), refined, workers), strict=True
     ):
-        candidate.refinement = result.as_dict()
-        candidate.rmse_validation = result.rmse_blocks_after
-    contenders = refined + [c for c in usable if c.spec.family == "fir"]
-    for candidate in contenders:  # the report's list: the contenders first (the chosen one leading), then the rest
-        candidates.remove(candidate)
-    candidates[:0] = order_candidates(contenders)
-    chosen = candidates[0]
-    return chosen, {"done": True, **(chosen.refinement or {"iterations": 0, "tried": 0, "input_only": True})}
+        _take_refinement(candidate, result)
+    return _after_refinement(candidates, refined)
 
 
 def time_scale_note(candidate: Candidate) -> str:

@@ -141,6 +141,8 @@ class Layout:
         n, first = len(view), self.warm_up - 1
         rows = max(n - 1 - first, 0)
         x = np.empty((rows, self.n_inputs))
+        if not rows:
+            return x, view[self.warm_up :, 0]
         for c in range(self.n_columns):  # written in place: a long span's inputs are hundreds of MB
             for i in range(self.lags):
                 np.subtract(view[first - i : n - 1 - i, c], self.offsets[c], out=x[:, c * self.lags + i])

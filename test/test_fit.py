@@ -23,6 +23,7 @@ from lenn_ros.core.expansions import format_terms, parse_terms, siso_channels
 from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND
 from lenn_ros.core.scaling import Scaling
 from lenn_ros.core.structure import Identifier
+from lenn_ros.fit import refinement
 from lenn_ros.fit.build import Data, fit
 from lenn_ros.fit.families import Spec
 from lenn_ros.fit.selection import (
@@ -423,6 +424,39 @@ def test_a_prefix_refused_in_one_block_is_not_simulated_further_and_scores_the_s
         monkeypatch.setattr(kernels, "simulate_pieces", everything)
         assert _score_prefixes(prefixes, record) == early
     assert any(stopped) and not all(stopped)
+
+
+def test_the_free_run_jacobian_is_the_free_runs_slope_and_refinement_lowers_the_simulation_error() -> None:
+    """d y^ / d w of the forward sensitivities equals central differences of the free runs (polynomial terms
+    of the fed-back output and a tanh factor of it, over a record with a gap); the run it returns is the free
+    run's, bit for bit; and the refinement lowers the training free-run error of a least-squares model."""
+    u, y = cubic_plant(1500, 6, noise=0.03)  # output noise: one-step least squares is not the best simulator
+    scaling = Scaling.from_training(u, y)
+    lags = 3
+    terms = parse_terms(["1", "y1", "y2", "u1", "y1^3", "y1*u2", "tanh(2*y1-y3)"], siso_channels(lags, lags))
+    model = TermModel(Layout.of(lags, scaling), terms[0], factors=terms[1])
+    record = Record.of(siso_view(u, y), [700])
+    features, targets = model.regression(record.values)
+    valid = record.valid_rows(model.warm_up)
+    model.weights = np.linalg.lstsq(features[valid], targets[valid], rcond=None)[0]
+    pieces = [(0, record.n)]
+    residual, slope = refinement.jacobian(model, record, pieces, model.weights)
+    assert np.array_equal(residual, refinement.residuals(model, record, pieces, model.weights))
+    for j in range(len(model.weights)):
+        step = 1e-6 * max(1.0, abs(model.weights[j]))
+        up, down = model.weights.copy(), model.weights.copy()
+        up[j] += step
+        down[j] -= step
+        central = refinement.residuals(model, record, pieces, down) - refinement.residuals(model, record, pieces, up)
+        assert slope[:, j] == pytest.approx(central / (2 * step), rel=1e-4, abs=1e-7 * np.abs(slope[:, j]).max())
+    candidate = Candidate(Spec("polynomial", lags, 3), len(model.exponents), model=model)
+    rows = np.arange(lags, record.n)[valid]
+    folds = Folds.of(features[valid], targets[valid], rows, fold_blocks(record.n, lags), lags)
+    candidate.fold_weights = [folds.weights(len(model.weights), f) for f in range(len(folds.blocks))]
+    result = refinement.cross_validated_refinement(candidate, record)
+    assert model.factors[-1, 0] and result.iterations > 0  # measured: 0.0771 -> 0.0660 (blocks 0.0777 -> 0.0666)
+    assert result.rmse_training_after < 0.9 * result.rmse_training_before
+    assert result.rmse_blocks_after < 0.9 * result.rmse_blocks_before
 
 
 def test_blocks_breaks_and_fold_weights() -> None:

@@ -795,20 +795,31 @@ def _features_and_gradient(
 
 @njit(cache=True, nogil=True, inline="always")
 def _sensitivity_row(
-    row: np.ndarray, phi: np.ndarray, gradient: np.ndarray, alive: np.ndarray, history: np.ndarray, y_scale: float
-) -> None:
-    """row = d y^(k+1) / d w = phi + sum_i dN/dx_i d x_i / d w; then pushed into ``history`` (newest first)."""
+    row: np.ndarray,
+    phi: np.ndarray,
+    gradient: np.ndarray,
+    alive: np.ndarray,
+    history: np.ndarray,
+    y_scale: float,
+    head: int,
+) -> int:
+    """row = d y^(k+1) / d w = phi + sum_i dN/dx_i d x_i / d w; then pushed into ``history``; returns its head.
+
+    ``history`` is a ring: d y^(k-i) / d w is its row (head + i) mod y_lags, so a sample
+    writes one row instead of shifting them all (ten lags of 67 weights: 600 copies).
+    """
     row[:] = phi
     y_lags = len(alive)
     for i in range(y_lags):
         if alive[i]:
             scale = gradient[i] / y_scale
+            past = history[(head + i) % y_lags]
             for j in range(len(row)):
-                row[j] += scale * history[i, j]
-    for i in range(y_lags - 1, 0, -1):
-        history[i, :] = history[i - 1, :]
+                row[j] += scale * past[j]
     if y_lags:
-        history[0, :] = row
+        head = (head + y_lags - 1) % y_lags
+        history[head, :] = row
+    return head
 
 
 @njit(cache=True, nogil=True)
@@ -846,13 +857,14 @@ def free_run_jacobian(
     slopes = np.zeros((y_lags, top + 1))
     sums = np.zeros(1)
     branch = np.zeros(n_terms, dtype=np.int64)
-    history = np.zeros((max(y_lags, 1), n_terms))  # d y^(k-i) / d w, newest first
+    history = np.zeros((max(y_lags, 1), n_terms))  # d y^(k-i) / d w, a ring (:func:`_sensitivity_row`)
     phi = np.empty(n_terms)
     gradient = np.zeros(y_lags)
     alive = np.zeros(y_lags, dtype=np.bool_)
     y_offset, y_scale = offset[0], scale[0]
     clipped = 0
     read = _inputs_read(np.array([0, len(source)]), source, need, 1)[1]
+    head = 0
     for k in range(start - 1, n - 1):
         clipped += _input_table(values, k, 0, read, source, lag, offset, scale, basis, need, table)
         out = _term_network_output(table, plan, factors, 0, n_terms, weights, branch, False, 1.0, sums)
@@ -867,7 +879,7 @@ def free_run_jacobian(
                 values[j, 0] = np.nan
             return clipped, k + 1
         values[k + 1, 0] = out
-        _sensitivity_row(jacobian[k + 1 - start], phi, gradient, alive, history, y_scale)
+        head = _sensitivity_row(jacobian[k + 1 - start], phi, gradient, alive, history, y_scale, head)
     return clipped, -1
 
 

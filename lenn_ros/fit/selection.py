@@ -585,10 +585,16 @@ def stress_views(record: Record, seed: int = 0) -> list[tuple[np.ndarray, np.nda
     return views
 
 
+def terms_reading_output(exponents: np.ndarray, factors: np.ndarray, lags: int) -> np.ndarray:
+    """Per term: whether it reads the output fed back (column 0's ``lags`` inputs), by a polynomial or its
+    factor (``factors``: rows per term, or none)."""
+    reading = exponents[:, :lags].any(axis=1)
+    return reading | factors[:, 2 : 2 + lags].any(axis=1) if len(factors) else reading
+
+
 def reads_outputs(model: TermModel) -> bool:
-    """Whether some term reads the output fed back (column 0's lags): an input-only model does not."""
-    lags = model.layout.lags
-    return bool(model.exponents[:, :lags].any() or (len(model.factors) and model.factors[:, 2 : 2 + lags].any()))
+    """Whether some term reads the output fed back: an input-only model does not."""
+    return bool(terms_reading_output(model.exponents, model.factors, model.layout.lags).any())
 
 
 def shuffled_run(model: TermModel, view: np.ndarray, seams: np.ndarray) -> tuple[int, int]:
@@ -756,7 +762,7 @@ class Prefixes:
     def __post_init__(self) -> None:
         d, n = self.dictionary, self.base.layout.n_inputs
         lags = self.base.layout.lags
-        reading = d.exponents[self.ranked][:, :lags].any(axis=1) | d.factors[self.ranked][:, 2 : 2 + lags].any(axis=1)
+        reading = terms_reading_output(d.exponents[self.ranked], d.factors[self.ranked], lags)
         #: the prefixes of up to this many terms read no output fed back: input-only (:meth:`input_only`)
         self.reading_from = 0 if d.increment else (int(np.argmax(reading)) if reading.any() else len(reading))
         rows = d.exponents[self.ranked]

@@ -304,12 +304,13 @@ class Replay(Node):
             executor.spin_once(timeout_sec=0.02)
         self.get_logger().warning(TEST_START_UNMATCHED)
 
-    def _wait_identifier_idle(self, executor: SingleThreadedExecutor, quiet: float = 0.3) -> None:
+    def _wait_identifier_idle(self, executor: SingleThreadedExecutor, quiet: float = 1.0) -> None:
         """With an identifier on the graph: wait until its y_hat stops coming (it has caught up).
 
         Acknowledged is not processed: a lagging identifier still holds the end of the last
         pass in its queues, and taking new u halves before old y_p halves would make them
-        look like old indices. Bounded by ``wait_timeout``.
+        look like old indices. Bounded by ``wait_timeout``. ``quiet``: a second without
+        progress; 0.3 s was shorter than a busy 2-core machine can hold a process off its core.
         """
         if self.count_publishers(topics.Y_HAT) == 0:
             return

@@ -35,10 +35,10 @@ from lenn_ros.fit.selection import (
     Layout,
     Prefixes,
     Record,
+    Simulation,
     TermModel,
     _block_pieces,
     _designs,
-    _score_from_rows,
     _score_prefixes,
     evaluate_candidate,
     fold_blocks,
@@ -46,6 +46,7 @@ from lenn_ros.fit.selection import (
     order_candidates,
     reads_outputs,
     runs,
+    runs_from_predictions,
     shuffled_run,
     siso_view,
     soundness_problem,
@@ -330,9 +331,13 @@ def test_an_input_only_models_soundness_runs_are_its_predictions_and_its_seams()
         whole = record.simulate(model, 0, record.n, bound=TRAINING_RANGE)
         features, _ = model.regression(record.values)  # its one-step predictions are its in-sample free run
         valid = record.valid_rows(model.warm_up)
-        rows = record.simulation_of(
-            np.arange(model.warm_up, record.n)[valid], (features @ weights)[valid], model, bound=TRAINING_RANGE
-        )
+        predicted = (features @ weights)[valid]
+        pieces = np.array([(a, b, 0) for a, b in record.pieces(0, record.n, model.warm_up)]).T
+        out = np.zeros((1, 5))
+        samples = np.arange(model.warm_up, record.n)[valid]
+        runs_from_predictions(record, model.layout, samples, lambda _g, low, high, p=predicted: p[low:high],
+                              tuple(pieces), TRAINING_RANGE, out)  # fmt: skip
+        rows = Simulation.of_row(out[0], model.layout.n_inputs)
         assert rows.diverged == whole.diverged and rows.samples == whole.samples
         assert rows.diverged or rows.rmse == pytest.approx(whole.rmse, rel=1e-12)
         for view, seams in stress_views(record):
@@ -384,7 +389,9 @@ def test_input_only_prefixes_score_from_their_predictions_as_the_free_runs_do(mo
         for m in range(1, prefixes.reading_from + 1):  # what the kernel gives, clipped inputs counted alike
             weights = prefixes.fold_weights(m)
             mine, theirs = np.zeros((len(prefixes.folds.blocks), 5)), np.zeros((len(prefixes.folds.blocks), 5))
-            _score_from_rows(prefixes, record, m, weights, pieces, mine)
+            runs_from_predictions(record, prefixes.base.layout, prefixes.predicted,
+                                  lambda g, low, high, f=prefixes.features[:, :m], w=weights[:, :m]: f[low:high] @ w[g],
+                                  pieces, FREE_RUN_DIVERGENCE_BOUND, mine)  # fmt: skip
             exponents, factors = prefixes.arrays(m)
             kernels.simulate_pieces(record.values, *pieces, warm, source, lag, offset, scale, exponents, factors,
                                     weights, 0, FREE_RUN_DIVERGENCE_BOUND, theirs, np.full(5, np.inf))  # fmt: skip

@@ -413,7 +413,7 @@ def _fit_outputs(
     say(f"outputs together on the blocks: mean NMSE {own:.4g} reading only their own past, {coupled:.4g} "
         f"reading the other outputs too: {'the latter' if kind == 'coupled' else 'the former'} is used")  # fmt: skip
     if refine:
-        _refine_outputs(fits[kind], say)
+        _refine_outputs(fits[kind], say, cores())
     coupling = {
         "reads_other_outputs": kind == "coupled",
         "judged_by": "mean over outputs of the NMSE of all outputs simulated together on the blocks, each by the "
@@ -426,15 +426,22 @@ def _fit_outputs(
     return fits[kind], coupling
 
 
-def _refine_outputs(fits: list[OutputFit], say: Any) -> None:
-    """Refine each output's best candidates on simulation error (:func:`_refine_best`): every output's
-    candidates side by side in one pool, so no core waits for the output with the most to refine."""
+def _refine_outputs(fits: list[OutputFit], say: Any, workers: int) -> None:
+    """Refine each output's :func:`refinement_targets` on simulation error (iterations chosen on the blocks),
+    then choose again among them and the input-only ones (:func:`_after_refinement`).
+
+    Refinement can reorder candidates (a hinge model that least squares left behind may
+    simulate best once refined). Every output's candidates are refined side by side in
+    one pool of ``workers`` threads, so no core waits for the output with the most to refine.
+    """
     targets = [(fitted, candidate) for fitted in fits for candidate in refinement_targets(fitted.candidates)]
     for fitted, candidate in targets:
-        say(f"output {fitted.name}: refining {candidate.spec.label} ({candidate.terms} terms) on simulation error")
-    results = side_by_side(lambda pair: cross_validated_refinement(pair[1], pair[0].record), targets, cores())
+        named = f"output {fitted.name}: " if len(fits) > 1 else ""
+        say(f"{named}refining {candidate.spec.label} ({candidate.terms} terms) on simulation error")
+    results = side_by_side(lambda pair: cross_validated_refinement(pair[1], pair[0].record), targets, workers)
     for (_fitted, candidate), result in zip(targets, results, strict=True):
-        _take_refinement(candidate, result)
+        candidate.refinement = result.as_dict()
+        candidate.rmse_validation = result.rmse_blocks_after
     for fitted in fits:
         refined = [candidate for owner, candidate in targets if owner is fitted]
         fitted.chosen, fitted.refinement = _after_refinement(fitted.candidates, refined)
@@ -458,10 +465,10 @@ def _fit_output(
     """Select (and refine) one output's model over its view of the training samples (``specs``: the grid's;
     ``workers``: threads for its candidates)."""
     candidates, warnings = _select(record, layout, say, specs, workers)
-    chosen, refinement = candidates[0], {"done": False}
+    fitted = OutputFit(name, record, layout, candidates, candidates[0], {"done": False}, warnings)
     if refine:
-        chosen, refinement = _refine_best(candidates, record, say, workers)
-    return OutputFit(name, record, layout, candidates, chosen, refinement, warnings)
+        _refine_outputs([fitted], say, workers)
+    return fitted
 
 
 def _single(
@@ -523,42 +530,17 @@ def refinement_targets(candidates: list[Candidate]) -> list[Candidate]:
     return [c for c in candidates if c.model is not None and c.spec.family != "fir"][:REFINED_CANDIDATES]
 
 
-def _take_refinement(candidate: Candidate, result: Any) -> None:
-    candidate.refinement = result.as_dict()
-    candidate.rmse_validation = result.rmse_blocks_after
-
-
 def _after_refinement(candidates: list[Candidate], refined: list[Candidate]) -> tuple[Candidate, dict[str, Any]]:
     """Choose again among the refined candidates and the input-only ones, with the same rules
-    (:func:`order_candidates`); the report's list puts them first, the chosen one leading."""
+    (:func:`order_candidates`); the report's list puts them first, the chosen one leading. An
+    input-only model (``fir``) is never refined, nor does it take a refinement's place: its least
+    squares already minimise its simulation error (its free run is its one-step prediction)."""
     contenders = refined + [c for c in candidates if c.model is not None and c.spec.family == "fir"]
     for candidate in contenders:
         candidates.remove(candidate)
     candidates[:0] = order_candidates(contenders)
     chosen = candidates[0]
     return chosen, {"done": True, **(chosen.refinement or {"iterations": 0, "tried": 0, "input_only": True})}
-
-
-def _refine_best(
-    candidates: list[Candidate], record: Record, say: Any, workers: int = 1
-) -> tuple[Candidate, dict[str, Any]]:
-    """Refine the :func:`refinement_targets` (iterations chosen on the blocks); keep the best of them and the
-    input-only ones.
-
-    Refinement can reorder candidates (a hinge model that least squares left behind may
-    simulate best once refined), so the choice among them is made again on the refined
-    block scores with the same rules (:func:`_after_refinement`). An input-only model
-    (``fir``) is never refined, nor does it take a refinement's place: its least squares
-    already minimise its simulation error (its free run is its one-step prediction).
-    """
-    refined = refinement_targets(candidates)
-    for candidate in refined:
-        say(f"refining {candidate.spec.label} ({candidate.terms} terms) on simulation error")
-    for candidate, result in zip(
-        refined, side_by_side(lambda c: cross_validated_refinement(c, record), refined, workers), strict=True
-    ):
-        _take_refinement(candidate, result)
-    return _after_refinement(candidates, refined)
 
 
 def time_scale_note(candidate: Candidate) -> str:

@@ -373,21 +373,6 @@ class Record:
             result.add(measured, y_sim, clipped, diverged, model.layout.n_inputs)
         return result
 
-    def simulation_of(
-        self, samples: np.ndarray, values: np.ndarray, model: TermModel, bound: float = FREE_RUN_DIVERGENCE_BOUND
-    ) -> Simulation:
-        """:meth:`simulate` of the whole record by an input-only ``model`` from its one-step predictions
-        (``values`` of ``samples``, sorted, every sample of its pieces): the same pieces, and a piece ends
-        where an output is further than ``bound`` of its scales from its offset, as a free run does."""
-        result = Simulation()
-        layout = model.layout
-        for first, b in self.pieces(0, self.n, model.warm_up):
-            low, high = np.searchsorted(samples, [first, b])
-            simulated = values[low:high]
-            outside = ~(np.abs(simulated - layout.y_offset) <= bound * layout.y_scale)
-            result.add(self.y[first:b], simulated, 0, bool(outside.any()), layout.n_inputs)
-        return result
-
     def residuals(self, model: TermModel, start: int, stop: int, weights: np.ndarray | None = None) -> np.ndarray:
         """Simulated minus measured over the pieces of [start, stop) that :meth:`simulate` runs (NaN: diverged)."""
         parts = [y_sim - measured for measured, y_sim, _, _ in self._free_runs(model, start, stop, weights)]
@@ -443,6 +428,12 @@ class Simulation:
             self.squared += float(np.sum((simulated - measured) ** 2))
         self.deviation += float(np.sum((measured - measured.mean()) ** 2))
         self.samples += len(measured)
+
+    @classmethod
+    def of_row(cls, row: np.ndarray, width: int) -> Simulation:
+        """A group's row of :func:`kernels.simulate_pieces` (or :func:`runs_from_predictions`), inputs ``width``
+        per sample."""
+        return cls(row[0], int(row[1]), row[2], int(row[3]), int(row[1]) * width, bool(row[4]))
 
     @property
     def rmse(self) -> float:
@@ -646,7 +637,12 @@ def soundness_problem(
     back); given, that run is read from them instead of simulated again.
     """
     if predictions is not None:
-        whole = record.simulation_of(*predictions, model, bound=TRAINING_RANGE)
+        samples, values = predictions
+        pieces = np.array([(a, b, 0) for a, b in record.pieces(0, record.n, model.warm_up)], dtype=np.int64)
+        out = np.zeros((1, 5))
+        runs_from_predictions(record, model.layout, samples, lambda _g, low, high: values[low:high],
+                              tuple(pieces.reshape(-1, 3).T), TRAINING_RANGE, out)  # fmt: skip
+        whole = Simulation.of_row(out[0], model.layout.n_inputs)
     else:
         whole = record.simulate(model, 0, record.n, bound=TRAINING_RANGE)
     if whole.diverged or whole.clipped:
@@ -820,7 +816,7 @@ def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], li
     loose ones, and why the others failed under each.
 
     Each prefix's blocks are simulated in one compiled call (:func:`kernels.simulate_pieces`),
-    or for an input-only prefix read from its one-step predictions (:func:`_score_from_rows`).
+    or for an input-only prefix read from its one-step predictions (:func:`runs_from_predictions`).
     """
     base, blocks = prefixes.base, prefixes.folds.blocks
     warm = base.warm_up
@@ -841,14 +837,18 @@ def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], li
             continue
         out = np.zeros((len(blocks), 5))
         if prefixes.input_only(m):
-            _score_from_rows(prefixes, record, m, weights, (first, stop, group), out)
+            runs_from_predictions(
+                record, base.layout, prefixes.predicted,
+                lambda g, low, high, m=m, weights=weights: prefixes.features[low:high, :m] @ weights[g, :m],
+                (first, stop, group), FREE_RUN_DIVERGENCE_BOUND, out,
+            )  # fmt: skip
         else:
             exponents, factors = prefixes.arrays(m)
             kernels.simulate_pieces(
                 record.values, first, stop, group, warm, source, lag, offset, scale, exponents, factors, weights,
                 kernels.BASIS_CODES[base.basis], FREE_RUN_DIVERGENCE_BOUND, out, clip_limit,
             )  # fmt: skip
-        runs_of = [Simulation(r[0], int(r[1]), r[2], int(r[3]), int(r[1]) * width, bool(r[4])) for r in out]
+        runs_of = [Simulation.of_row(row, width) for row in out]
         pooled = math.sqrt(float(out[:, 0].sum()) / float(out[:, 1].sum()))
         entry = (m, pooled, [run.rmse for run in runs_of])
         for strict, kept, why in ((True, scores, reasons), (False, loose, loose_reasons)):
@@ -864,25 +864,26 @@ def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], li
     return scores, loose, reasons, loose_reasons
 
 
-def _score_from_rows(
-    prefixes: Prefixes, record: Record, m: int, weights: np.ndarray, pieces: tuple, out: np.ndarray
+def runs_from_predictions(
+    record: Record, layout: Layout, samples: np.ndarray, predict: Callable, pieces: tuple, bound: float, out: np.ndarray
 ) -> None:
-    """:func:`kernels.simulate_pieces` of an input-only prefix, from the out-of-fold one-step predictions.
+    """:func:`kernels.simulate_pieces` of a model that reads no output fed back, from its one-step predictions.
 
-    Such a model's free run of a piece is its one-step prediction of each sample by the
-    fold's weights (nothing is fed back), so the runs are products of the design's rows.
-    ``out`` gets what the kernel gives: squared errors, samples, squares about each
-    piece's mean, clipped inputs, diverged. The inputs read are training samples, inside
-    the range, so what clips is the fed-back output's lags a term never reads: a sample
-    outside the range is read by the next ``lags`` samples of its piece, and each counts it.
+    Such a model's free run of a piece is its one-step prediction of each sample (nothing is
+    fed back), so the runs are products of the design's rows: ``predict(g, low, high)`` gives
+    those of rows low..high (``samples``: the sample each row predicts, sorted) by group g's
+    weights. ``out`` gets what the kernel gives: squared errors, samples, squares about each
+    piece's mean, clipped inputs, diverged (further than ``bound`` scales, or non-finite). The
+    inputs read are training samples, inside the range, so what clips is the fed-back
+    output's lags a term never reads: a sample outside the range is read by the next
+    ``lags`` samples of its piece, and each counts it.
     """
-    layout = prefixes.base.layout
     offset, scale = layout.y_offset, layout.y_scale
     for a, b, g in zip(*pieces, strict=True):
-        rows = np.searchsorted(prefixes.predicted, [a, b])
-        simulated = prefixes.features[rows[0] : rows[1], :m] @ weights[g, :m]
+        low, high = np.searchsorted(samples, [a, b])
+        simulated = predict(g, low, high)
         measured = record.y[a:b]
-        if not np.all(np.abs(simulated - offset) <= FREE_RUN_DIVERGENCE_BOUND * scale):
+        if not np.all(np.abs(simulated - offset) <= bound * scale):
             out[g, 4] = 1.0  # non-finite or diverged: the kernel stops there, the block fails
         x = (simulated - offset) / scale
         outside = np.flatnonzero((x > 1.0) | (x < -1.0))

@@ -507,7 +507,8 @@ def _choices(fitted: OutputFit, blocks: int, gaps: int) -> dict[str, Any]:
         "judged_by": f"pooled free-run RMSE over {blocks} blocks of the training samples, each "
         "simulated from its measured start by the weights fitted to the other blocks; rejected: diverged, "
         "clipped or worse than the block mean in any block, an unsound free run over the whole training "
-        "record or on its input shuffled in blocks; a nonlinear candidate must beat the best linear one by "
+        "record or on its input shuffled in blocks (a model that integrates exactly: its increments outside "
+        "the training increments' range); a nonlinear candidate must beat the best linear one by "
         f"{NONLINEAR_GAIN:.0%}; of those within {PARSIMONY:.0%} of the lowest, the fewest terms",
         "candidates": [c.as_dict() for c in fitted.candidates],
         "chosen": fitted.candidates.index(fitted.chosen),

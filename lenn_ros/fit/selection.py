@@ -20,7 +20,9 @@ before its candidate counts (:func:`soundness_problem`): the weights fitted to a
 training samples simulate the whole training record soundly, and they stay bounded
 when driven by the training input cut into blocks and shuffled (an input like those
 the model was built for, but in an order it has not seen: a model that runs away on it
-sits on the edge of stability and will run away on new data).
+sits on the edge of stability and will run away on new data). A model that integrates
+exactly (:func:`level_free`) is judged there by its increments: an integrating plant
+driven by its input in another order leaves the training range as surely.
 
 Degree-1 candidates (linear ARX, and the linear increment form) are always in the grid
 and a nonlinear candidate must beat the best linear one by ``NONLINEAR_GAIN`` to be
@@ -44,7 +46,7 @@ import numpy as np
 from lenn_ros.core import kernels
 from lenn_ros.core.expansions import checked_factors, format_terms, term_features
 from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND
-from lenn_ros.core.scaling import Scaling
+from lenn_ros.core.scaling import Scaling, ranges
 from lenn_ros.core.structure import ModelStructure
 from lenn_ros.fit.families import Dictionary, Spec, candidate_specs
 
@@ -615,6 +617,80 @@ def shuffled_run(model: TermModel, view: np.ndarray, seams: np.ndarray) -> tuple
 TRAINING_RANGE = 1.0
 
 
+def level_free(model: TermModel) -> bool:
+    """Whether the model integrates exactly: its output level enters only as y(k) passed through.
+
+    Every term that reads the fed-back output reads differences of it (a factor whose
+    weights on the output's lags sum to zero: ``lin(y1-y2)``, ``tanh(a*y1-a*y3)``), besides
+    ``y1`` itself with weight exactly the output's scale (the increment form's pass-through).
+    Shifting the whole output history by c then shifts the prediction by c: the model's
+    dynamics are those of its increments, and its level is their sum, wherever it goes.
+    """
+    lags, exponents, factors = model.layout.lags, model.exponents, model.factors
+    unit = np.zeros(exponents.shape[1], dtype=np.int64)
+    unit[0] = 1
+    plain = factors[:, 0] == 0 if len(factors) else np.ones(len(exponents), dtype=bool)
+    through = (exponents == unit).all(axis=1) & plain
+    if np.any(exponents[:, :lags].any(axis=1) & ~through) or not through.any():
+        return False
+    if len(factors):
+        w = factors[:, 2 : 2 + lags]
+        if np.any(np.abs(w.sum(axis=1)) > 1e-9 * np.abs(w).sum(axis=1)):
+            return False
+    return bool(abs(float(model.weights[through].sum()) - model.layout.y_scale) <= 1e-9 * model.layout.y_scale)
+
+
+def widened(model: TermModel, width: float) -> TermModel:
+    """The same function of a :func:`level_free` model with its output read over ``width`` times its range.
+
+    The output's lags are scaled by ``width`` times more, and the terms reading them (the
+    pass-through and the differences' factor weights) take ``width`` times the weight: the
+    same prediction wherever the old scaling did not clip, and the output's level clips
+    only ``width`` ranges away."""
+    layout = model.layout
+    lags = layout.lags
+    wide = Layout(lags, layout.offsets, (layout.scales[0] * width, *layout.scales[1:]), layout.names)
+    factors = np.array(model.factors)
+    if len(factors):
+        factors[:, 2 : 2 + lags] *= width
+    weights = np.array(model.weights, dtype=np.float64)
+    weights[model.exponents[:, :lags].any(axis=1)] *= width
+    return TermModel(wide, model.exponents, model.basis, weights, factors if len(factors) else None)
+
+
+#: a level-free model's soundness runs read its output over this many times the training range: its
+#: level may go anywhere its increments take it (a joint without gravity, a wheel, a positioning axis)
+LEVEL_FREE_WIDTH = 1e6
+
+
+def increments_problem(model: TermModel, record: Record) -> str:
+    """:func:`soundness_problem` of a :func:`level_free` model, judged by its increments.
+
+    An integrating plant driven by its training input in another order goes where that
+    order takes it, outside the training range as often as not: the plant itself would
+    fail the level's rule. What must stay as the training record had it is the model's
+    own dynamics, its increments: on the shuffled input they must stay within the training
+    increments' range (widened by the scaling's margin, as the level's range is). Over the
+    whole training record, where the level was measured, the free run must still beat the
+    mean; only leaving the output's range is no fault of a model that integrates.
+    """
+    wide = widened(model, LEVEL_FREE_WIDTH)
+    whole = record.simulate(wide, 0, record.n, bound=TRAINING_RANGE)
+    problem = whole.problem("in-sample")
+    if problem:
+        return problem
+    steps = np.diff(record.y)
+    crossing = record.breaks[record.breaks < record.n] - 1
+    (offset,), (scale,) = ranges(np.delete(steps, crossing), ("output increments",))
+    warm = model.warm_up
+    for shuffled, _ in stress_views(record):
+        simulated, _, diverged_at = wide.free_run(shuffled, warm, bound=TRAINING_RANGE)
+        increments = np.diff(np.concatenate([shuffled[warm - 1 : warm, 0], simulated]))
+        if diverged_at >= 0 or not np.all(np.abs(increments - offset) <= TRAINING_RANGE * scale):
+            return "free run on the training input shuffled in blocks left the training increments' range"
+    return ""
+
+
 def soundness_problem(
     model: TermModel, record: Record, predictions: tuple[np.ndarray, np.ndarray] | None = None
 ) -> str:
@@ -636,6 +712,8 @@ def soundness_problem(
     the record's regression rows, which are its in-sample free run (it feeds nothing
     back); given, that run is read from them instead of simulated again.
     """
+    if level_free(model):
+        return increments_problem(model, record)
     if predictions is not None:
         samples, values = predictions
         pieces = np.array([(a, b, 0) for a, b in record.pieces(0, record.n, model.warm_up)], dtype=np.int64)

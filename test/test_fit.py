@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -484,6 +485,15 @@ def test_a_prefix_refused_in_one_block_is_not_simulated_further_and_scores_the_s
         monkeypatch.setattr(kernels, "simulate_pieces", everything)
         assert _score_prefixes(prefixes, record) == early
     assert any(stopped) and not all(stopped)
+
+
+def test_a_refinement_step_refuses_sensitivities_too_large_for_their_normal_equations() -> None:
+    """A run can stay bounded while its sensitivity to a weight grows past what J'J can hold (seen on a
+    1 kHz joint: overflow in the product, then NaN): no step is taken, and nothing is printed."""
+    slope = np.array([[1e200, 1.0], [2e200, -1.0], [1.0, 3.0]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert refinement._damped_step(None, None, None, np.zeros(2), slope, np.ones(3), 3.0, 1e-3) is None
 
 
 def test_the_free_run_jacobian_is_the_free_runs_slope_and_refinement_lowers_the_simulation_error() -> None:

@@ -131,9 +131,14 @@ def jacobian(
 
 
 def _damped_step(model, record, pieces, weights, jacobian, residual, cost, damping):
-    """One LM step: (weights, residual, cost, damping) after it, or None if no damping lowers the cost."""
-    normal = jacobian.T @ jacobian
-    gradient = jacobian.T @ residual
+    """One LM step: (weights, residual, cost, damping) after it, or None if no damping lowers the cost, or
+    if the sensitivities are too large for their normal equations (an output that stays bounded while its
+    sensitivity to a weight grows without bound: the linearisation means nothing there)."""
+    with np.errstate(over="ignore", invalid="ignore"):
+        normal = jacobian.T @ jacobian
+        gradient = jacobian.T @ residual
+    if not (np.all(np.isfinite(normal)) and np.all(np.isfinite(gradient))):
+        return None
     while damping < 1e8:
         try:
             delta = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-12), gradient)

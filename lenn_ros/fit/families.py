@@ -16,7 +16,9 @@ them by RLS with the same compiled step. What they offer:
   squared-exponential kernel, of which FROLS keeps the few that matter.
 - ``increment``: the model predicts the change y(k+1) - y(k) from the increments of the
   output, the inputs and, from degree 2, friction-like functions of the velocity:
-  tanh (Coulomb friction, stiction's sign), |v| and v|v| (drag); degree 3 adds
+  tanh (Coulomb friction), |v| and v|v| (drag), and stiction: tanh(a v + b d), friction
+  that opposes the motion when moving and the net drive d at rest (where a tanh of the
+  velocity is 0 and the model would creep); degree 3 adds
   polynomials of the position (gravity, a spring) and of the input. A plant that
   integrates (a motor position driven by a torque) keeps its integrator exactly
   instead of a least-squares estimate of it that drifts. For lag spans beyond 10
@@ -307,6 +309,37 @@ def _velocity_terms(built: _Builder, x: np.ndarray, span: int) -> None:
     built.add(None, "sqabs", direction)
 
 
+#: how sharply the stiction terms saturate in the net drive, in units of its spread
+DRIVE_SHARPNESS = (1.0, 3.0, 10.0)
+
+
+def _stiction_terms(built: _Builder, x: np.ndarray, read: list[int], span: int) -> None:
+    """tanh(a v + b d): friction that opposes the motion v when moving and the net drive d at rest.
+
+    At rest a joint's friction cancels the net drive up to the stiction, which a tanh of
+    the velocity alone cannot (it is 0 at rest: the model creeps where the joint sticks).
+    The net drive's direction, d = c0 + c . (the inputs' newest samples, the output), comes
+    from the training record's own lags: the acceleration over ``span`` samples,
+    (y1 - y_{1+s}) - (y_{1+s} - y_{1+2s}), regressed on what drove it (each input's sample
+    s lags back, y_{1+s}) and the velocity before it. v is the velocity over the span.
+    """
+    acceleration = x[:, 0] - 2.0 * x[:, span] + x[:, 2 * span]
+    before = x[:, span] - x[:, 2 * span]
+    drivers = np.column_stack([np.ones(len(x)), *(x[:, start + span] for start in read), x[:, span], before])
+    coefficients = np.linalg.lstsq(drivers, acceleration, rcond=None)[0]
+    w = np.zeros(built.n)
+    for start, c in zip(read, coefficients[1:-2], strict=True):
+        w[start] = c
+    w[0] = coefficients[-2]
+    drive_spread = float(np.std(x @ w + coefficients[0])) or 1.0
+    velocity_spread = float(np.std(x[:, 0] - x[:, span])) or 1.0
+    direction = (built.unit(0) - built.unit(span)) / velocity_spread
+    for sharpness in VELOCITY_SHARPNESS:
+        for drive_sharpness in DRIVE_SHARPNESS:
+            built.add(None, "tanh", direction * sharpness + w * drive_sharpness / drive_spread,
+                      coefficients[0] * drive_sharpness / drive_spread)  # fmt: skip
+
+
 def _increment(spec: Spec, x: np.ndarray) -> Dictionary:
     """y(k+1) - y(k) from output increments, inputs, and (degree >= 2) velocity and position nonlinearities."""
     lags = spec.lags
@@ -325,6 +358,8 @@ def _increment(spec: Spec, x: np.ndarray) -> Dictionary:
         velocity_spans = sorted({1, spans[len(spans) // 2], spans[-1]})
         for span in velocity_spans:
             _velocity_terms(built, x, span)
+            if 2 * span < lags:
+                _stiction_terms(built, x, read, span)
         for start in read:
             built.add(built.power(start, 2))
     if spec.degree >= 3:

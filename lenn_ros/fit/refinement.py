@@ -13,7 +13,8 @@ structure: on every block of :func:`~lenn_ros.fit.selection.fold_blocks`, the we
 fitted without that block are refined on the others and the block's own free run is
 scored after every iteration; the count with the lowest pooled score over all blocks
 wins, and zero, no refinement, is one of the counts. Only then are the weights of all
-training samples refined that many times. What was done is reported either way.
+training samples refined that many times, and the latest iterations undone if the
+refined model fails the selection's soundness check. What was done is reported either way.
 """
 
 from __future__ import annotations
@@ -25,7 +26,15 @@ import numpy as np
 
 from lenn_ros.core import kernels
 from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND
-from lenn_ros.fit.selection import Candidate, Record, TermModel, fold_blocks, runs
+from lenn_ros.fit.selection import (
+    Candidate,
+    Record,
+    TermModel,
+    fold_blocks,
+    level_free,
+    runs,
+    soundness_problem,
+)
 
 #: most Levenberg-Marquardt iterations tried per fold (and then on all samples)
 ITERATIONS = 15
@@ -46,6 +55,7 @@ class Refinement:
     rmse_blocks_after: float  # ... after the chosen number of iterations
     rmse_training_before: float = math.nan  # free-run RMSE over all training samples
     rmse_training_after: float = math.nan
+    unsound: str = ""  # iterations the blocks chose but undone, and why (:func:`_soundest`)
 
     def as_dict(self) -> dict:
         return {k: (round(v, 9) if isinstance(v, float) and math.isfinite(v) else v) for k, v in self.__dict__.items()}
@@ -82,6 +92,7 @@ def levenberg_marquardt(
     stability, where the linearisation means nothing), or when ``after_each`` returns True.
     """
     weights = np.array(weights, dtype=np.float64, copy=True)
+    frozen = pass_through(model.with_weights(weights))
     found = jacobian(model, record, pieces, weights)
     if found is None or not len(found[0]):
         return weights
@@ -93,6 +104,7 @@ def levenberg_marquardt(
             if found is None:
                 break
             residual, slope = found
+        slope[:, frozen] = 0.0  # the step leaves them as they are
         step = _damped_step(model, record, pieces, weights, slope, residual, cost, damping)
         if step is None:
             break
@@ -100,6 +112,16 @@ def levenberg_marquardt(
         if after_each is not None and after_each(weights):
             break
     return weights
+
+
+def pass_through(model: TermModel) -> np.ndarray:
+    """Mask of the weights the refinement leaves alone: a :func:`~lenn_ros.fit.selection.level_free` model's
+    ``y1`` at exactly the output's scale. Refined, it would leak or run away by a hair and the model would
+    no longer integrate exactly, which the selection chose it for (and judged it as)."""
+    lags = model.layout.lags
+    if not level_free(model):
+        return np.zeros(len(model.weights), dtype=bool)
+    return model.exponents[:, :lags].any(axis=1)
 
 
 def jacobian(
@@ -141,8 +163,12 @@ def _damped_step(model, record, pieces, weights, jacobian, residual, cost, dampi
         return None
     while damping < 1e8:
         try:
-            delta = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-12), gradient)
+            with np.errstate(over="ignore", invalid="ignore"):
+                delta = np.linalg.solve(normal + damping * np.diag(np.diag(normal) + 1e-12), gradient)
         except np.linalg.LinAlgError:
+            damping *= 10.0
+            continue
+        if not np.all(np.isfinite(delta)):
             damping *= 10.0
             continue
         r = residuals(model, record, pieces, weights + delta)
@@ -196,8 +222,17 @@ def cross_validated_refinement(candidate: Candidate, record: Record, iterations:
     chosen = int(np.argmin(pooled))
     whole = [(0, record.n)]
     before = residuals(model, record, whole, model.weights)
+    unsound = ""
     if chosen:
-        model.weights = levenberg_marquardt(model, record, whole, model.weights, chosen)
+        steps: list[np.ndarray] = []
+
+        def keep(weights: np.ndarray) -> bool:
+            steps.append(weights)
+            return False
+
+        levenberg_marquardt(model, record, whole, model.weights, chosen, keep)
+        chosen, weights, unsound = _soundest(model, record, steps[:chosen])
+        model.weights = weights
     after = residuals(model, record, whole, model.weights)
     return Refinement(
         iterations=chosen,
@@ -206,7 +241,30 @@ def cross_validated_refinement(candidate: Candidate, record: Record, iterations:
         rmse_blocks_after=float(pooled[chosen]),
         rmse_training_before=_rms(before),
         rmse_training_after=_rms(after),
+        unsound=unsound,
     )
+
+
+def _soundest(model: TermModel, record: Record, steps: list[np.ndarray]) -> tuple[int, np.ndarray, str]:
+    """(iterations, weights, why more were refused) of the most refined weights that still pass the selection's
+    :func:`~lenn_ros.fit.selection.soundness_problem`.
+
+    The blocks vouch for the refinement's fit, not for its stability: an iteration can lower
+    every block's error and leave a model that runs away on the training input shuffled (seen on
+    a buck converter, which then diverged 41 samples into its test). Such steps are undone,
+    latest first; none left is the least-squares model, which the selection found sound.
+    """
+    problems = []
+    for count in range(len(steps), 0, -1):
+        problem = soundness_problem(model.with_weights(steps[count - 1]), record)
+        if not problem:
+            break
+        problems.append(problem)
+    else:
+        count = 0
+    weights = steps[count - 1] if count else model.weights
+    why = f"{len(problems)} iteration(s) undone: {'; '.join(sorted(set(problems)))}" if problems else ""
+    return count, weights, why
 
 
 def _rms(residual: np.ndarray | None) -> float:

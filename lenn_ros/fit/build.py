@@ -57,7 +57,7 @@ from lenn_ros.core.scaling import DEFAULT_MARGIN, ranges
 from lenn_ros.core.structure import Identifier
 from lenn_ros.fit.data import REPORT_FILE, Data, FitError
 from lenn_ros.fit.families import INCREMENT_LAGS, candidate_specs, pass_through_weights
-from lenn_ros.fit.refinement import cross_validated_refinement
+from lenn_ros.fit.refinement import fold_history, refine_on_folds
 from lenn_ros.fit.selection import (
     NONLINEAR_GAIN,
     PARSIMONY,
@@ -438,7 +438,18 @@ def _refine_outputs(fits: list[OutputFit], say: Any, workers: int) -> None:
     for fitted, candidate in targets:
         named = f"output {fitted.name}: " if len(fits) > 1 else ""
         say(f"{named}refining {candidate.spec.label} ({candidate.terms} terms) on simulation error")
-    results = side_by_side(lambda pair: cross_validated_refinement(pair[1], pair[0].record), targets, workers)
+    # every candidate's blocks side by side, then each candidate's refinement of all samples: a candidate's
+    # blocks are independent, and one pool of them keeps both cores busy (three candidates on two cores by
+    # candidate left one idle for a third of Bouc-Wen's refinement)
+    blocks = [(fitted, candidate, fold) for fitted, candidate in targets for fold in range(len(candidate.fold_weights))]
+    histories = list(side_by_side(lambda job: fold_history(job[1], job[0].record, job[2]), blocks, workers))
+    results = side_by_side(
+        lambda pair: refine_on_folds(
+            pair[1], pair[0].record, [h for (_, c, _), h in zip(blocks, histories, strict=True) if c is pair[1]]
+        ),
+        targets,
+        workers,
+    )
     for (_fitted, candidate), result in zip(targets, results, strict=True):
         candidate.refinement = result.as_dict()
         candidate.rmse_validation = result.rmse_blocks_after

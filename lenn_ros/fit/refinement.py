@@ -194,29 +194,51 @@ def cross_validated_refinement(candidate: Candidate, record: Record, iterations:
     """Choose the iteration count on the blocks, then refine ``candidate.model`` (all samples) that many times.
 
     ``candidate.model.weights`` are replaced by the refined weights (unchanged if the
-    blocks chose zero). The per-block histories are pooled as squared errors, so a
-    block that diverges after some iteration makes that count lose everywhere.
+    blocks chose zero). The two stages are :func:`fold_history` (each block, independent of
+    the others: ``fit`` runs every candidate's blocks side by side) and :func:`refine_on_folds`.
     """
+    histories = [fold_history(candidate, record, fold, iterations) for fold in range(len(candidate.fold_weights))]
+    return refine_on_folds(candidate, record, histories, iterations)
+
+
+def fold_history(
+    candidate: Candidate, record: Record, fold: int, iterations: int = ITERATIONS
+) -> tuple[np.ndarray, int]:
+    """(squared free-run error of block ``fold`` after 0..iterations refinement iterations of the weights fitted
+    without it, samples scored): the weights are refined on the other blocks, the block only scored."""
     model = candidate.model
     blocks = fold_blocks(record.n, model.warm_up)
+    scored = _held_out(blocks[fold], record.n)
+    history: list[float] = []
+
+    def score(w: np.ndarray) -> bool:
+        """Record the block's error; True (stop) once it has not improved for PATIENCE iterations."""
+        r = residuals(model, record, [scored], w)
+        history.append(math.inf if r is None else float(r @ r))
+        return len(history) - 1 - int(np.argmin(history)) >= PATIENCE
+
+    weights = candidate.fold_weights[fold]
+    first = residuals(model, record, [scored], weights)
+    history.append(math.inf if first is None else float(first @ first))
+    levenberg_marquardt(model, record, _training_pieces(blocks, fold, record.n), weights, iterations, score)
+    history += [history[-1]] * (iterations + 1 - len(history))  # stopped early: its last score stands
+    return np.array(history), 0 if first is None else len(first)
+
+
+def refine_on_folds(
+    candidate: Candidate, record: Record, histories: list[tuple[np.ndarray, int]], iterations: int = ITERATIONS
+) -> Refinement:
+    """The count with the lowest pooled held-out error over every block's :func:`fold_history` (in block order),
+    then the weights of all samples refined that many times, less the iterations that make the model unsound.
+
+    The per-block histories are pooled as squared errors, so a block that diverges after
+    some iteration makes that count lose everywhere.
+    """
+    model = candidate.model
     squared = np.zeros(iterations + 1)
     counts = np.zeros(iterations + 1)
-    for fold, weights in enumerate(candidate.fold_weights):
-        scored = _held_out(blocks[fold], record.n)
-        history = []
-
-        def score(w: np.ndarray, scored=scored, history=history) -> bool:
-            """Record the block's error; True (stop) once it has not improved for PATIENCE iterations."""
-            r = residuals(model, record, [scored], w)
-            history.append(math.inf if r is None else float(r @ r))
-            return len(history) - 1 - int(np.argmin(history)) >= PATIENCE
-
-        first = residuals(model, record, [scored], weights)
-        history.append(math.inf if first is None else float(first @ first))
-        count = 0 if first is None else len(first)
-        levenberg_marquardt(model, record, _training_pieces(blocks, fold, record.n), weights, iterations, score)
-        history += [history[-1]] * (iterations + 1 - len(history))  # stopped early: its last score stands
-        squared += np.array(history)
+    for history, count in histories:
+        squared += history
         counts += count
     pooled = np.sqrt(squared / np.maximum(counts, 1))
     chosen = int(np.argmin(pooled))

@@ -1239,6 +1239,8 @@ def _model_lines(part: dict[str, Any], indent: str) -> list[str]:
             f"(chosen on the blocks: held-out free-run RMSE {refinement['rmse_blocks_before']:.5g} -> "
             f"{refinement['rmse_blocks_after']:.5g})"
         )
+        if refinement.get("unsound"):
+            lines.append(f"{indent}  {refinement['unsound']} (the blocks vouch for the fit, not the stability)")
     live = m["live"]
     lines.append(
         f"{indent}live: RLS, forgetting {live['forgetting']:.6g}"

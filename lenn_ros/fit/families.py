@@ -230,7 +230,8 @@ class _Builder:
         if kind:
             factor[0] = FACTOR_KINDS[kind]
             factor[1] = _round6(b)
-            factor[2:] = [_round6(v) for v in w]
+            used = np.flatnonzero(w)  # a long view's weight rows are mostly zeros
+            factor[2 + used] = [_round6(float(w[i])) for i in used]
         self.exponents.append(row.tolist())
         self.factors.append(factor)
 

@@ -751,3 +751,34 @@ def test_fit_undoes_refinement_that_would_diverge_on_the_buck_converter_and_says
         "left the training range"  # fmt: skip
     assert "1 iteration(s) undone" in format_report(report)
     assert not report["free_run"]["diverged"] and report["rmse_free_run"] < 0.29
+
+
+def test_an_exact_integrator_is_delivered_with_its_pass_through_outside_the_network(tmp_path: Path) -> None:
+    """The node reads its inputs scaled and clipped to the training range: an integrating joint's model that
+    passed y(k) through inside the network predicted the range's edge once the joint went beyond it (a wheel
+    that keeps turning). Delivered with y(k) as the known part (known_a [1], output_offset -y_offset) and its
+    output's differences read over ten training ranges, the one-step prediction three ranges away is the
+    prediction inside, shifted; inside the range it is the same model."""
+    from lenn_ros.fit.build import write_outputs
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    import joint_study
+
+    u, y = joint_study.record("horizontal", 0.005, 40.0, 0)
+    start = len(y) * 2 // 3
+    result = fit(Data(u, y, "horizontal joint"), start + 1)
+    identifier, model = result["identifier"], result["model"]
+    assert level_free(model) and identifier.structure.known_a == (1.0,)
+    inside = identifier.run(u[start:], y[start:], learn=False).ravel()
+    features, _ = model.regression(siso_view(u[start:], y[start:]))
+    assert np.abs(inside[model.warm_up :] - features @ model.weights).max() < 1e-9 * model.layout.y_scale
+    shift = 3.0 * float(np.ptp(y[:start]))  # three training ranges up: the network reads ten (DELIVERED_RANGES)
+    beyond = identifier.run(u[start:], y[start:] + shift, learn=False).ravel()
+    assert np.abs(beyond[model.warm_up :] - shift - inside[model.warm_up :]).max() < 1e-9 * shift
+    # thirty ranges away the differences clip and read zero, and y(k) still passes through: the error stays
+    # within the largest step the joint makes (measured 1.02x; y(k) inside the network: stuck, 20 ranges off)
+    far = identifier.run(u[start:], y[start:] + 10.0 * shift, learn=False).ravel()
+    error = np.abs(far[model.warm_up :] - y[start + model.warm_up :] - 10.0 * shift)
+    assert error.max() < 1.1 * np.abs(np.diff(y[start:])).max()
+    values = read_params_file(write_outputs(tmp_path / "model", result, Data(u, y, "joint"))["params"])
+    assert values["known_a"] == [1.0] and values["output_offset"] == pytest.approx(-model.layout.y_offset)

@@ -68,12 +68,14 @@ from lenn_ros.fit.selection import (
     cores,
     fold_blocks,
     joint_block_score,
+    level_free,
     loosen,
     order_candidates,
     out_of_fold_residuals,
     select_structure,
     side_by_side,
     siso_view,
+    widened,
 )
 
 #: share of the training samples the epochs of an MLP / SGD fit are early-stopped on
@@ -295,6 +297,7 @@ def _fit(data: Data, test_from: int, refine: bool, network: str, solver: str, pr
                                      refine and solver == "ls" and network == "lenn", say)  # fmt: skip
     forgetting = live_forgetting(start)
     if single:
+        _read_wide(outputs[0].chosen)
         identifier, described = _single(outputs[0], u[:start, 0], y[:start, 0], network, solver, forgetting, say)
         models = [outputs[0].model]
     else:
@@ -624,10 +627,45 @@ def build_identifier(model: TermModel, record: Record, forgetting: float) -> Ide
         init_scale=0.0,
     )
     network._initialise()
-    network.weights_ = np.array(model.weights, dtype=np.float64)
+    structure, weights = pass_through_outside(model)
+    network.weights_ = weights
     features, _ = model.regression(record.values)
     network.covariance_ = rls_covariance(features[record.valid_rows(model.warm_up)], forgetting)
-    return Identifier(model.structure, network, learning=False)
+    return Identifier(structure, network, learning=False)
+
+
+#: training ranges over which the network of a delivered exact integrator reads its output (:func:`_read_wide`)
+DELIVERED_RANGES = 10.0
+
+
+def _read_wide(chosen: Candidate) -> None:
+    """An exact integrator (:func:`~lenn_ros.fit.selection.level_free`) reads its output's differences over
+    DELIVERED_RANGES training ranges (:func:`~lenn_ros.fit.selection.widened`: the same model inside the
+    range), its fold weights with it: a joint without gravity or a wheel goes where its input takes it, and
+    there the network's differences, clipped at the range, would read zero."""
+    if chosen.model is None or not level_free(chosen.model):
+        return
+    chosen.fold_weights = [widened(chosen.model.with_weights(w), DELIVERED_RANGES).weights for w in chosen.fold_weights]
+    chosen.model = widened(chosen.model, DELIVERED_RANGES)
+
+
+def pass_through_outside(model: TermModel) -> tuple[Any, np.ndarray]:
+    """(the node's structure, the network's weights) of a model of one output of one input.
+
+    A model that integrates exactly (:func:`~lenn_ros.fit.selection.level_free`: a joint
+    without gravity, a wheel, a positioning axis) passes y(k) through as ``y1`` at the
+    output's scale plus the bias at its offset. Inside the network that y(k) is read scaled
+    and clipped to the training range, so where the output goes beyond it (a wheel keeps
+    turning) the prediction would stick at the range's edge. Taken out of the network as the
+    known linear part ``known_a = [1]``, y(k) is passed through exactly at any level; the
+    network keeps the rest (the same sum inside the range).
+    """
+    weights = np.array(model.weights, dtype=np.float64)
+    if not level_free(model):
+        return model.structure, weights
+    layout = model.layout
+    weights[model.exponents[:, : layout.lags].any(axis=1)] -= layout.y_scale  # y(k) = y_scale x_1 + y_offset
+    return dataclasses.replace(model.structure, known_a=(1.0,), output_offset=-layout.y_offset), weights
 
 
 def common_lags(models: list[TermModel]) -> list[TermModel]:
@@ -957,8 +995,9 @@ def params_values(identifier: Identifier, model: TermModel, forgetting: float, u
         "network": "lenn",
         "y_lags": s.y_lags,
         "u_lags": s.u_lags,
-        "known_a": [0.0],
+        "known_a": list(s.known_a) or [0.0],
         "known_b": [0.0],
+        "output_offset": float(s.output_offset),
         "y_scale": float(s.y_scale),
         "u_scale": float(s.u_scale),
         "y_offset": float(s.y_offset),

@@ -586,7 +586,10 @@ def _select(
 
     candidates = select_structure(record, layout, specs, progress=tell, workers=workers)
     warnings = []
-    if not any(c.model is not None for c in candidates):
+    if any(c.model is not None for c in candidates):
+        for candidate in candidates:  # the loose rules are not needed: free each one's ranked features
+            candidate.fallback = None
+    else:
         # nothing passed the strict checks: the best that merely simulates the blocks,
         # flagged, beats no model at all (the user still learns the lags and what failed)
         strict_reasons = sorted(

@@ -297,7 +297,8 @@ def _fit(data: Data, test_from: int, refine: bool, network: str, solver: str, pr
                                      refine and solver == "ls" and network == "lenn", say)  # fmt: skip
     forgetting = live_forgetting(start)
     if single:
-        _read_wide(outputs[0].chosen)
+        if network == "lenn" and solver == "ls":  # epochs (MLP, SGD) train on the scaling as selected
+            _read_wide(outputs[0].chosen)
         identifier, described = _single(outputs[0], u[:start, 0], y[:start, 0], network, solver, forgetting, say)
         models = [outputs[0].model]
     else:

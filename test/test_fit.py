@@ -782,3 +782,16 @@ def test_an_exact_integrator_is_delivered_with_its_pass_through_outside_the_netw
     assert error.max() < 1.1 * np.abs(np.diff(y[start:])).max()
     values = read_params_file(write_outputs(tmp_path / "model", result, Data(u, y, "joint"))["params"])
     assert values["known_a"] == [1.0] and values["output_offset"] == pytest.approx(-model.layout.y_offset)
+
+
+def test_fit_reaches_a_static_nonlinearity_with_several_turns_by_the_papers_expansion() -> None:
+    """The paper's example 1, y(k+1) = 0.3 y(k) + 0.6 y(k-1) + f(u(k)), f a sum of sin(pi u), sin(3 pi u) and
+    sin(5 pi u): no product of degree <= 3 follows f's turns; Legendre polynomials of one lag up to degree 15
+    (the paper's LeNN expansion) do. Measured -14.7 dB on this input (before the family: -7.4 dB)."""
+    rng = np.random.default_rng(0)
+    n = 3000
+    u = np.repeat(rng.uniform(-1, 1, n // 10 + 1), 10)[:n] + 0.3 * np.sin(2 * np.pi * np.arange(n) / 250)
+    y = get_example(1).plant().run(u)[:n] + 0.01 * rng.standard_normal(n)
+    report = fit(Data(u, y, "example 1"), 2001)["report"]
+    assert report["model"]["family"] == "legendre" and report["warnings"] == []
+    assert report["nmse_free_run_db"] < -13.0

@@ -25,6 +25,9 @@ them by RLS with the same compiled step. What they offer:
   samples (a record sampled far faster than its dynamics, such as a 1 kHz robot) the
   increments are taken over spans 1, 2, 4, ... and the input averaged over them
   (multi-scale), so a long memory costs a few terms, not one per sample.
+- ``legendre``: the paper's LeNN expansion, P_1..P_15 of every lag alone (no products):
+  a static nonlinearity with several turns (the paper's example 1, sin(5 pi u)), which
+  no product of low degrees follows.
 - ``fir``: the output from the inputs alone, no output fed back: the newest input lags and
   the inputs averaged over spans 16, 32, 64 up to the lags; degree 2 adds tanh, v|v| and
   dead-zones (relu beyond one spread) of the averages over FIR_SPANS. Where one-step least
@@ -79,6 +82,9 @@ FIR_LAGS = (10, 65)
 #: newest input lags an input-only model reads one by one; spans of the averages its nonlinear terms take
 FIR_RECENT = 10
 FIR_SPANS = (8, 32, 64)
+#: the paper's expansion: Legendre polynomials of each lag alone, up to a high degree (no products)
+LEGENDRE_LAGS = (1, 2, 4)
+LEGENDRE_DEGREES = (15,)
 #: training quantiles at which the hinges' knots sit
 KNOT_QUANTILES = (0.1, 0.25, 0.5, 0.75, 0.9)
 #: sharpness of the tanh velocity terms, in units of the velocity's standard deviation
@@ -122,7 +128,7 @@ class Spec:
     def dictionary(self, x: np.ndarray) -> Dictionary:
         """The terms this candidate offers, their parameters taken from the training inputs ``x``."""
         builder = {"polynomial": _polynomial, "hinge": _hinge, "rff": _fourier, "increment": _increment,
-                   "fir": _input_only}[self.family]  # fmt: skip
+                   "fir": _input_only, "legendre": _legendre}[self.family]  # fmt: skip
         return builder(self, np.asarray(x, dtype=np.float64))
 
 
@@ -134,6 +140,7 @@ GRID = (
     ("increment", INCREMENT_LAGS, (1, 2, 3)),
     ("increment", LONG_SPANS, (1, 3)),
     ("fir", FIR_LAGS, (1, 2)),
+    ("legendre", LEGENDRE_LAGS, LEGENDRE_DEGREES),
 )
 
 
@@ -265,6 +272,17 @@ def _polynomial(spec: Spec, x: np.ndarray) -> Dictionary:
     n = x.shape[1]
     rows = dictionary_exponents(n, spec.degree, _recent(spec, _columns(spec, x)))
     return Dictionary(rows, np.zeros((len(rows), n + 2)))
+
+
+def _legendre(spec: Spec, x: np.ndarray) -> Dictionary:
+    """The bias and P_1..P_degree of every lag of every column, each alone: the paper's LeNN expansion. A
+    static nonlinearity with several turns (sin(5 pi u)) needs a degree no product of low degrees reaches."""
+    built = _Builder(x.shape[1])
+    built.add()
+    for degree in range(1, spec.degree + 1):
+        for i in range(x.shape[1]):
+            built.add(built.power(i, degree))
+    return built.build()
 
 
 def _hinge(spec: Spec, x: np.ndarray) -> Dictionary:

@@ -280,18 +280,23 @@ def test_epochs_with_early_stopping_beat_one_pass_on_small_data() -> None:
     assert held_out_rmse(identifier, u, y, 1200) == pytest.approx(min(report.validation_rmse))
 
 
-def test_soundness_rejects_a_model_that_runs_away_on_its_own_data_or_on_its_input_shuffled() -> None:
+def cubic_least_squares() -> tuple[TermModel, Record, Scaling]:
+    """A least-squares model of a cubic plant (terms 1, y1, y2, u1, y1^3), its record and scaling: sound."""
     u, y = cubic_plant(1500, 5)
     scaling = Scaling.from_training(u, y)
     terms = parse_terms(["1", "y1", "y2", "u1", "y1^3"], siso_channels(2, 2))[0]
     features, targets = TermModel(Layout.of(2, scaling), terms).regression(siso_view(u, y))
     good = TermModel(Layout.of(2, scaling), terms, weights=np.linalg.lstsq(features, targets, rcond=None)[0])
-    record = Record.of(siso_view(u, y))
+    return good, Record.of(siso_view(u, y)), scaling
+
+
+def test_soundness_rejects_a_model_that_runs_away_on_its_own_data_or_on_its_input_shuffled() -> None:
+    good, record, scaling = cubic_least_squares()
     assert soundness_problem(good, record) == ""
     runaway = good.with_weights(good.weights * np.array([1.0, 1.0, 1.0, 1.0, 3.0]))
     assert soundness_problem(runaway, record) == "in-sample free run left the training range"
     flat = TermModel(
-        Layout.of(2, scaling), parse_terms(["1"], siso_channels(2, 2))[0], weights=np.array([float(y.max())])
+        Layout.of(2, scaling), parse_terms(["1"], siso_channels(2, 2))[0], weights=np.array([float(record.y.max())])
     )
     assert soundness_problem(flat, record) == "in-sample free run worse than its mean"
     # sound on the record as it was measured, not on the same input in another order: two up-steps in a
@@ -532,12 +537,7 @@ def test_the_free_run_jacobian_is_the_free_runs_slope_and_refinement_lowers_the_
 def test_refined_steps_that_make_the_model_unsound_are_undone_latest_first() -> None:
     """The blocks vouch for a refinement's fit, not its stability: the most refined weights that still pass
     the selection's soundness check are kept, and the report says how many iterations were undone and why."""
-    u, y = cubic_plant(1500, 5)
-    scaling = Scaling.from_training(u, y)
-    terms = parse_terms(["1", "y1", "y2", "u1", "y1^3"], siso_channels(2, 2))[0]
-    features, targets = TermModel(Layout.of(2, scaling), terms).regression(siso_view(u, y))
-    good = TermModel(Layout.of(2, scaling), terms, weights=np.linalg.lstsq(features, targets, rcond=None)[0])
-    record = Record.of(siso_view(u, y))
+    good, record, _ = cubic_least_squares()
     nudged = good.weights * np.array([1.0, 1.0, 1.0, 1.01, 1.0])
     runaway = good.weights * np.array([1.0, 1.0, 1.0, 1.0, 3.0])  # leaves the range (the soundness test above)
     count, weights, why = refinement._soundest(good, record, [nudged, runaway, runaway])

@@ -72,6 +72,7 @@ from lenn_ros.fit.selection import (
     loosen,
     order_candidates,
     out_of_fold_residuals,
+    output_rows,
     select_structure,
     side_by_side,
     siso_view,
@@ -668,7 +669,7 @@ def pass_through_outside(model: TermModel) -> tuple[Any, np.ndarray]:
     if not level_free(model):
         return model.structure, weights
     layout = model.layout
-    weights[model.exponents[:, : layout.lags].any(axis=1)] -= layout.y_scale  # y(k) = y_scale x_1 + y_offset
+    weights[output_rows(model)] -= layout.y_scale  # y(k) = y_scale x_1 + y_offset
     return dataclasses.replace(model.structure, known_a=(1.0,), output_offset=-layout.y_offset), weights
 
 

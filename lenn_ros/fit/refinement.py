@@ -32,6 +32,7 @@ from lenn_ros.fit.selection import (
     TermModel,
     fold_blocks,
     level_free,
+    output_rows,
     runs,
     soundness_problem,
 )
@@ -118,10 +119,9 @@ def pass_through(model: TermModel) -> np.ndarray:
     """Mask of the weights the refinement leaves alone: a :func:`~lenn_ros.fit.selection.level_free` model's
     ``y1`` at exactly the output's scale. Refined, it would leak or run away by a hair and the model would
     no longer integrate exactly, which the selection chose it for (and judged it as)."""
-    lags = model.layout.lags
     if not level_free(model):
         return np.zeros(len(model.weights), dtype=bool)
-    return model.exponents[:, :lags].any(axis=1)
+    return output_rows(model)
 
 
 def jacobian(

@@ -617,6 +617,12 @@ def shuffled_run(model: TermModel, view: np.ndarray, seams: np.ndarray) -> tuple
 TRAINING_RANGE = 1.0
 
 
+def output_rows(model: TermModel) -> np.ndarray:
+    """Mask of the terms whose polynomial part reads the fed-back output: of a :func:`level_free` model, its
+    pass-through ``y1`` alone (what :func:`widened` rescales and the refinement leaves alone)."""
+    return model.exponents[:, : model.layout.lags].any(axis=1)
+
+
 def level_free(model: TermModel) -> bool:
     """Whether the model integrates exactly: its output level enters only as y(k) passed through.
 
@@ -631,7 +637,7 @@ def level_free(model: TermModel) -> bool:
     unit[0] = 1
     plain = factors[:, 0] == 0 if len(factors) else np.ones(len(exponents), dtype=bool)
     through = (exponents == unit).all(axis=1) & plain
-    if np.any(exponents[:, :lags].any(axis=1) & ~through) or not through.any():
+    if np.any(output_rows(model) & ~through) or not through.any():
         return False
     if len(factors):
         w = factors[:, 2 : 2 + lags]
@@ -654,7 +660,7 @@ def widened(model: TermModel, width: float) -> TermModel:
     if len(factors):
         factors[:, 2 : 2 + lags] *= width
     weights = np.array(model.weights, dtype=np.float64)
-    weights[model.exponents[:, :lags].any(axis=1)] *= width
+    weights[output_rows(model)] *= width
     return TermModel(wide, model.exponents, model.basis, weights, factors if len(factors) else None)
 
 

@@ -12,7 +12,9 @@ All get the same protocol, in the same run, on the same splits:
   by free run on the last 20 % of the build samples, then refitted on all of them;
 - the score is the free-run (simulation) RMSE on the test part, the free run starting
   from the measured outputs just before it (a live switch from series-parallel to
-  parallel); a diverged run scores nan;
+  parallel); a diverged run scores nan. Where ``fit`` judges the test part a record of
+  its own (:func:`~lenn_ros.fit.build.separate_test_record`), every method is seeded by
+  the test part's own first samples instead, as many as it reads, and scored after them;
 - wall time is measured around each whole procedure (selection included);
 - beside them, the test-mean predictor: the RMSE of predicting every test sample by the
   mean of the test part (its standard deviation, an oracle no causal model is handed).
@@ -120,6 +122,12 @@ def _rmse(y: np.ndarray, y_hat: np.ndarray) -> float:
     return float(np.sqrt(np.mean((y - y_hat) ** 2))) if np.all(np.isfinite(y_hat)) else math.nan
 
 
+def seeded_from(start: int, lags: int, own: bool) -> int:
+    """Where a peer's free run starts: at ``start``, or ``lags`` samples into the test part where ``fit`` judged
+    it a record of its own (``own``), so that no method starts from another record's samples."""
+    return start + lags if own else start
+
+
 def frols_model(lag: int, degree: int, u: np.ndarray, y: np.ndarray):
     from sysidentpy.basis_function import Polynomial
     from sysidentpy.model_structure_selection import FROLS
@@ -147,7 +155,7 @@ def frols_free_run(model, u: np.ndarray, y: np.ndarray, start: int) -> np.ndarra
     return np.asarray(y_hat, float).ravel()[lag:]
 
 
-def run_frols(split: Split) -> dict:
+def run_frols(split: Split, own: bool = False) -> dict:
     began = time.perf_counter()
     start = split.test_from - 1
     u, y = split.u[:start], split.y[:start]
@@ -164,17 +172,18 @@ def run_frols(split: Split) -> dict:
         tried.append((score if math.isfinite(score) else math.inf, lag, degree))
     _, lag, degree = min(tried)
     model = frols_model(lag, degree, u, y)
-    y_free = frols_free_run(model, split.u, split.y, start)
+    first = seeded_from(start, model.max_lag, own)
+    y_free = frols_free_run(model, split.u, split.y, first)
     return {
-        "rmse_free_run": _rmse(split.y[start:], y_free),
+        "rmse_free_run": _rmse(split.y[first:], y_free),
         "seconds": time.perf_counter() - began,
         "model": f"lags {lag}/{lag}, degree {degree}, {len(model.final_model)} terms",
     }
 
 
-def run_lenn(split: Split) -> dict:
+def run_lenn(split: Split, breaks: tuple[int, ...] = ()) -> dict:
     began = time.perf_counter()
-    result = fit(Data(split.u, split.y, split.name), split.test_from)
+    result = fit(Data(split.u, split.y, split.name, breaks=list(breaks)), split.test_from)
     report = result["report"]
     m = report["model"]
     refined = report["choices"]["refinement"].get("iterations", 0)
@@ -184,6 +193,7 @@ def run_lenn(split: Split) -> dict:
         "model": f"{m['family']} degree {m['expansion']['degree']}, lags {m['structure']['y_lags']}, "
         f"{m['n_terms']} terms" + (f", refined {refined}x" if refined else ""),
         "clipped": report["free_run"]["clipped_inputs"],
+        "own_record": bool(report["free_run"]["test_record_of_its_own"]),
     }
 
 
@@ -200,7 +210,7 @@ def _arx(lag: int, u: np.ndarray, y: np.ndarray, scaling) -> TermModel:
     return model
 
 
-def run_arx(split: Split) -> dict:
+def run_arx(split: Split, own: bool = False) -> dict:
     """A linear ARX, its lags chosen by free-run RMSE on the last 20 % of the build samples, refitted on all."""
     began = time.perf_counter()
     start = split.test_from - 1
@@ -215,9 +225,10 @@ def run_arx(split: Split) -> dict:
         tried.append((_rmse(y[validation:], y_sim) if diverged_at < 0 else math.inf, lag))
     score, lag = min(tried)
     model = _arx(lag, u, y, scaling)
-    y_free, _, diverged_at = model.free_run(siso_view(split.u, split.y), start)
+    first = seeded_from(start, lag, own)
+    y_free, _, diverged_at = model.free_run(siso_view(split.u, split.y), first)
     return {
-        "rmse_free_run": _rmse(split.y[start:], y_free) if diverged_at < 0 else math.nan,
+        "rmse_free_run": _rmse(split.y[first:], y_free) if diverged_at < 0 else math.nan,
         "seconds": time.perf_counter() - began,
         "model": f"ARX lags {lag}/{lag}" + ("" if math.isfinite(score) else " (every lag diverged on the tail)"),
     }
@@ -264,10 +275,13 @@ def run_lenn_mimo(split: MimoSplit) -> dict:
     lags = [part["model"]["structure"]["y_lags"] for part in report["per_output"]]
     families = [part["model"]["family"] for part in report["per_output"]]
     siso, siso_models, siso_seconds = [], [], 0.0
+    # each SISO fit judges the split from its own channel pair alone; compared with the MIMO fit, it is
+    # seeded where the MIMO fit was (a break at the test start), so both score the same kind of run
+    own = (split.test_from - 1,) if report["free_run"]["test_record_of_its_own"] else ()
     if split.u.shape[1] == split.y.shape[1]:
         for j in range(split.y.shape[1]):
             part = run_lenn(Split(f"{split.name} {split.y_names[j]}", split.u[:, j], split.y[:, j], split.test_from,
-                                  split.note))  # fmt: skip
+                                  split.note), own)  # fmt: skip
             siso.append(part["rmse_free_run"])
             siso_models.append(part["model"])
             siso_seconds += part["seconds"]
@@ -280,6 +294,7 @@ def run_lenn_mimo(split: MimoSplit) -> dict:
         "model": f"{reads}; family/lags per output: "
         + ", ".join(f"{f} {lag}" for f, lag in zip(families, lags, strict=True)),
         "siso_model": "; ".join(siso_models) or "-",
+        "own_record": bool(own),
     }
 
 
@@ -309,7 +324,7 @@ def _frols_miso_free_run(model, u: np.ndarray, y: np.ndarray, start: int) -> np.
     return np.asarray(y_hat, float).ravel()[lag:]
 
 
-def run_frols_mimo(split: MimoSplit) -> dict:
+def run_frols_mimo(split: MimoSplit, own: bool = False) -> dict:
     """FROLS per output (MISO: the six inputs and the output's own lags), each structure chosen by its free run."""
     began = time.perf_counter()
     start = split.test_from - 1
@@ -327,8 +342,9 @@ def run_frols_mimo(split: MimoSplit) -> dict:
             tried.append((score if math.isfinite(score) else math.inf, lag, degree))
         _, lag, degree = min(tried)
         model = _frols_miso(lag, degree, u, y)
-        y_free = _frols_miso_free_run(model, split.u, split.y[:, j], start)
-        scores.append(_rmse(split.y[start:, j], y_free))
+        first = seeded_from(start, model.max_lag, own)
+        y_free = _frols_miso_free_run(model, split.u, split.y[:, j], first)
+        scores.append(_rmse(split.y[first:, j], y_free))
         models.append(f"{lag}/{degree}/{len(model.final_model)}")
     return {"rmse_free_run": scores, "seconds": time.perf_counter() - began,
             "model": "lag/degree/terms per output: " + ", ".join(models)}  # fmt: skip
@@ -353,7 +369,7 @@ def _mimo_arx_free_run(weights: np.ndarray, lag: int, u: np.ndarray, y: np.ndarr
     return y_sim[start:]
 
 
-def run_arx_mimo(split: MimoSplit) -> dict:
+def run_arx_mimo(split: MimoSplit, own: bool = False) -> dict:
     """A full MIMO ARX, its lags chosen by the joint free run (mean NMSE) on the build tail, refitted on all."""
     began = time.perf_counter()
     start = split.test_from - 1
@@ -366,8 +382,9 @@ def run_arx_mimo(split: MimoSplit) -> dict:
         error = np.mean((y_sim - y[validation:]) ** 2, axis=0) / variance
         tried.append((float(np.mean(error)) if np.all(np.isfinite(error)) else math.inf, lag))
     _, lag = min(tried)
-    y_free = _mimo_arx_free_run(_mimo_arx(lag, u, y), lag, split.u, split.y, start)
-    return {"rmse_free_run": _rmse_columns(split.y[start:], y_free), "seconds": time.perf_counter() - began,
+    first = seeded_from(start, lag, own)
+    y_free = _mimo_arx_free_run(_mimo_arx(lag, u, y), lag, split.u, split.y, first)
+    return {"rmse_free_run": _rmse_columns(split.y[first:], y_free), "seconds": time.perf_counter() - began,
             "model": f"MIMO ARX lags {lag}/{lag}"}  # fmt: skip
 
 
@@ -443,7 +460,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     rows: list[dict] = []
     for split in [] if args.mimo_only else splits(args.quick):
-        lenn, frols, arx = run_lenn(split), run_frols(split), run_arx(split)
+        lenn = run_lenn(split)
+        frols, arx = run_frols(split, lenn["own_record"]), run_arx(split, lenn["own_record"])
         rows.append({"data": split.name, "split": split.note, "test_samples": len(split.y) - split.test_from + 1,
                      "test_mean_rmse": test_mean_rmse(split), "lenn": lenn, "frols": frols, "arx": arx,
                      "published": split.published})  # fmt: skip
@@ -451,7 +469,8 @@ def main(argv: list[str] | None = None) -> int:
     mimo_rows = []
     for split in [] if args.quick else mimo_splits():
         start = split.test_from - 1
-        lenn, frols, arx = run_lenn_mimo(split), run_frols_mimo(split), run_arx_mimo(split)
+        lenn = run_lenn_mimo(split)
+        frols, arx = run_frols_mimo(split, lenn["own_record"]), run_arx_mimo(split, lenn["own_record"])
         mimo_rows.append({"data": split.name, "split": split.note, "outputs": list(split.y_names),
                           "test_samples": len(split.y) - start, "test_mean_rmse": list(np.std(split.y[start:], axis=0)),
                           "lenn": lenn, "frols": frols, "arx": arx})  # fmt: skip

@@ -795,3 +795,31 @@ def test_fit_reaches_a_static_nonlinearity_with_several_turns_by_the_papers_expa
     report = fit(Data(u, y, "example 1"), 2001)["report"]
     assert report["model"]["family"] == "legendre" and report["warnings"] == []
     assert report["nmse_free_run_db"] < -13.0
+
+
+def test_a_test_part_recorded_apart_is_seeded_by_its_own_samples_and_said() -> None:
+    """Two experiments joined (as benchmark files and users do): the test part is judged a record of its own and
+    simulated from its own first samples; a record that goes on is simulated from the build part's last ones."""
+    from lenn_ros.fit.build import format_report
+
+    u_build, y_build = cubic_plant(3000, 0)
+    u_test, y_test = cubic_plant(1000, 1)  # starts at rest, where the build part ends moving
+    u, y = np.r_[u_build, u_test], np.r_[y_build, y_test]
+    result = fit(Data(u, y, "joined"), 3001, refine=False)
+    report, identifier = result["report"], result["identifier"]
+    window = identifier.structure.warm_up
+    assert "record of its own" in report["free_run"]["test_record_of_its_own"]
+    assert report["free_run"]["not_simulated"] == window
+    assert report["free_run"]["starts_from"] == f"measured outputs of samples 3001..{3000 + window}, not scored"
+    assert np.all(np.isnan(report["y_free_test"][:window])) and np.all(np.isfinite(report["y_free_test"][window:]))
+    assert np.all(np.isnan(report["y_hat_test"][:window]))
+    assert np.array_equal(report["y_free_test"][window:], identifier.free_run(u_test, y_test, window))
+    from_build = identifier.free_run(u[3000 - window :], y[3000 - window :], window)
+    assert report["rmse_free_run"] < 0.5 * float(np.sqrt(np.mean((from_build - y_test) ** 2)))
+    assert "note: the test part is a record of its own" in format_report(report)
+    # the same plant recorded on: the build part's last samples seed the free run, every test sample is scored
+    u, y = cubic_plant(4000, 0)
+    report = fit(Data(u, y, "one record"), 3001, refine=False)["report"]
+    assert report["free_run"]["test_record_of_its_own"] == ""
+    assert report["free_run"]["not_simulated"] == 0
+    assert report["free_run"]["starts_from"] == "measured outputs before sample 3001"

@@ -423,7 +423,7 @@ def test_input_only_prefixes_score_from_their_predictions_as_the_free_runs_do(mo
     layout = Layout.of(1, scaling)
     compared = clipped = 0
     for spec in (Spec("fir", 10, 1), Spec("fir", 10, 2), Spec("polynomial", 3, 2)):
-        design = _designs([spec], record, layout)[spec]
+        design = dict(_designs([spec], record, layout))[spec]
         by_rows = evaluate_candidate(spec, record, layout, design)
         with monkeypatch.context() as patched:
             patched.setattr(Prefixes, "input_only", lambda self, m: False)
@@ -483,7 +483,7 @@ def test_a_prefix_refused_in_one_block_is_not_simulated_further_and_scores_the_s
         simulate(*args[:-1], np.full(len(args[-1]), np.inf))
 
     for spec in (Spec("polynomial", 3, 3), Spec("polynomial", 2, 2), Spec("hinge", 2, 2)):
-        design = _designs([spec], record, layout)[spec]
+        design = dict(_designs([spec], record, layout))[spec]
         prefixes = evaluate_candidate(spec, record, layout, design).fallback[0]
         monkeypatch.setattr(kernels, "simulate_pieces", spy)
         early = _score_prefixes(prefixes, record)
@@ -823,3 +823,53 @@ def test_a_test_part_recorded_apart_is_seeded_by_its_own_samples_and_said() -> N
     assert report["free_run"]["test_record_of_its_own"] == ""
     assert report["free_run"]["not_simulated"] == 0
     assert report["free_run"]["starts_from"] == "measured outputs before sample 3001"
+
+
+def test_only_the_leader_is_refined_on_all_samples_and_a_leader_that_loses_its_lead_is_replaced(monkeypatch) -> None:
+    """Every target's blocks are refined, but only the candidate that then leads is refined on all its samples;
+    if that refinement raises its score (iterations undone as unsound), the choice is made again."""
+    from lenn_ros.fit import build
+    from lenn_ros.fit.build import format_report
+
+    u, y = cubic_plant(3000, 0)
+    report = fit(Data(u, y, "lazy"), 2001)["report"]
+    listed = report["choices"]["candidates"]
+    chosen = listed[report["choices"]["chosen"]]
+    targets = [c for c in listed if c.get("refinement")]
+    assert len(targets) == build.REFINED_CANDIDATES
+    assert chosen["refinement"]["applied"] is True and np.isfinite(chosen["refinement"]["rmse_training_after"])
+    others = [c for c in targets if c is not chosen]
+    assert others and all(c["refinement"]["applied"] is False for c in others)
+    assert "not applied: not chosen" in format_report(report)
+
+    real, finalised = build.refine_on_folds, []
+
+    def first_one_undone(candidate, record, histories, iterations=refinement.ITERATIONS):
+        result = real(candidate, record, histories, iterations)
+        finalised.append((candidate.spec.family, candidate.spec.lags, candidate.spec.degree))
+        if len(finalised) == 1:  # as if its soundness check had undone every iteration, and worse
+            result.rmse_blocks_after *= 10.0
+        return result
+
+    monkeypatch.setattr(build, "refine_on_folds", first_one_undone)
+    report = fit(Data(u, y, "lazy"), 2001)["report"]
+    listed = report["choices"]["candidates"]
+    chosen = listed[report["choices"]["chosen"]]
+    assert len(finalised) == 2 and finalised[0] != finalised[1]
+    assert (chosen["family"], chosen["y_lags"], chosen["degree"]) == finalised[1]
+    assert [c["refinement"]["applied"] for c in listed if c.get("refinement")].count(True) == 2
+
+
+def test_a_fold_refines_on_the_samples_nearest_its_block_at_most_max_fold_training() -> None:
+    """Long records' folds refine on MAX_FOLD_TRAINING samples around their block, short ones on all the others."""
+    cap = refinement.MAX_FOLD_TRAINING
+    blocks = fold_blocks(5 * cap, 1)
+    for fold, (a, b) in enumerate(blocks):
+        pieces = refinement._training_pieces(blocks, fold, 5 * cap)
+        assert sum(stop - start for start, stop in pieces) == cap
+        assert all(stop <= a or start >= b for start, stop in pieces)  # never the block itself
+        assert all(stop == a or start == b for start, stop in pieces)  # adjacent to it
+    assert refinement._training_pieces(blocks, 2, 5 * cap) == [(blocks[2][0] - cap // 2, blocks[2][0]),
+                                                               (blocks[2][1], blocks[2][1] + cap // 2)]  # fmt: skip
+    short = fold_blocks(3000, 1)
+    assert refinement._training_pieces(short, 1, 3000) == [(0, short[1][0]), (short[1][1], 3000)]

@@ -57,7 +57,7 @@ from lenn_ros.core.scaling import DEFAULT_MARGIN, ranges
 from lenn_ros.core.structure import Identifier
 from lenn_ros.fit.data import REPORT_FILE, Data, FitError
 from lenn_ros.fit.families import INCREMENT_LAGS, candidate_specs, pass_through_weights
-from lenn_ros.fit.refinement import fold_history, refine_on_folds
+from lenn_ros.fit.refinement import Refinement, blocks_choice, fold_history, refine_on_folds
 from lenn_ros.fit.selection import (
     NONLINEAR_GAIN,
     PARSIMONY,
@@ -436,31 +436,53 @@ def _refine_outputs(fits: list[OutputFit], say: Any, workers: int) -> None:
     then choose again among them and the input-only ones (:func:`_after_refinement`).
 
     Refinement can reorder candidates (a hinge model that least squares left behind may
-    simulate best once refined). Every output's candidates are refined side by side in
-    one pool of ``workers`` threads, so no core waits for the output with the most to refine.
+    simulate best once refined), so every target's blocks are refined, side by side in one
+    pool of ``workers`` threads (a candidate's blocks are independent: three candidates on two
+    cores by candidate left one idle for a third of Bouc-Wen's refinement). The blocks' pooled
+    error after the count they choose is each target's score. Only the candidate that then
+    leads is refined on all its samples (:func:`~lenn_ros.fit.refinement.refine_on_folds`);
+    if its soundness check undoes iterations, its score rises and the choice is made again,
+    until the leader is one refined on all samples. The others keep their least-squares
+    weights and the blocks' figure, reported as not applied: refining all samples of a model
+    that is not used cost Bouc-Wen 3 s.
     """
     targets = [(fitted, candidate) for fitted in fits for candidate in refinement_targets(fitted.candidates)]
     for fitted, candidate in targets:
         named = f"output {fitted.name}: " if len(fits) > 1 else ""
         say(f"{named}refining {candidate.spec.label} ({candidate.terms} terms) on simulation error")
-    # every candidate's blocks side by side, then each candidate's refinement of all samples: a candidate's
-    # blocks are independent, and one pool of them keeps both cores busy (three candidates on two cores by
-    # candidate left one idle for a third of Bouc-Wen's refinement)
     blocks = [(fitted, candidate, fold) for fitted, candidate in targets for fold in range(len(candidate.fold_weights))]
     histories = list(side_by_side(lambda job: fold_history(job[1], job[0].record, job[2]), blocks, workers))
-    results = side_by_side(
-        lambda pair: refine_on_folds(
-            pair[1], pair[0].record, [h for (_, c, _), h in zip(blocks, histories, strict=True) if c is pair[1]]
-        ),
-        targets,
-        workers,
-    )
-    for (_fitted, candidate), result in zip(targets, results, strict=True):
-        candidate.refinement = result.as_dict()
-        candidate.rmse_validation = result.rmse_blocks_after
+    history_of = {
+        id(candidate): [h for (_, c, _), h in zip(blocks, histories, strict=True) if c is candidate]
+        for _, candidate in targets
+    }
+    for _fitted, candidate in targets:
+        _score_refinement(candidate, blocks_choice(history_of[id(candidate)]))
+    while leaders := [
+        (fitted, leader)
+        for fitted in fits
+        for leader in _contenders(fitted, targets)[:1]
+        if not (leader.refinement or {}).get("applied", True)
+    ]:
+        results = side_by_side(
+            lambda pair: refine_on_folds(pair[1], pair[0].record, history_of[id(pair[1])]), leaders, workers
+        )
+        for (_fitted, candidate), result in zip(leaders, results, strict=True):
+            _score_refinement(candidate, result)
     for fitted in fits:
-        refined = [candidate for owner, candidate in targets if owner is fitted]
-        fitted.chosen, fitted.refinement = _after_refinement(fitted.candidates, refined)
+        fitted.chosen, fitted.refinement = _after_refinement(fitted.candidates, _contenders(fitted, targets))
+
+
+def _score_refinement(candidate: Candidate, result: Refinement) -> None:
+    """Record what the refinement did (or what the blocks chose) as the candidate's score."""
+    candidate.refinement = result.as_dict()
+    candidate.rmse_validation = result.rmse_blocks_after
+
+
+def _contenders(fitted: OutputFit, targets: list[tuple[OutputFit, Candidate]]) -> list[Candidate]:
+    """An output's refined and input-only candidates, in the order :func:`_after_refinement` would choose."""
+    refined = [candidate for owner, candidate in targets if owner is fitted]
+    return order_candidates(refined + [c for c in fitted.candidates if c.model is not None and c.spec.family == "fir"])
 
 
 def _coupled_specs(alone: OutputFit, n: int, columns: int) -> list:
@@ -547,15 +569,14 @@ def refinement_targets(candidates: list[Candidate]) -> list[Candidate]:
     return [c for c in candidates if c.model is not None and c.spec.family != "fir"][:REFINED_CANDIDATES]
 
 
-def _after_refinement(candidates: list[Candidate], refined: list[Candidate]) -> tuple[Candidate, dict[str, Any]]:
-    """Choose again among the refined candidates and the input-only ones, with the same rules
-    (:func:`order_candidates`); the report's list puts them first, the chosen one leading. An
-    input-only model (``fir``) is never refined, nor does it take a refinement's place: its least
-    squares already minimise its simulation error (its free run is its one-step prediction)."""
-    contenders = refined + [c for c in candidates if c.model is not None and c.spec.family == "fir"]
+def _after_refinement(candidates: list[Candidate], contenders: list[Candidate]) -> tuple[Candidate, dict[str, Any]]:
+    """Choose again among the refined candidates and the input-only ones (``contenders``, as :func:`_contenders`
+    orders them); the report's list puts them first, the chosen one leading. An input-only model
+    (``fir``) is never refined, nor does it take a refinement's place: its least squares already
+    minimise its simulation error (its free run is its one-step prediction)."""
     for candidate in contenders:
         candidates.remove(candidate)
-    candidates[:0] = order_candidates(contenders)
+    candidates[:0] = contenders
     chosen = candidates[0]
     return chosen, {"done": True, **(chosen.refinement or {"iterations": 0, "tried": 0, "input_only": True})}
 
@@ -1378,7 +1399,9 @@ def _candidate_lines(choices: dict[str, Any], indent: str = "  ") -> list[str]:
         shown = f"free-run RMSE {value:.5g}" if value is not None else f"rejected: {candidate['rejected']}"
         if candidate.get("note"):
             shown += f" ({candidate['note']})"
-        if candidate.get("refinement"):
+        if candidate.get("refinement", {}).get("applied", True) is False:
+            shown += f", the blocks chose {candidate['refinement']['iterations']} refinements (not applied: not chosen)"
+        elif candidate.get("refinement"):
             shown += f", refined {candidate['refinement']['iterations']}x"
         lines.append(
             f"{indent} {mark} {candidate['family']} degree {candidate['degree']}, lags {candidate['y_lags']}/"

@@ -2,6 +2,7 @@
 
     python bench/joint_study.py                    # 200 Hz, 5 seeds, every joint variant
     python bench/joint_study.py --period 0.001     # 1 kHz
+    python bench/joint_study.py --apart            # the test third recorded as a run of its own
 
 A pendulum joint in radians (``paper.physical.FrictionJoint``: gravity, viscous and
 Coulomb friction, stiction) under torque steps of +-2 N m (commands at 50 Hz, levels
@@ -11,6 +12,8 @@ three times larger), a horizontal one (no gravity: the angle drifts with the tor
 integral), a light one (half the inertia). 40 s at the rate given; the first two thirds
 build the model with ``fit``'s defaults, the last third is simulated from its measured
 start. The figures are the report's own (one-step and free-run NMSE over the test part).
+``--apart``: the test third is another run (seed + 100, from rest at angle 0) appended to
+the build part, as a benchmark file or two joined recordings have it.
 """
 
 from __future__ import annotations
@@ -55,6 +58,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seconds", type=float, default=40.0)
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--variants", default=",".join(VARIANTS))
+    parser.add_argument("--apart", action="store_true", help="the test third recorded as a run of its own")
     args = parser.parse_args(argv)
     print(f"| joint ({1 / args.period:.0f} Hz, {args.seconds:.0f} s) | one-step NMSE dB, mean (min..max) | "
           "free-run NMSE dB, mean (min..max) | fit time s, mean | models chosen |")  # fmt: skip
@@ -63,8 +67,12 @@ def main(argv: list[str] | None = None) -> int:
         one, free, seconds, models = [], [], [], []
         for seed in range(args.seeds):
             u, y = record(variant, args.period, args.seconds, seed)
+            test_from = len(y) * 2 // 3 + 1
+            if args.apart:
+                u_test, y_test = record(variant, args.period, args.seconds / 3, seed + 100)
+                u, y = np.r_[u[: test_from - 1], u_test], np.r_[y[: test_from - 1], y_test]
             began = time.perf_counter()
-            report = fit(Data(u, y, f"{variant} seed {seed}"), len(y) * 2 // 3 + 1)["report"]
+            report = fit(Data(u, y, f"{variant} seed {seed}"), test_from)["report"]
             seconds.append(time.perf_counter() - began)
             one.append(report["nmse_db"])
             free.append(report["nmse_free_run_db"])

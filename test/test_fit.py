@@ -823,6 +823,15 @@ def test_a_test_part_recorded_apart_is_seeded_by_its_own_samples_and_said() -> N
     assert report["free_run"]["test_record_of_its_own"] == ""
     assert report["free_run"]["not_simulated"] == 0
     assert report["free_run"]["starts_from"] == "measured outputs before sample 3001"
+    # several outputs: the same rule over each output's view, one seed for the joint free run
+    u2, y2 = cubic_plant(4000, 50)
+    u = np.c_[np.r_[u_build, u_test], u2]
+    y = np.c_[np.r_[y_build, y_test], y2 + 0.3 * np.r_[y_build, y_test]]
+    report = fit(Data(u, y, "joined, two outputs"), 3001, refine=False)["report"]
+    assert "record of its own" in report["free_run"]["test_record_of_its_own"]
+    window = report["free_run"]["not_simulated"]
+    assert window > 0 and np.all(np.isnan(report["y_free_test"][:window]))
+    assert all(part["rmse_free_run"] < 0.01 for part in report["per_output"])
 
 
 def test_only_the_leader_is_refined_on_all_samples_and_a_leader_that_loses_its_lead_is_replaced(monkeypatch) -> None:

@@ -765,7 +765,8 @@ def score(
         if b - a > window:
             y_hat[a:b] = identifier.run(run_u[a:b], run_y[a:b], learn=False).reshape(b - a, -1)
     views = [np.column_stack([y, u])[:, c] for c in columns]
-    record_of_its_own = "" if start in cuts else separate_test_record(models, views, start, cuts)
+    seedable = start not in cuts and len(y) - start > 2 * window  # its own seed leaves most of it to score
+    record_of_its_own = separate_test_record(models, views, start, cuts) if seedable else ""
     if record_of_its_own:  # the test part is seeded by its own first samples, as after a gap
         y_hat[start : start + window] = np.nan
         cuts = sorted([*cuts, start])

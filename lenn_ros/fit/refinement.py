@@ -47,9 +47,9 @@ PATIENCE = 6
 #: (the refinement's cost is iterations x weights x samples free-run steps)
 MAX_REFINED_SAMPLES = 30_000
 #: samples each fold refines on, the nearest its block: the count the blocks choose is as well determined by
-#: 16 000 samples as by 32 000 (Bouc-Wen: the same 15 iterations, the same test figure; the Silverbox: 10
-#: iterations for 15, the same test figure to 4 digits), at half and a quarter of the time
-MAX_FOLD_TRAINING = 16_000
+#: 12 000 samples as by 32 000 (Bouc-Wen: the same 15 iterations, the same test figure; the Silverbox: 9
+#: iterations for 15, the same test figure to 4 digits), at a third and a sixth of the time
+MAX_FOLD_TRAINING = 12_000
 
 
 @dataclass

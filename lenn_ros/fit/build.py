@@ -764,8 +764,9 @@ def score(
     for a, b in itertools.pairwise([0, *cuts, len(y)]):
         if b - a > window:
             y_hat[a:b] = identifier.run(run_u[a:b], run_y[a:b], learn=False).reshape(b - a, -1)
-    views = [np.column_stack([y, u])[:, c] for c in columns]
+    values = np.column_stack([y, u])
     seedable = start not in cuts and len(y) - start > 2 * window  # its own seed leaves most of it to score
+    views = [values[:, c] for c in columns]
     record_of_its_own = separate_test_record(models, views, start, cuts) if seedable else ""
     if record_of_its_own:  # the test part is seeded by its own first samples, as after a gap
         y_hat[start : start + window] = np.nan
@@ -782,7 +783,6 @@ def score(
     }
     healthy = not info["diverged"]
     per_output = []
-    values = np.column_stack([y, u])
     for j, (name, model) in enumerate(zip(data.y_names, models, strict=True)):
         y_test, free, one_step = y[start:, j], y_free[:, j], y_hat[start:, j]
         simulated, predicted = np.isfinite(free), np.isfinite(one_step)

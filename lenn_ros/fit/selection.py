@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import itertools
 import math
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterable, Iterator, Sized
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -1014,40 +1014,39 @@ def select_structure(
     and the kernels release the GIL); the verdicts and ``progress`` come in the grid's order.
     """
     specs = specs if specs is not None else candidate_specs(record.n, layout.n_columns)
-    designs = _designs(specs, record, layout)
-    if workers <= 1 or len(specs) <= 1:
-        judged = {spec: evaluate_candidate(spec, record, layout, design) for spec, design in designs}
-        candidates = [judged[spec] for spec in specs]
-        for candidate in candidates if progress else ():
-            progress(candidate)
-        return order_candidates(candidates)
-    from concurrent.futures import ThreadPoolExecutor
-
-    # the designs are built on this thread while the pool judges those already built: building them
-    # first was 1.7 of Bouc-Wen's 9.4 s of selection with both cores but one idle
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        pending = {spec: pool.submit(evaluate_candidate, spec, record, layout, design) for spec, design in designs}
-        candidates = []
-        for spec in specs:
-            candidates.append(pending.pop(spec).result())
+    # the designs are built on this thread while the pool judges those already built (building them all
+    # first was 1.7 of Bouc-Wen's 9.4 s of selection, with both cores but one idle); they come in the
+    # designs' order, and are told in the grid's as soon as each one's predecessors are in
+    judged = side_by_side(
+        lambda job: evaluate_candidate(job[0], record, layout, job[1]), _designs(specs, record, layout), workers
+    )
+    done: dict[Spec, Candidate] = {}
+    candidates: list[Candidate] = []
+    for candidate in judged:
+        done[candidate.spec] = candidate
+        while len(candidates) < len(specs) and specs[len(candidates)] in done:
+            candidates.append(done.pop(specs[len(candidates)]))
             if progress:
                 progress(candidates[-1])
     return order_candidates(candidates)
 
 
-def side_by_side(work: Callable, items: list, workers: int) -> Iterator:
+def side_by_side(work: Callable, items: Iterable, workers: int) -> Iterator:
     """``work(item)`` for each item on up to ``workers`` threads, yielded in the items' order as each is done.
 
     The selection's heavy parts (compiled free runs, the feature expansion, one-thread
     BLAS) release the GIL, so independent candidates, outputs or refinements use every
-    core; with one worker (or one item) everything runs on this thread.
+    core; with one worker (or one item) everything runs on this thread. ``items`` may be
+    a generator: the pool takes each item as this thread makes it, so making the next
+    overlaps with the work on those before.
     """
-    if workers <= 1 or len(items) <= 1:
+    if workers <= 1 or (isinstance(items, Sized) and len(items) <= 1):
         yield from (work(item) for item in items)
         return
     from concurrent.futures import ThreadPoolExecutor
 
-    with ThreadPoolExecutor(max_workers=min(workers, len(items))) as pool:
+    count = len(items) if isinstance(items, Sized) else workers
+    with ThreadPoolExecutor(max_workers=min(workers, count)) as pool:
         yield from pool.map(work, items)
 
 

@@ -442,6 +442,7 @@ def test_input_only_prefixes_score_from_their_predictions_as_the_free_runs_do(mo
         if spec.family == "fir":  # failures compared too, the loose rule's on the count of clipped inputs
             assert "held-out free run left the training range" in rows_loose_why
         prefixes = by_rows.fallback[0]
+        prefixes.design = design  # released once scored: every input-only prefix is gathered below
         warm = prefixes.base.warm_up
         pieces = _block_pieces(record, prefixes.folds.blocks, warm)
         source, lag, offset, scale = prefixes.base.layout.arrays()

@@ -311,20 +311,25 @@ def checked_factors(factors: np.ndarray | None, n_terms: int, n_inputs: int) -> 
 
 
 def term_features(
-    x: np.ndarray, exponents: np.ndarray, basis: str = "legendre", factors: np.ndarray | None = None
+    x: np.ndarray,
+    exponents: np.ndarray,
+    basis: str = "legendre",
+    factors: np.ndarray | None = None,
+    order: str = "C",
 ) -> np.ndarray:
     """Columns prod_i P_{e_ti}(x_i) [* g_t(b_t + w_t . x)] for each exponent row (x already in [-1, 1]).
 
     Compiled (:func:`kernels.term_expansion`) for the polynomial bases when numba
     compiles, bit for bit :func:`term_features_reference` (test_offline_speed checks it): numpy
     makes one pass over the batch per degree and per term, several times the cost of
-    the arithmetic, and this expansion is most of an offline run's time.
+    the arithmetic, and this expansion is most of an offline run's time. ``order="F"``: the
+    columns contiguous, for a caller that picks columns (``fit``'s ranked terms out of hundreds).
     """
     x, exponents = _checked_terms(x, exponents, basis)
     factors = checked_factors(factors, exponents.shape[0], x.shape[1])
     if not (kernels.JIT and basis in COMPILED_BASES):
-        return term_features_reference(x, exponents, basis, factors)
-    features = np.empty((x.shape[0], exponents.shape[0]))
+        return np.asarray(term_features_reference(x, exponents, basis, factors), order=order)
+    features = np.empty((x.shape[0], exponents.shape[0]), order=order)
     code = kernels.BASIS_CODES[basis]
     kernels.term_expansion(np.ascontiguousarray(x), np.ascontiguousarray(exponents), code, factors, features)
     return features

@@ -1009,8 +1009,8 @@ def term_expansion(x: np.ndarray, exponents: np.ndarray, basis: int, factors: np
     for k0 in range(0, n_samples, EXPANSION_BLOCK):
         count = min(EXPANSION_BLOCK, n_samples - k0)
         _expand_block(x, k0, count, plan, factors, basis, table, phi)
-        for b in range(count):
-            for t in range(exponents.shape[0]):
+        for t in range(exponents.shape[0]):  # term by term: contiguous runs in a column-major ``out`` too
+            for b in range(count):
                 out[k0 + b, t] = phi[t, b]
 
 

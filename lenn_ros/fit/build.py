@@ -371,7 +371,6 @@ def _fit_outputs(
     n_y, n_u = data.n_y, data.n_u
     single = n_u == 1 and n_y == 1
     values = np.column_stack([y, u])
-    kinds = ["own"] if n_y == 1 else ["own", "coupled"]
 
     def view(j: int, kind: str, alone: OutputFit | None, said: list[str]) -> OutputFit:
         others = [k for k in range(n_y) if k != j] if kind == "coupled" else []
@@ -392,27 +391,17 @@ def _fit_outputs(
         fitted.columns = where
         return fitted
 
-    def one(j: int) -> tuple[list[OutputFit], list[str]]:
-        """Output j's view of its own past, then (several outputs) the view with the others' past too: one
-        task, so no core waits for the slowest output between the two."""
-        said: list[str] = []
-        alone = view(j, "own", None, said)
-        return [alone] + ([view(j, "coupled", alone, said)] if n_y > 1 else []), said
-
-    fits: dict[str, list[OutputFit]] = {kind: [] for kind in kinds}
-    for both, said in side_by_side(one, list(range(n_y)), cores()):
-        for line in said:
-            say(line)
-        for kind, fitted in zip(kinds, both, strict=True):
-            fits[kind].append(fitted)
     if n_y == 1:
-        return fits["own"], {}
-    scores = {
-        kind: joint_block_score(
-            [f.chosen for f in fits[kind]], [f.columns for f in fits[kind]], values, np.asarray(breaks)
-        )
-        for kind in kinds
-    }
+        said: list[str] = []
+        fitted = view(0, "own", None, said)
+        for line in said:  # several inputs: which it reads
+            say(line)
+        return [fitted], {}
+
+    def together(fits: list[OutputFit]) -> tuple[float, list[float]]:
+        return joint_block_score([f.chosen for f in fits], [f.columns for f in fits], values, np.asarray(breaks))
+
+    fits, scores = _views_side_by_side(n_y, view, together, say)
     own, coupled = scores["own"][0], scores["coupled"][0]
     kind = "coupled" if coupled < (1.0 - NONLINEAR_GAIN) * own else "own"
     say(f"outputs together on the blocks: mean NMSE {own:.4g} reading only their own past, {coupled:.4g} "
@@ -429,6 +418,79 @@ def _fit_outputs(
         },
     }
     return fits[kind], coupling
+
+
+def _views_side_by_side(
+    n_y: int, view: Any, together: Any, say: Any
+) -> tuple[dict[str, list[OutputFit]], dict[str, tuple[float, list[float]]]]:
+    """Every output's two views on the machine's cores, and each kind's :func:`joint_block_score`.
+
+    An output's view with the others' past is offered the structures that served it alone, so
+    it waits for its own view. The twelve views of a six-joint robot are queued one by one as
+    a core frees (:class:`_ViewQueue`); six pairs as tasks left a core idle at the end for the
+    length of one output's two views. What each output says is printed in order, as soon as
+    both its views are done.
+    """
+    from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+
+    queue, workers = _ViewQueue(n_y, view, together), cores()
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        pending: dict[Any, tuple[str, int]] = {}
+        while True:
+            while len(pending) < workers and (task := queue.next_task()) is not None:
+                pending[pool.submit(*task[0])] = task[1]
+            if not pending:
+                break
+            done, _ = wait(pending, return_when=FIRST_COMPLETED)
+            for future in done:
+                queue.finished(pending.pop(future), future.result())
+            queue.tell(say)
+    queue.scores["coupled"] = together(queue.fits["coupled"])
+    return queue.fits, queue.scores
+
+
+class _ViewQueue:
+    """What :func:`_views_side_by_side` starts next: an output's second view as soon as its first is done,
+    else the next output's first, and the own views' joint score as soon as all of those are in (beside
+    the remaining views, not after them). On one core: the outputs in order, both views each."""
+
+    def __init__(self, n_y: int, view: Any, together: Any) -> None:
+        self.n_y, self.view, self.together = n_y, view, together
+        self.said: list[list[str]] = [[] for _ in range(n_y)]
+        self.fits: dict[str, list[Any]] = {"own": [None] * n_y, "coupled": [None] * n_y}
+        self.scores: dict[str, Any] = {}
+        self.ready: list[int] = []  # outputs whose own view is done and whose other view has not started
+        self.started = self.told = 0
+
+    def next_task(self) -> tuple[tuple, tuple[str, int]] | None:
+        """(the call, its tag) of the next task that can start, or None."""
+        if "own" not in self.scores and all(f is not None for f in self.fits["own"]):
+            self.scores["own"] = None  # started
+            return (self.together, self.fits["own"]), ("score", -1)
+        if self.ready:
+            j = self.ready.pop(0)
+            return (self.view, j, "coupled", self.fits["own"][j], self.said[j]), ("coupled", j)
+        if self.started < self.n_y:
+            j = self.started
+            self.started += 1
+            return (self.view, j, "own", None, self.said[j]), ("own", j)
+        return None
+
+    def finished(self, tag: tuple[str, int], result: Any) -> None:
+        kind, j = tag
+        if kind == "score":
+            self.scores["own"] = result
+            return
+        self.fits[kind][j] = result
+        if kind == "own":
+            self.ready.append(j)
+
+    def tell(self, say: Any) -> None:
+        """Print what the outputs whose views are all done said, in order."""
+        while self.told < self.n_y and self.fits["coupled"][self.told] is not None:
+            for line in self.said[self.told]:
+                say(line)
+            self.told += 1
 
 
 def _refine_outputs(fits: list[OutputFit], say: Any, workers: int) -> None:

@@ -432,7 +432,8 @@ def _average_terms(built: _Builder, x: np.ndarray, start: int, span: int) -> Non
     ``span`` newest lags scaled to unit spread."""
     w = np.zeros(x.shape[1])
     w[start : start + span] = 1.0 / span
-    spread = float(np.std(x @ w)) or 1.0
+    # over the span's own columns: the whole row of a 65-lag view is 455 inputs, a pass over all of them each time
+    spread = float(np.std(x[:, start : start + span] @ w[start : start + span])) or 1.0
     w /= spread
     built.add(None, "tanh", w)
     built.add(None, "sqabs", w)

@@ -471,16 +471,20 @@ class Folds:
     block_moments: list[np.ndarray]
 
     @classmethod
-    def of(cls, features: np.ndarray, targets: np.ndarray, rows: np.ndarray, blocks, warm_up: int) -> Folds:
+    def of(
+        cls, features: np.ndarray, targets: np.ndarray, rows: np.ndarray, blocks, warm_up: int,
+        normal: tuple[np.ndarray, np.ndarray] | None = None,
+    ) -> Folds:  # fmt: skip
         """``rows``: the sample each row predicts; a block drops the rows predicting its samples and the
-        ``warm_up`` after it (their regressors hold the block's measured outputs)."""
+        ``warm_up`` after it (their regressors hold the block's measured outputs). ``normal``: (Gram, moment)
+        of all rows when already at hand (the design's, cut to these columns: half the work otherwise)."""
         grams, moments = [], []
         for a, b in blocks:
             low, high = np.searchsorted(rows, [a, b + warm_up])  # rows come in the order of what they predict
             f = features[low:high]
             grams.append(f.T @ f)
             moments.append(f.T @ targets[low:high])
-        gram, moment = features.T @ features, features.T @ targets
+        gram, moment = normal if normal is not None else (features.T @ features, features.T @ targets)
         return cls(list(blocks), gram, moment, grams, moments)
 
     def __post_init__(self) -> None:
@@ -759,7 +763,8 @@ class Design:
         layout = layout.with_lags(spec.lags)
         x, targets, predicted = inputs if inputs is not None else valid_inputs(record, layout)
         dictionary = spec.dictionary(x)
-        features = term_features(x, dictionary.exponents, "legendre", dictionary.factors)
+        # column-major: each candidate gathers its ranked columns (a few dozen of hundreds) as contiguous copies
+        features = term_features(x, dictionary.exponents, "legendre", dictionary.factors, order="F")
         targets = targets - dictionary.pass_through(x, layout)
         return cls(dictionary, features, targets, predicted, features.T @ features, features.T @ targets,
                    float(targets @ targets))  # fmt: skip
@@ -794,12 +799,11 @@ def evaluate_candidate(spec: Spec, record: Record, layout: Layout, design: Desig
     if not ranked:
         candidate.rejected = "no usable term"
         return candidate
-    features = design.features[:, ranked]
-    folds = Folds.of(features, design.targets, design.predicted, fold_blocks(record.n, warm), warm)
-    prefixes = Prefixes(base, dictionary, ranked, folds, features, design.predicted)
+    prefixes = Prefixes(base, dictionary, ranked, design, fold_blocks(record.n, warm))
     scores, loose_scores, reasons, loose_reasons = _score_prefixes(prefixes, record)
     _choose_prefix(candidate, prefixes, record, scores if strict else loose_scores,
                    reasons if strict else loose_reasons, strict)  # fmt: skip
+    prefixes.design = None  # every prefix scored is gathered; the design (N x all terms) need not outlive this
     candidate.fallback = (prefixes, loose_scores, loose_reasons)
     return candidate
 
@@ -835,11 +839,15 @@ class Prefixes:
     base: TermModel
     dictionary: Dictionary
     ranked: list[int]
-    folds: Folds
-    features: np.ndarray  # the ranked terms' features over the design's rows
-    predicted: np.ndarray  # the sample each row predicts
+    design: Design | None  # where the ranked terms' features are gathered from, while prefixes are scored
+    blocks: list[tuple[int, int]]
+    #: the first ranked terms' features over the design's rows, and their normal equations per fold
+    features: np.ndarray = field(init=False, repr=False)
+    folds: Folds = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
+        self.predicted = self.design.predicted  # the sample each row predicts
+        self._gather(min(len(self.ranked), 2 * PATIENCE))
         d, n = self.dictionary, self.base.layout.n_inputs
         lags = self.base.layout.lags
         reading = terms_reading_output(d.exponents[self.ranked], d.factors[self.ranked], lags)
@@ -855,6 +863,23 @@ class Prefixes:
             self.passing = np.array([self.base.layout.y_offset, self.base.layout.y_scale])
         self.rows, self.factor_rows = rows, factors
 
+    def _gather(self, width: int) -> None:
+        """The first ``width`` ranked terms' features and folds.
+
+        Gathered as they are needed, not all ranked terms at once: scoring stops PATIENCE
+        prefixes past the best, typically near 20 of up to 80, and a gather of 80 columns of a
+        40 000-row design into fresh memory was a tenth of a six-joint robot's selection.
+        """
+        design, columns = self.design, self.ranked[:width]
+        self.features = design.features[:, columns]  # column-major: contiguous copies
+        normal = (design.gram[np.ix_(columns, columns)], design.moment[columns])
+        self.folds = Folds.of(self.features, design.targets, design.predicted, self.blocks, self.base.warm_up, normal)
+
+    def reach(self, m: int) -> None:
+        """Gather (doubling) until prefix ``m``'s terms are at hand."""
+        if m > self.features.shape[1]:
+            self._gather(min(len(self.ranked), max(m, 2 * self.features.shape[1])))
+
     def arrays(self, m: int) -> tuple[np.ndarray, np.ndarray]:
         """(exponents, factors) of prefix ``m`` as scored (the pass-through appended)."""
         keep = np.concatenate([np.arange(m), np.arange(len(self.ranked), len(self.rows))])
@@ -863,6 +888,7 @@ class Prefixes:
 
     def fold_weights(self, m: int) -> np.ndarray | None:
         """Each block's least-squares weights of prefix ``m`` as scored, one row per block (None: singular)."""
+        self.reach(m)
         weights = self.folds.all_weights(m)
         if weights is None:
             return None
@@ -902,7 +928,7 @@ def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], li
     Each prefix's blocks are simulated in one compiled call (:func:`kernels.simulate_pieces`),
     or for an input-only prefix read from its one-step predictions (:func:`runs_from_predictions`).
     """
-    base, blocks = prefixes.base, prefixes.folds.blocks
+    base, blocks = prefixes.base, prefixes.blocks
     warm = base.warm_up
     first, stop, group = _block_pieces(record, blocks, warm)
     width = base.layout.n_inputs

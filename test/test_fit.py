@@ -486,8 +486,10 @@ def test_a_prefix_refused_in_one_block_is_not_simulated_further_and_scores_the_s
     for spec in (Spec("polynomial", 3, 3), Spec("polynomial", 2, 2), Spec("hinge", 2, 2)):
         design = dict(_designs([spec], record, layout))[spec]
         prefixes = evaluate_candidate(spec, record, layout, design).fallback[0]
+        record.runs.clear()  # the runs already scored are kept: each prefix is simulated again below
         monkeypatch.setattr(kernels, "simulate_pieces", spy)
         early = _score_prefixes(prefixes, record)
+        record.runs.clear()
         monkeypatch.setattr(kernels, "simulate_pieces", everything)
         assert _score_prefixes(prefixes, record) == early
     assert any(stopped) and not all(stopped)
@@ -883,3 +885,77 @@ def test_a_fold_refines_on_the_samples_nearest_its_block_at_most_max_fold_traini
                                                                (blocks[2][1], blocks[2][1] + cap // 2)]  # fmt: skip
     short = fold_blocks(3000, 1)
     assert refinement._training_pieces(short, 1, 3000) == [(0, short[1][0]), (short[1][1], 3000)]
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_the_views_of_several_outputs_wait_only_for_what_they_need_and_are_told_in_order(monkeypatch, workers) -> None:
+    """An output's view with the others' past starts after its own view, the own views' joint score after
+    all own views; on one core the outputs go in order, both views each; what each says comes in order."""
+    import threading
+
+    from lenn_ros.fit import build
+
+    monkeypatch.setattr(build, "cores", lambda: workers)
+    events: list[tuple[str, int]] = []
+    lock = threading.Lock()
+    own_done: set[int] = set()
+
+    def view(j: int, kind: str, alone, said: list[str]):
+        with lock:
+            events.append((kind, j))
+            if kind == "coupled":
+                assert alone == ("own", j) and j in own_done
+        said.append(f"{kind} {j}")
+        if kind == "own":
+            with lock:
+                own_done.add(j)
+        return (kind, j)
+
+    def together(fits):
+        with lock:
+            events.append(("score", len(fits)))
+            assert fits[0][0] == "own" or len(own_done) == 4
+        return (0.0, [0.0] * len(fits))
+
+    told: list[str] = []
+    fits, scores = build._views_side_by_side(4, view, together, told.append)
+    assert fits == {"own": [("own", j) for j in range(4)], "coupled": [("coupled", j) for j in range(4)]}
+    assert told == [f"{kind} {j}" for j in range(4) for kind in ("own", "coupled")]
+    assert set(scores) == {"own", "coupled"}
+    assert events.index(("score", 4)) > max(events.index(("own", j)) for j in range(4))
+    if workers == 1:  # the last own view's pair is split by the own views' score, which needs it and no more
+        in_order = [(kind, j) for j in range(4) for kind in ("own", "coupled")]
+        assert events == [*in_order[:7], ("score", 4), in_order[7], ("score", 4)]
+
+
+def test_a_prefix_already_simulated_is_not_simulated_again_and_scores_the_same(monkeypatch) -> None:
+    """A family's degrees at the same lags often rank the same first terms with the same weights: their
+    block runs are taken from the record's, bit for bit what simulating them gives."""
+    rng = np.random.default_rng(6)
+    n = 2000
+    u = np.convolve(rng.uniform(-1, 1, n), np.ones(3) / 3, mode="same")
+    y = np.zeros(n)
+    for k in range(2, n):
+        y[k] = 0.5 * y[k - 1] - 0.2 * y[k - 2] + u[k - 1]  # linear: every degree ranks its lags first
+    record = Record.of(siso_view(u, y + 0.01 * rng.standard_normal(n)))
+    layout = Layout.of(1, Scaling.from_training(u, y))
+    simulate = kernels.simulate_pieces
+    calls = []
+
+    def counted(*args) -> None:
+        calls.append(1)
+        simulate(*args)
+
+    monkeypatch.setattr(kernels, "simulate_pieces", counted)
+    specs = [Spec("polynomial", 3, degree) for degree in (1, 2, 3)]
+    candidates = [evaluate_candidate(spec, record, layout, design) for spec, design in _designs(specs, record, layout)]
+    simulated, kept = len(calls), len(record.runs)
+    assert 0 < kept == simulated  # every run simulated once, and kept once
+    scored = [_score_prefixes(c.fallback[0], record) for c in candidates]
+    assert len(calls) == simulated  # scored again: nothing simulated
+    alone = []
+    for candidate in candidates:  # each candidate on its own: what the selection did before runs were kept
+        record.runs.clear()
+        alone.append(_score_prefixes(candidate.fallback[0], record))
+    assert alone == scored
+    assert len(calls) - simulated > kept  # the degrees shared runs

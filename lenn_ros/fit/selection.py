@@ -36,6 +36,7 @@ from the measured outputs after it.
 
 from __future__ import annotations
 
+import hashlib
 import itertools
 import math
 from collections.abc import Callable, Iterable, Iterator, Sized
@@ -137,13 +138,23 @@ class Layout:
         c, lag = np.divmod(np.arange(self.n_inputs, dtype=np.int64), max(self.lags, 1))
         return c, lag, np.asarray(self.offsets)[c], np.asarray(self.scales)[c]
 
-    def regressors(self, view: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(network inputs x(k), unclipped, and the target: column 0 at k + 1) of every complete regressor."""
+    def regressors(self, view: np.ndarray, read: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(network inputs x(k), unclipped, and the target: column 0 at k + 1) of every complete regressor.
+
+        ``read``: only those network inputs, in that order (a model that reads a few of a long
+        span's hundreds of inputs: the same values, none of the rest written).
+        """
         view = np.asarray(view, dtype=np.float64).reshape(len(view), -1)
         n, first = len(view), self.warm_up - 1
         rows = max(n - 1 - first, 0)
-        x = np.empty((rows, self.n_inputs))
+        x = np.empty((rows, self.n_inputs if read is None else len(read)))
         if not rows:
+            return x, view[self.warm_up :, 0]
+        if read is not None:
+            for k, entry in enumerate(np.asarray(read, dtype=np.int64).tolist()):
+                c, i = divmod(entry, max(self.lags, 1))
+                np.subtract(view[first - i : n - 1 - i, c], self.offsets[c], out=x[:, k])
+                x[:, k] /= self.scales[c]
             return x, view[self.warm_up :, 0]
         for c in range(self.n_columns):  # written in place: a long span's inputs are hundreds of MB
             for i in range(self.lags):
@@ -228,9 +239,21 @@ class TermModel:
         return np.clip(x, -1.0, 1.0, out=x), targets
 
     def regression(self, view: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(features of every complete regressor, target y(k+1))."""
-        x, targets = self.inputs(view)
-        return term_features(x, self.exponents, self.basis, self.factors), targets
+        """(features of every complete regressor, target y(k+1)).
+
+        Over the inputs the terms read only: a model of a dozen terms over a 65-lag span of
+        seven columns reads a few dozen of its 455 inputs (the same features, bit for bit: the
+        expansion visits each term's inputs in order either way).
+        """
+        factors = self.factors
+        read = self.exponents.any(axis=0)
+        if len(factors):
+            read |= (factors[:, 2:] != 0.0).any(axis=0)
+        read = np.flatnonzero(read)
+        x, targets = self.layout.regressors(view, read)
+        np.clip(x, -1.0, 1.0, out=x)
+        narrow = factors[:, np.concatenate([[0, 1], 2 + read])] if len(factors) else None
+        return term_features(x, self.exponents[:, read], self.basis, narrow), targets
 
     def free_run(
         self, view: np.ndarray, start: int, weights: np.ndarray | None = None, bound: float = FREE_RUN_DIVERGENCE_BOUND
@@ -322,6 +345,9 @@ class Record:
 
     values: np.ndarray  # (N, columns): column 0 the output modelled, the others what it reads
     breaks: np.ndarray  # sample indices that start a new contiguous run (0 is implied)
+    #: the blocks' free runs of prefixes already scored, by the exact bits of what a run depends on
+    #: (:func:`_score_prefixes`): a family's degrees at the same lags often rank the same first terms
+    runs: dict = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
     def of(cls, values: np.ndarray, breaks: np.ndarray | list[int] | None = None) -> Record:
@@ -954,10 +980,15 @@ def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], li
             )  # fmt: skip
         else:
             exponents, factors = prefixes.arrays(m)
-            kernels.simulate_pieces(
-                record.values, first, stop, group, warm, source, lag, offset, scale, exponents, factors, weights,
-                kernels.BASIS_CODES[base.basis], FREE_RUN_DIVERGENCE_BOUND, out, clip_limit,
-            )  # fmt: skip
+            key = _run_key(warm, base.basis, exponents, factors, weights)
+            if (known := record.runs.get(key)) is not None:
+                out[:] = known
+            else:
+                kernels.simulate_pieces(
+                    record.values, first, stop, group, warm, source, lag, offset, scale, exponents, factors, weights,
+                    kernels.BASIS_CODES[base.basis], FREE_RUN_DIVERGENCE_BOUND, out, clip_limit,
+                )  # fmt: skip
+                record.runs[key] = out.copy()
         runs_of = [Simulation.of_row(row, width) for row in out]
         pooled = math.sqrt(float(out[:, 0].sum()) / float(out[:, 1].sum()))
         entry = (m, pooled, [run.rmse for run in runs_of])
@@ -972,6 +1003,16 @@ def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], li
         elif not scores and loose and loose[-1] is entry and pooled < lowest:
             best_m, lowest = m, pooled  # nothing strict yet: patience counts from the best loose prefix
     return scores, loose, reasons, loose_reasons
+
+
+def _run_key(warm: int, basis: str, *arrays: np.ndarray) -> tuple:
+    """What a prefix's block runs depend on besides the record, exactly (a digest of the bits: a long span's
+    terms are hundreds of inputs wide, thousands of prefixes are scored)."""
+    digest = hashlib.blake2b(digest_size=16)
+    for array in arrays:
+        digest.update(np.asarray(array.shape, dtype=np.int64).tobytes())
+        digest.update(np.ascontiguousarray(array).tobytes())
+    return warm, basis, digest.digest()
 
 
 def runs_from_predictions(

@@ -959,3 +959,10 @@ def test_a_prefix_already_simulated_is_not_simulated_again_and_scores_the_same(m
         alone.append(_score_prefixes(candidate.fallback[0], record))
     assert alone == scored
     assert len(calls) - simulated > kept  # the degrees shared runs
+    wider = Layout.of(1, Scaling.from_training(u, y, margin=0.5))  # the same record scaled otherwise
+    before = len(calls)
+    spec, design = next(iter(_designs(specs[:1], record, wider)))
+    again = evaluate_candidate(spec, record, wider, design)
+    fresh = Record.of(record.values)
+    assert len(calls) > before  # nothing taken from runs of another scaling
+    assert _score_prefixes(again.fallback[0], fresh) == _score_prefixes(again.fallback[0], record)

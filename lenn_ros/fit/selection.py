@@ -980,7 +980,7 @@ def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], li
             )  # fmt: skip
         else:
             exponents, factors = prefixes.arrays(m)
-            key = _run_key(warm, base.basis, exponents, factors, weights)
+            key = _run_key(warm, base.basis, source, lag, offset, scale, exponents, factors, weights)
             if (known := record.runs.get(key)) is not None:
                 out[:] = known
             else:
@@ -1006,8 +1006,9 @@ def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], li
 
 
 def _run_key(warm: int, basis: str, *arrays: np.ndarray) -> tuple:
-    """What a prefix's block runs depend on besides the record, exactly (a digest of the bits: a long span's
-    terms are hundreds of inputs wide, thousands of prefixes are scored)."""
+    """What a prefix's block runs depend on besides the record (its blocks follow from ``warm``): the
+    inputs' scaling and the terms and weights, exactly (a digest of the bits: a long span's terms are
+    hundreds of inputs wide, thousands of prefixes are scored)."""
     digest = hashlib.blake2b(digest_size=16)
     for array in arrays:
         digest.update(np.asarray(array.shape, dtype=np.int64).tobytes())

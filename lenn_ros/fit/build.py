@@ -458,14 +458,15 @@ class _ViewQueue:
         self.n_y, self.view, self.together = n_y, view, together
         self.said: list[list[str]] = [[] for _ in range(n_y)]
         self.fits: dict[str, list[Any]] = {"own": [None] * n_y, "coupled": [None] * n_y}
-        self.scores: dict[str, Any] = {}
+        self.scores: dict[str, tuple[float, list[float]]] = {}
         self.ready: list[int] = []  # outputs whose own view is done and whose other view has not started
         self.started = self.told = 0
+        self.scoring = False  # the own views' joint score has started
 
     def next_task(self) -> tuple[tuple, tuple[str, int]] | None:
         """(the call, its tag) of the next task that can start, or None."""
-        if "own" not in self.scores and all(f is not None for f in self.fits["own"]):
-            self.scores["own"] = None  # started
+        if not self.scoring and all(f is not None for f in self.fits["own"]):
+            self.scoring = True
             return (self.together, self.fits["own"]), ("score", -1)
         if self.ready:
             j = self.ready.pop(0)

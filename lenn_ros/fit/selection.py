@@ -156,7 +156,9 @@ class Layout:
                 np.subtract(view[first - i : n - 1 - i, c], self.offsets[c], out=x[:, k])
                 x[:, k] /= self.scales[c]
             return x, view[self.warm_up :, 0]
-        for c in range(self.n_columns):  # written in place: a long span's inputs are hundreds of MB
+        # every input: written in place (a long span's inputs are hundreds of MB), each column's lags divided as
+        # one block (a pass per input, as above: 0.13 s against 0.10 s for 455 inputs of 40 000 samples)
+        for c in range(self.n_columns):
             for i in range(self.lags):
                 np.subtract(view[first - i : n - 1 - i, c], self.offsets[c], out=x[:, c * self.lags + i])
             x[:, c * self.lags : (c + 1) * self.lags] /= self.scales[c]
@@ -233,9 +235,10 @@ class TermModel:
             factors = wide
         return TermModel(self.layout.with_lags(lags), exponents, self.basis, np.array(self.weights), factors)
 
-    def inputs(self, view: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(network inputs x(k) clipped to [-1, 1], target y(k+1)) of every complete regressor of ``view``."""
-        x, targets = self.layout.regressors(view)
+    def inputs(self, view: np.ndarray, read: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """(network inputs x(k) clipped to [-1, 1], target y(k+1)) of every complete regressor of ``view``
+        (``read``: those inputs only, :meth:`Layout.regressors`)."""
+        x, targets = self.layout.regressors(view, read)
         return np.clip(x, -1.0, 1.0, out=x), targets
 
     def regression(self, view: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -250,8 +253,7 @@ class TermModel:
         if len(factors):
             read |= (factors[:, 2:] != 0.0).any(axis=0)
         read = np.flatnonzero(read)
-        x, targets = self.layout.regressors(view, read)
-        np.clip(x, -1.0, 1.0, out=x)
+        x, targets = self.inputs(view, read)
         narrow = factors[:, np.concatenate([[0, 1], 2 + read])] if len(factors) else None
         return term_features(x, self.exponents[:, read], self.basis, narrow), targets
 
@@ -961,6 +963,8 @@ def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], li
     # a block that clips more than this fails both rules: the blocks after it cannot save the prefix
     clip_limit = LOOSE_CLIPPED_FRACTION * np.bincount(group, stop - first, len(blocks)) * width
     source, lag, offset, scale = base.layout.arrays()
+    # what a prefix's block runs depend on besides the record, its terms and weights (the blocks follow from warm)
+    scaled = (warm, base.basis, _digest(source, lag, offset, scale))
     scores, loose, reasons, loose_reasons = [], [], [], []
     best_m, lowest = 0, math.inf
     for m in range(1, len(prefixes.ranked) + 1):
@@ -980,7 +984,7 @@ def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], li
             )  # fmt: skip
         else:
             exponents, factors = prefixes.arrays(m)
-            key = _run_key(warm, base.basis, source, lag, offset, scale, exponents, factors, weights)
+            key = (scaled, _digest(exponents, factors, weights))
             if (known := record.runs.get(key)) is not None:
                 out[:] = known
             else:
@@ -1005,15 +1009,14 @@ def _score_prefixes(prefixes: Prefixes, record: Record) -> tuple[list[tuple], li
     return scores, loose, reasons, loose_reasons
 
 
-def _run_key(warm: int, basis: str, *arrays: np.ndarray) -> tuple:
-    """What a prefix's block runs depend on besides the record (its blocks follow from ``warm``): the
-    inputs' scaling and the terms and weights, exactly (a digest of the bits: a long span's terms are
-    hundreds of inputs wide, thousands of prefixes are scored)."""
+def _digest(*arrays: np.ndarray) -> bytes:
+    """The exact bits of ``arrays`` (shapes included), as a short key for :attr:`Record.runs`: a long span's
+    terms are hundreds of inputs wide, and thousands of prefixes are scored."""
     digest = hashlib.blake2b(digest_size=16)
     for array in arrays:
         digest.update(np.asarray(array.shape, dtype=np.int64).tobytes())
         digest.update(np.ascontiguousarray(array).tobytes())
-    return warm, basis, digest.digest()
+    return digest.digest()
 
 
 def runs_from_predictions(

@@ -116,7 +116,13 @@ NODE_PARAMETERS = [
         "max_delay", 0.0, "stamp/sample: seconds to wait for a late message (0 = 2 periods, >= 0.05 s)", 0.0, 3600.0
     ),
     Parameter("y_max_age", 0.0, "sample: reuse a y_p this old when no new one came (0 = never: a gap)", 0.0, 3600.0),
-    Parameter("max_skew", 0.25, "sequence: refuse a pair whose halves were published further apart (s)", 0.0, 3600.0),
+    Parameter(
+        "max_skew",
+        0.25,
+        "sequence: refuse a pair whose halves were published further apart, unless both came after the pair before (s)",
+        0.0,
+        3600.0,
+    ),
     Parameter(
         "max_clock_offset",
         0.0,

@@ -57,10 +57,6 @@ def test_node_starts_from_the_fitted_model_and_keeps_adapting(tmp_path: Path, do
         "identifier",
         f"weights_out:={tmp_path / 'after.npz'}",
         "wait_for_y_hat_subscribers:=1",
-        # the talker publishes from the test's own process: in a whole suite on a loaded machine it once
-        # stalled over the default 0.25 s between a sample's halves, and that pair was refused (misaligned,
-        # 599 of 600 learnt). The skew rule has its own tests; here every sample must arrive.
-        "max_skew:=5.0",
         params_file=Path(files["params"]),
     )
     try:

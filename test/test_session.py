@@ -258,6 +258,35 @@ def test_sequence_pairing_refuses_halves_published_apart(series) -> None:
     assert any("published 4.000 s apart" in notice.text for notice in live.take_notices())
 
 
+def test_a_lockstep_publisher_stalled_between_the_halves_is_still_one_sample(series) -> None:
+    """Descheduled 0.4 s between u(k) and y_p(k), a lockstep publisher is in turn: every pair learnt.
+
+    The skew alone cannot tell this from two streams that share indices; the turn can. The same
+    skew out of turn (a second stream, 5 ms slower per sample) is refused from the pair it passes
+    max_skew on, as before.
+    """
+    learned = []
+    for stalls in ((), (100, 200)):
+        live = session()
+        t = 0.0
+        for k in range(300):
+            live.offer(U, series.u[k], t, sequence=k + 1, source_time=t)
+            t += 0.4 if k in stalls else 0.001
+            live.offer(Y, series.y[k], t, sequence=k + 1, source_time=t)
+            t += 0.01
+        counters = live.all_counters()
+        assert counters["misaligned"] == 0, counters
+        learned.append(counters["learned"])
+    assert learned[0] == learned[1] > 250, learned
+    live = session()
+    for k in range(300):
+        live.offer(U, series.u[k], k * 0.01, sequence=k + 1, source_time=k * 0.01)
+        live.offer(Y, series.y[k], k * 0.015, sequence=k + 1, source_time=k * 0.015)
+    counters = live.all_counters()
+    # y_p(k) falls 5 ms a sample behind u(k): over max_skew (0.25 s) from k = 51 on, refused from there
+    assert counters["misaligned"] == 300 - 51, counters
+
+
 def _offer_lockstep(live: Session, series, first: int, count: int) -> list:
     samples = []
     for k in range(first, first + count):

@@ -22,8 +22,11 @@ Pairing modes (``SessionConfig.pairing``):
 - ``sequence``: u(k) and y_p(k) carry the same DDS publication sequence number
   because one node publishes both in lockstep (our simulator, replay). Refused, with
   the fix named, when the middleware gives no sequence numbers or the two halves of a
-  pair were published more than ``max_skew`` seconds apart (not one lockstep
-  publisher): garbage is never paired.
+  pair were published more than ``max_skew`` seconds apart *and* not in turn after the
+  pair before (not one lockstep publisher): garbage is never paired. A lockstep
+  publisher descheduled between u(k) and y_p(k) on a loaded machine publishes them far
+  apart, yet both after every half of sample k-1: that pair is one sample and is learnt.
+  Two streams that merely share indices fall out of turn within a few samples.
 - ``stamp``: header stamps within ``slop`` (:class:`~lenn_ros.core.alignment.StampAligner`).
 - ``sample``: a grid of ``sample_period`` with zero-order hold
   (:class:`~lenn_ros.core.alignment.GridSampler`).
@@ -247,6 +250,7 @@ class Session:
         self._first_seen: dict[str, float] = {}
         self._seen_dropped = 0
         self._seen_faults = 0  # sequence mode: stale + duplicate halves already said
+        self._last_sources: tuple[float, float] | None = None  # sequence mode: the last pair's (u, y) publish times
         self._seen_clipped = 0
         self._said_at_count: dict[str, int] = {}  # kinds said when their count doubles: the count then
         self._clipped_said_at = -math.inf
@@ -536,6 +540,7 @@ class Session:
         released = self.pairer.add(channel, int(sequence), (value, time, source_time))
         if self.pairer.counters["restarts"] != restarts:
             self.identifier.restart_stream()
+            self._last_sources = None
             self._say("restart", "sample indices started over (publisher restart): history reset")
         faults = self.pairer.counters["stale"] + self.pairer.counters["duplicates"]
         if released and faults > self._seen_faults:
@@ -547,13 +552,19 @@ class Session:
             self._say("dropped", f"{dropped} half(s) found no partner with the same index and were dropped")
         pairs = []
         for index, (u, _u_time, u_source), (y, y_time, y_source) in released:
-            skew = abs(u_source - y_source) if u_source is not None and y_source is not None else 0.0
-            if skew > self.config.max_skew:
+            if u_source is None or y_source is None:
+                pairs.append(Pair(index, y_time, u, y))
+                continue
+            skew = abs(u_source - y_source)
+            previous, self._last_sources = self._last_sources, (u_source, y_source)
+            in_turn = previous is not None and min(u_source, y_source) >= max(previous)
+            if skew > self.config.max_skew and not in_turn:
                 self.counters["misaligned"] += 1
                 self._say(
                     "misaligned",
                     f"{self.config.u_name}[{index}] and {self.config.y_name}[{index}] were published {skew:.3f} s "
-                    "apart: not one lockstep publisher, so equal indices are not one sample; refused, never learnt. "
+                    "apart and not both after the pair before: not one lockstep publisher, so equal indices are "
+                    "not one sample; refused, never learnt. "
                     "Use pairing:=sample sample_period:=T (or pairing:=stamp)",
                 )
                 pairs.append(Pair(index, y_time, math.nan, math.nan))

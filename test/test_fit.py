@@ -890,7 +890,9 @@ def test_a_fold_refines_on_the_samples_nearest_its_block_at_most_max_fold_traini
 @pytest.mark.parametrize("workers", [1, 2])
 def test_the_views_of_several_outputs_wait_only_for_what_they_need_and_are_told_in_order(monkeypatch, workers) -> None:
     """An output's view with the others' past starts after its own view, the own views' joint score after
-    all own views; on one core the outputs go in order, both views each; what each says comes in order."""
+    all own views; on one core the outputs go in order, both views each; what each says comes in order.
+    Work done ahead (the own views' refinement blocks) starts only when a core would wait, in its order."""
+    import functools
     import threading
 
     from lenn_ros.fit import build
@@ -900,11 +902,15 @@ def test_the_views_of_several_outputs_wait_only_for_what_they_need_and_are_told_
     lock = threading.Lock()
     own_done: set[int] = set()
 
+    ahead_ran = threading.Event()
+
     def view(j: int, kind: str, alone, said: list[str]):
         with lock:
             events.append((kind, j))
             if kind == "coupled":
                 assert alone == ("own", j) and j in own_done
+        if (kind, j) == ("coupled", 3) and workers == 2:  # the last view: the other core takes work ahead meanwhile
+            assert ahead_ran.wait(10), "no work was started ahead while a core waited"
         said.append(f"{kind} {j}")
         if kind == "own":
             with lock:
@@ -917,15 +923,29 @@ def test_the_views_of_several_outputs_wait_only_for_what_they_need_and_are_told_
             assert fits[0][0] == "own" or len(own_done) == 4
         return (0.0, [0.0] * len(fits))
 
+    def job(key: int):
+        with lock:
+            events.append(("ahead", key))
+            assert len(own_done) == 4 and ("score", 4) in events  # the own views and their score have started
+        ahead_ran.set()
+        return -key
+
+    def spare(own_fits):
+        assert own_fits == [("own", j) for j in range(4)]
+        return [(key, functools.partial(job, key)) for key in range(50)]
+
     told: list[str] = []
-    fits, scores = build._views_side_by_side(4, view, together, told.append)
+    fits, scores, ahead = build._views_side_by_side(4, view, together, told.append, spare)
     assert fits == {"own": [("own", j) for j in range(4)], "coupled": [("coupled", j) for j in range(4)]}
     assert told == [f"{kind} {j}" for j in range(4) for kind in ("own", "coupled")]
     assert set(scores) == {"own", "coupled"}
     assert events.index(("score", 4)) > max(events.index(("own", j)) for j in range(4))
+    started = [key for kind, key in events if kind == "ahead"]
+    assert ahead == {key: -key for key in started} and started == list(range(len(started)))  # each done, in order
+    assert bool(started) == (workers == 2)
     if workers == 1:  # the last own view's pair is split by the own views' score, which needs it and no more
         in_order = [(kind, j) for j in range(4) for kind in ("own", "coupled")]
-        assert events == [*in_order[:7], ("score", 4), in_order[7], ("score", 4)]
+        assert events == [*in_order[:7], ("score", 4), in_order[7], ("score", 4)]  # no core ever waits: none ahead
 
 
 def test_a_prefix_already_simulated_is_not_simulated_again_and_scores_the_same(monkeypatch) -> None:

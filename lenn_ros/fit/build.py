@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import csv
 import dataclasses
+import functools
 import itertools
 import json
 import math
@@ -55,6 +56,7 @@ from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.networks import FunctionalLinkNetwork
 from lenn_ros.core.scaling import DEFAULT_MARGIN, ranges
 from lenn_ros.core.structure import Identifier
+from lenn_ros.core.threads import cores, side_by_side
 from lenn_ros.fit.data import REPORT_FILE, Data, FitError
 from lenn_ros.fit.families import INCREMENT_LAGS, candidate_specs, pass_through_weights
 from lenn_ros.fit.refinement import Refinement, blocks_choice, fold_history, refine_on_folds
@@ -65,7 +67,6 @@ from lenn_ros.fit.selection import (
     Layout,
     Record,
     TermModel,
-    cores,
     fold_blocks,
     joint_block_score,
     level_free,
@@ -74,7 +75,6 @@ from lenn_ros.fit.selection import (
     out_of_fold_residuals,
     output_rows,
     select_structure,
-    side_by_side,
     siso_view,
     widened,
 )
@@ -310,10 +310,15 @@ def _fit(data: Data, test_from: int, refine: bool, network: str, solver: str, pr
     report: dict[str, Any] = {"data": data.source, "test_from": test_from, "train_samples": start}
     held_out = network == "lenn" and solver == "ls"
     parts = []
-    for j, fitted in enumerate(outputs):
+    bands = side_by_side(  # each output's bands are its own: on the cores side by side
+        lambda j: fit_intervals(scored["per_output"][j], identifier if single else None, outputs[j], held_out),
+        range(len(outputs)),
+        cores(),
+    )
+    for j, (fitted, intervals) in enumerate(zip(outputs, bands, strict=True)):
         part = scored["per_output"][j]
         part["warnings"] = fitted.warnings + part["warnings"]
-        part["intervals"] = fit_intervals(part, identifier if single else None, fitted, held_out)
+        part["intervals"] = intervals
         part["model"] = described if single else describe_model(fitted.model, fitted.chosen, forgetting)
         part["choices"] = _choices(fitted, len(blocks), len(breaks))
         parts.append(part)
@@ -401,13 +406,14 @@ def _fit_outputs(
     def together(fits: list[OutputFit]) -> tuple[float, list[float]]:
         return joint_block_score([f.chosen for f in fits], [f.columns for f in fits], values, np.asarray(breaks))
 
-    fits, scores = _views_side_by_side(n_y, view, together, say)
+    spare = _refinement_jobs if refine else None
+    fits, scores, ahead = _views_side_by_side(n_y, view, together, say, spare)
     own, coupled = scores["own"][0], scores["coupled"][0]
     kind = "coupled" if coupled < (1.0 - NONLINEAR_GAIN) * own else "own"
     say(f"outputs together on the blocks: mean NMSE {own:.4g} reading only their own past, {coupled:.4g} "
         f"reading the other outputs too: {'the latter' if kind == 'coupled' else 'the former'} is used")  # fmt: skip
     if refine:
-        _refine_outputs(fits[kind], say, cores())
+        _refine_outputs(fits[kind], say, cores(), ahead if kind == "own" else {})
     coupling = {
         "reads_other_outputs": kind == "coupled",
         "judged_by": "mean over outputs of the NMSE of all outputs simulated together on the blocks, each by the "
@@ -421,9 +427,10 @@ def _fit_outputs(
 
 
 def _views_side_by_side(
-    n_y: int, view: Any, together: Any, say: Any
-) -> tuple[dict[str, list[OutputFit]], dict[str, tuple[float, list[float]]]]:
-    """Every output's two views on the machine's cores, and each kind's :func:`joint_block_score`.
+    n_y: int, view: Any, together: Any, say: Any, spare: Any = None
+) -> tuple[dict[str, list[OutputFit]], dict[str, tuple[float, list[float]]], dict[Any, Any]]:
+    """Every output's two views on the machine's cores, each kind's :func:`joint_block_score`, and what was
+    done ahead of the choice between them (``spare``: see :class:`_ViewQueue`).
 
     An output's view with the others' past is offered the structures that served it alone, so
     it waits for its own view. The twelve views of a six-joint robot are queued one by one as
@@ -433,9 +440,9 @@ def _views_side_by_side(
     """
     from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
 
-    queue, workers = _ViewQueue(n_y, view, together), cores()
+    queue, workers = _ViewQueue(n_y, view, together, spare), cores()
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        pending: dict[Any, tuple[str, int]] = {}
+        pending: dict[Any, tuple[str, Any]] = {}
         while True:
             while len(pending) < workers and (task := queue.next_task()) is not None:
                 pending[pool.submit(*task[0])] = task[1]
@@ -445,29 +452,42 @@ def _views_side_by_side(
             for future in done:
                 queue.finished(pending.pop(future), future.result())
             queue.tell(say)
-    queue.scores["coupled"] = together(queue.fits["coupled"])
-    return queue.fits, queue.scores
+    return queue.fits, queue.scores, queue.ahead
 
 
 class _ViewQueue:
     """What :func:`_views_side_by_side` starts next: an output's second view as soon as its first is done,
-    else the next output's first, and the own views' joint score as soon as all of those are in (beside
-    the remaining views, not after them). On one core: the outputs in order, both views each."""
+    else the next output's first, and each kind's joint score as soon as all its views are in (the own
+    views' beside the remaining views, not after them). On one core: the outputs in order, both views each.
 
-    def __init__(self, n_y: int, view: Any, together: Any) -> None:
-        self.n_y, self.view, self.together = n_y, view, together
+    ``spare(own fits)``: (key, call) jobs worth doing before the choice between the kinds is known,
+    started only when a core would otherwise wait (the last views and the coupled views' joint score
+    leave one idle), never after both scores are in; their results are ``ahead``, by key. ``fit`` gives
+    the own views' refinement blocks (:func:`_refinement_jobs`): the own views are the ones used
+    unless reading the other outputs wins, and refining them waited for that choice on one core.
+    """
+
+    def __init__(self, n_y: int, view: Any, together: Any, spare: Any = None) -> None:
+        self.n_y, self.view, self.together, self.spare = n_y, view, together, spare
         self.said: list[list[str]] = [[] for _ in range(n_y)]
         self.fits: dict[str, list[Any]] = {"own": [None] * n_y, "coupled": [None] * n_y}
         self.scores: dict[str, tuple[float, list[float]]] = {}
         self.ready: list[int] = []  # outputs whose own view is done and whose other view has not started
         self.started = self.told = 0
-        self.scoring = False  # the own views' joint score has started
+        self.scoring: set[str] = set()  # the kinds whose joint score has started
+        self.spare_jobs: list[tuple[Any, Any]] | None = None  # made once the own views are all in
+        self.ahead: dict[Any, Any] = {}
 
-    def next_task(self) -> tuple[tuple, tuple[str, int]] | None:
+    def _score_task(self, kind: str) -> tuple[tuple, tuple[str, Any]] | None:
+        if kind in self.scoring or any(f is None for f in self.fits[kind]):
+            return None
+        self.scoring.add(kind)
+        return (self.together, self.fits[kind]), ("score", kind)
+
+    def next_task(self) -> tuple[tuple, tuple[str, Any]] | None:
         """(the call, its tag) of the next task that can start, or None."""
-        if not self.scoring and all(f is not None for f in self.fits["own"]):
-            self.scoring = True
-            return (self.together, self.fits["own"]), ("score", -1)
+        if (task := self._score_task("own")) is not None:
+            return task
         if self.ready:
             j = self.ready.pop(0)
             return (self.view, j, "coupled", self.fits["own"][j], self.said[j]), ("coupled", j)
@@ -475,16 +495,27 @@ class _ViewQueue:
             j = self.started
             self.started += 1
             return (self.view, j, "own", None, self.said[j]), ("own", j)
-        return None
+        if (task := self._score_task("coupled")) is not None:
+            return task
+        if self.spare is None or "own" not in self.scoring or len(self.scores) == 2:
+            return None
+        if self.spare_jobs is None:
+            self.spare_jobs = list(self.spare(self.fits["own"]))
+        if not self.spare_jobs:
+            return None
+        key, call = self.spare_jobs.pop(0)
+        return (call,), ("ahead", key)
 
-    def finished(self, tag: tuple[str, int], result: Any) -> None:
+    def finished(self, tag: tuple[str, Any], result: Any) -> None:
         kind, j = tag
         if kind == "score":
-            self.scores["own"] = result
-            return
-        self.fits[kind][j] = result
-        if kind == "own":
-            self.ready.append(j)
+            self.scores[j] = result
+        elif kind == "ahead":
+            self.ahead[j] = result
+        else:
+            self.fits[kind][j] = result
+            if kind == "own":
+                self.ready.append(j)
 
     def tell(self, say: Any) -> None:
         """Print what the outputs whose views are all done said, in order."""
@@ -494,7 +525,19 @@ class _ViewQueue:
             self.told += 1
 
 
-def _refine_outputs(fits: list[OutputFit], say: Any, workers: int) -> None:
+def _refinement_jobs(fits: list[OutputFit]) -> list[tuple[tuple[int, int], Any]]:
+    """((candidate id, block), call) of every :func:`~lenn_ros.fit.refinement.fold_history` that
+    :func:`_refine_outputs` needs for these outputs, in its order: each a pure function of the candidate's
+    fold weights and the record, so done ahead (:class:`_ViewQueue`) it is what it would be done then."""
+    return [
+        ((id(candidate), fold), functools.partial(fold_history, candidate, fitted.record, fold))
+        for fitted in fits
+        for candidate in refinement_targets(fitted.candidates)
+        for fold in range(len(candidate.fold_weights))
+    ]
+
+
+def _refine_outputs(fits: list[OutputFit], say: Any, workers: int, ahead: dict | None = None) -> None:
     """Refine each output's :func:`refinement_targets` on simulation error (iterations chosen on the blocks),
     then choose again among them and the input-only ones (:func:`_after_refinement`).
 
@@ -507,18 +550,21 @@ def _refine_outputs(fits: list[OutputFit], say: Any, workers: int) -> None:
     if its soundness check undoes iterations, its score rises and the choice is made again,
     until the leader is one refined on all samples. The others keep their least-squares
     weights and the blocks' figure, reported as not applied: refining all samples of a model
-    that is not used cost Bouc-Wen 3 s.
+    that is not used cost Bouc-Wen 3 s. ``ahead``: blocks' histories already done, by
+    :func:`_refinement_jobs`' key.
     """
     targets = [(fitted, candidate) for fitted in fits for candidate in refinement_targets(fitted.candidates)]
     for fitted, candidate in targets:
         named = f"output {fitted.name}: " if len(fits) > 1 else ""
         say(f"{named}refining {candidate.spec.label} ({candidate.terms} terms) on simulation error")
-    blocks = [(fitted, candidate, fold) for fitted, candidate in targets for fold in range(len(candidate.fold_weights))]
-    histories = list(side_by_side(lambda job: fold_history(job[1], job[0].record, job[2]), blocks, workers))
-    history_of = {
-        id(candidate): [h for (_, c, _), h in zip(blocks, histories, strict=True) if c is candidate]
-        for _, candidate in targets
-    }
+    ahead = ahead or {}
+    jobs = _refinement_jobs(fits)
+    left = [job for job in jobs if job[0] not in ahead]
+    computed = side_by_side(lambda job: job[1](), left, workers)
+    done = {**ahead, **{key: history for (key, _), history in zip(left, computed, strict=True)}}
+    history_of: dict[int, list] = {id(candidate): [] for _, candidate in targets}
+    for key, _ in jobs:  # each candidate's blocks in order
+        history_of[key[0]].append(done[key])
     for _fitted, candidate in targets:
         _score_refinement(candidate, blocks_choice(history_of[id(candidate)]))
     while leaders := [
@@ -795,13 +841,19 @@ def build_mimo_identifier(outputs: list[OutputFit], data: Data, forgetting: floa
     values = {**_vector_reading(data), **mimo_values(models, data, forgetting)}
     resolved, network = config.resolve(values)
     identifier = config.build_identifier({**values, **resolved}, network)
-    for network_j, model, fitted in zip(identifier.models, models, outputs, strict=True):
+
+    def covariance(job: tuple[TermModel, OutputFit]) -> np.ndarray:
+        model, fitted = job
+        features, _ = model.regression(fitted.record.values)
+        return rls_covariance(features[fitted.record.valid_rows(model.warm_up)], forgetting)
+
+    covariances = side_by_side(covariance, list(zip(models, outputs, strict=True)), cores())
+    for network_j, model, covariance_j in zip(identifier.models, models, covariances, strict=True):
         network_j._initialise()
         weights = np.array(model.weights, dtype=np.float64)
         weights[_bias_rows(model)[0]] -= model.layout.y_offset
         network_j.weights_ = weights
-        features, _ = model.regression(fitted.record.values)
-        network_j.covariance_ = rls_covariance(features[fitted.record.valid_rows(model.warm_up)], forgetting)
+        network_j.covariance_ = covariance_j
     identifier.learning = False
     return identifier
 
@@ -898,7 +950,9 @@ def separate_test_record(models: list[TermModel], views: list[np.ndarray], start
     marks the split. ``views``: each output's [y, u] columns over the whole record; rows whose
     regressors reach across one of the ``cuts`` (gaps) are neither fitted nor judged.
     """
-    for model, view in zip(models, views, strict=True):
+
+    def verdict(job: tuple[TermModel, np.ndarray]) -> str:
+        model, view = job
         record = Record.of(view, cuts)
         warm = model.warm_up
         features, targets = model.regression(record.values)
@@ -906,17 +960,20 @@ def separate_test_record(models: list[TermModel], views: list[np.ndarray], start
         valid = record.valid_rows(warm)
         build, join = valid & (sample < start), valid & (sample >= start) & (sample < start + warm)
         if np.count_nonzero(build) <= 2 * features.shape[1] or not join.any():
-            continue
+            return ""
         weights = np.linalg.lstsq(features[build], targets[build], rcond=None)[0]
         error = np.abs(targets - features @ weights)
         largest, across = float(error[build].max()), float(error[join].max())
-        if across > JOIN_FACTOR * largest:
-            return (
-                f"the test part is a record of its own: one step ahead across the split the model's structure, "
-                f"fitted by least squares, errs {across / largest:.1f} times its largest error on the build part, "
-                f"so the free run starts from the test part's own first {warm} samples, which are not scored"
-            )
-    return ""
+        if across <= JOIN_FACTOR * largest:
+            return ""
+        return (
+            f"the test part is a record of its own: one step ahead across the split the model's structure, "
+            f"fitted by least squares, errs {across / largest:.1f} times its largest error on the build part, "
+            f"so the free run starts from the test part's own first {warm} samples, which are not scored"
+        )
+
+    jobs = list(zip(models, views, strict=True))
+    return next((text for text in side_by_side(verdict, jobs, cores()) if text), "")
 
 
 def fit_intervals(

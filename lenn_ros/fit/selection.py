@@ -39,7 +39,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import math
-from collections.abc import Callable, Iterable, Iterator, Sized
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -49,6 +49,7 @@ from lenn_ros.core.expansions import checked_factors, format_terms, term_feature
 from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND
 from lenn_ros.core.scaling import Scaling, ranges
 from lenn_ros.core.structure import ModelStructure
+from lenn_ros.core.threads import side_by_side
 from lenn_ros.fit.families import Dictionary, Spec, candidate_specs
 
 #: relative simulation error a term (or a candidate's extra terms) must buy to be kept
@@ -1100,32 +1101,6 @@ def select_structure(
             if progress:
                 progress(candidates[-1])
     return order_candidates(candidates)
-
-
-def side_by_side(work: Callable, items: Iterable, workers: int) -> Iterator:
-    """``work(item)`` for each item on up to ``workers`` threads, yielded in the items' order as each is done.
-
-    The selection's heavy parts (compiled free runs, the feature expansion, one-thread
-    BLAS) release the GIL, so independent candidates, outputs or refinements use every
-    core; with one worker (or one item) everything runs on this thread. ``items`` may be
-    a generator: the pool takes each item as this thread makes it, so making the next
-    overlaps with the work on those before.
-    """
-    if workers <= 1 or (isinstance(items, Sized) and len(items) <= 1):
-        yield from (work(item) for item in items)
-        return
-    from concurrent.futures import ThreadPoolExecutor
-
-    count = len(items) if isinstance(items, Sized) else workers
-    with ThreadPoolExecutor(max_workers=min(workers, count)) as pool:
-        yield from pool.map(work, items)
-
-
-def cores() -> int:
-    """Threads the fit may use: the cores this process may run on."""
-    import os
-
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
 
 
 def valid_inputs(record: Record, layout: Layout) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

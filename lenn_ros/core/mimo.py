@@ -177,6 +177,11 @@ def _stack(values: list[float | None]) -> np.ndarray | None:
     return None if any(value is None for value in values) else np.array(values, dtype=np.float64)
 
 
+#: a run this long or longer runs its outputs on threads: a bag's many short runs between gaps would
+#: pay a thread pool each for work of microseconds
+THREADED_RUN_SAMPLES = 1000
+
+
 @dataclass
 class MimoIdentifier:
     """One :class:`Identifier` per output, stepped together on vector samples.
@@ -315,8 +320,9 @@ class MimoIdentifier:
         """
         u = np.asarray(u, dtype=np.float64).reshape(len(y), self.structure.n_u)
         y = np.asarray(y, dtype=np.float64).reshape(len(y), self.structure.n_y)
+        workers = cores() if len(y) >= THREADED_RUN_SAMPLES else 1
         columns = list(side_by_side(lambda j: self.outputs[j].run(self.structure.other_values(j, u, y), y[:, j], learn),
-                                    range(len(self.outputs)), cores()))  # fmt: skip
+                                    range(len(self.outputs)), workers))  # fmt: skip
         return np.stack(columns, axis=1) if columns else np.empty((len(y), 0))
 
     def free_run(self, u: np.ndarray, y: np.ndarray, start: int) -> np.ndarray:

@@ -302,6 +302,12 @@ MIMO_PARAMETERS = [
     Parameter("u_offsets", [0.0], "MIMO: u_offset per input channel (one value: u_offset for every channel)"),
     Parameter("y_scales", [0.0], "MIMO: y_scale per output channel (one value: y_scale for every channel)"),
     Parameter("y_offsets", [0.0], "MIMO: y_offset per output channel (one value: y_offset for every channel)"),
+    Parameter(
+        "y_pass_through",
+        [False],
+        "MIMO: per output, y(k) passed through (y(k+1) = y(k) + the network): an integrating output "
+        "(a wheel) that fit found ([false] = none)",
+    ),
 ]
 
 
@@ -451,6 +457,16 @@ def _per_channel(values: dict[str, Any], name: str, count: int) -> tuple[float, 
     raise ConfigError(f"{name}s has {len(listed)} values for {count} channels: give one per channel, or one")
 
 
+def _pass_through(values: dict[str, Any], n_y: int) -> tuple[bool, ...]:
+    """``y_pass_through``: one flag per output, or the single default (none passed through)."""
+    flags = [bool(flag) for flag in values.get("y_pass_through", [False])]
+    if len(flags) == n_y:
+        return tuple(flags)
+    if flags == [False]:
+        return ()
+    raise ConfigError(f"y_pass_through has {len(flags)} values for {n_y} outputs: give one per output")
+
+
 def unlearnt_mimo_scales(values: dict[str, Any]) -> str | None:
     """Several channels with scales left at 0 and ``weights_in``: what cannot work (None: nothing).
 
@@ -543,6 +559,7 @@ def _build_mimo(values: dict[str, Any], network: str) -> MimoIdentifier:
         u_offset=_per_channel(values, "u_offset", n_u),
         couplings=parse_couplings(str(values.get("couplings", "full")), n_u, n_y),
         separate=separate,
+        y_pass_through=_pass_through(values, n_y),
     )
     selected = mimo_terms(values, structure) if network == "lenn" else [(None, None)] * n_y
     if separate and any(rows is not None for rows, _ in selected):
@@ -550,8 +567,8 @@ def _build_mimo(values: dict[str, Any], network: str) -> MimoIdentifier:
     try:
         channels = [structure.channel(j) for j in range(n_y)]  # (each output's structure checks itself)
     except ValueError as error:
-        why = "separate: every output needs its own past and another channel in couplings"
-        raise ConfigError(f"{error} ({why})") from None
+        why = " (separate: every output needs its own past and another channel in couplings)" if separate else ""
+        raise ConfigError(f"{error}{why}") from None
     return build_mimo_identifier(
         structure,
         lambda n_inputs, output: _make_model(values, network, n_inputs, channels[output].branches(), *selected[output]),

@@ -88,7 +88,8 @@ def test_params_and_weights_rebuild_the_fitted_model(fitted: dict) -> None:
     assert values["u_field"] == values["y_field"] == "data[*]"
     assert (values["u_names"], values["y_names"]) == (["u1", "u2"], ["y1", "y2"])
     assert values["couplings"] == "y0 y1 u0 u1; y1 y0 u0 u1"  # each output reads the other's past
-    assert all(len(values[key]) == 2 for key in ("u_scales", "u_offsets", "y_scales", "y_offsets"))
+    assert all(len(values[key]) == 2 for key in ("u_scales", "u_offsets", "y_scales", "y_offsets", "y_pass_through"))
+    assert values["y_pass_through"] == [False, False]  # neither output integrates
     assert Path(values["weights_in"]).is_absolute() and Path(values["weights_in"]).exists()
     assert not {"separate", "known_a", "known_b"} & set(values)
     per_output = [[t.split(":", 1)[1].strip() for t in values["terms"] if t.startswith(f"y{j}:")] for j in (0, 1)]
@@ -107,7 +108,8 @@ def test_weights_of_another_shape_or_output_count_are_refused(fitted: dict, tmp_
     other = identifier_from_params({**values, "y_lags": values["y_lags"] + 1})
     with pytest.raises(ModelFileError, match=r"output 0 \(y1\): weights are for a different network.*n_inputs"):
         other.load_state(values["weights_in"])
-    one_output = {"y_names": ["y1"], "y_scales": [1.0], "y_offsets": [0.0], "terms": [""], "couplings": "full"}
+    one_output = {"y_names": ["y1"], "y_scales": [1.0], "y_offsets": [0.0], "terms": [""], "couplings": "full",
+                  "y_pass_through": [False]}  # fmt: skip
     one = identifier_from_params({**values, **one_output})
     with pytest.raises(ModelFileError, match=r"weights of 2 output\(s\), this model has 1 outputs"):
         one.load_state(values["weights_in"])
@@ -247,3 +249,31 @@ def test_a_gap_in_a_vector_record_is_a_break_of_the_mimo_fit() -> None:
     assert np.isnan(report["y_hat_test"][gap : gap + warm]).all()  # one step ahead: history restarts too
     assert np.isfinite(report["y_hat_test"][gap + warm :]).all()
     assert all(output["nmse_free_run_db"] < -27.0 for output in report["per_output"])
+
+
+def test_an_integrating_output_is_passed_through_and_simulates_beyond_its_training_range(tmp_path: Path) -> None:
+    """A wheel beside a stable joint: its angle integrates the command, and the test part drives it one way,
+    to four times its training range. Its network reads the angle widened (as a SISO model's) and the node
+    passes y(k) through (``y_pass_through``), so the free run follows it there, from the params file too."""
+    rng = np.random.default_rng(0)
+    n, start = 3000, 2000
+    u = np.column_stack([np.repeat(rng.uniform(-1, 1, n // 20 + 1), 20)[:n] for _ in range(2)])
+    u[start:, 0] = np.abs(u[start:, 0]) * 0.8 + 0.2
+    y = np.zeros((n, 2))
+    for k in range(n - 1):
+        y[k + 1, 0] = y[k, 0] + 0.05 * u[k, 0]
+        y[k + 1, 1] = 0.8 * y[k, 1] + 0.3 * np.tanh(2 * u[k, 1])
+    y += rng.normal(0, 1e-4, y.shape)
+    assert y[start:, 0].max() > 4 * y[:start, 0].max()  # far beyond what the network was trained on
+    data = Data(u, y, "wheel", u_names=("u0", "u1"), y_names=("y0", "y1"))
+    result = fit(data, start + 1)
+    wheel, joint = result["report"]["per_output"]
+    assert wheel["model"]["family"] == "increment"
+    # measured: -95.8 dB (without the pass-through, +3.3 dB: the angle read clipped at the range's edge)
+    assert wheel["nmse_free_run_db"] < -80.0 and joint["nmse_free_run_db"] < -60.0, (wheel, joint)
+    files = write_outputs(tmp_path / "model", result, data)
+    values = yaml.safe_load(Path(files["params"]).read_text())["/**"]["ros__parameters"]
+    assert values["y_pass_through"] == [True, False]
+    identifier = identifier_from_params(values)
+    identifier.load_state(values["weights_in"])
+    np.testing.assert_array_equal(identifier.free_run(data.u, data.y, start), result["report"]["y_free_test"])

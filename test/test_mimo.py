@@ -365,3 +365,20 @@ def test_separate_networks_work_with_several_channels(monkeypatch) -> None:
             for j in range(2)]  # fmt: skip
     # measured -16.3 / -10.6 dB (seeds 0, 1, 3: -14.4 to -15.0 / -9.0 to -9.6): one-step, learning off
     assert nmse[0] < -14.0 and nmse[1] < -9.0, nmse
+
+
+def test_an_output_passed_through_needs_its_own_past_and_one_flag_per_output() -> None:
+    from lenn_ros.config import ConfigError, build_identifier, resolve
+
+    own = parse_couplings("y0 u0; y1 u0", 1, 2)
+    structure = MimoStructure(n_u=1, n_y=2, couplings=own, y_pass_through=(True, False))
+    passed, plain = structure.channel(0), structure.channel(1)
+    assert (passed.known_a, passed.output_offset) == ((1.0,), 0.0) and plain.known_a == ()
+    with pytest.raises(ValueError, match="needs its own past"):
+        blind = parse_couplings("u0; y1 u0", 1, 2)  # output 0 does not read its own past
+        MimoStructure(n_u=1, n_y=2, couplings=blind, y_pass_through=(True, False)).channel(0)
+    values = {"u_field": "data[*]", "y_field": "data[*]", "u_names": ["a"], "y_names": ["b", "c"],
+              "y_scales": [1.0, 1.0], "u_scales": [1.0], "y_pass_through": [True, False, True]}  # fmt: skip
+    resolved, network = resolve(values)
+    with pytest.raises(ConfigError, match="y_pass_through has 3 values for 2 outputs"):
+        build_identifier({**values, **resolved}, network)

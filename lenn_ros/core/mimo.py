@@ -84,6 +84,10 @@ class MimoStructure:
     u_offset: tuple[float, ...] = ()
     couplings: tuple[tuple[str, ...], ...] = ()
     separate: bool = False  # each output N1[its own past] + N2[the other channels it sees] (Model 3)
+    #: per output: y(k) passed through as the known part y(k+1) = y(k) + ..., the network its increment. An
+    #: output that integrates (a wheel, a joint without gravity) goes where its input takes it, beyond the
+    #: range its network reads; passed through, its level is exact at any value (``fit`` sets it).
+    y_pass_through: tuple[bool, ...] = ()
 
     def __post_init__(self) -> None:
         if self.n_u < 1 or self.n_y < 1:
@@ -98,6 +102,8 @@ class MimoStructure:
         ):
             if values and len(values) != count:
                 raise ValueError(f"{name} has {len(values)} value(s), one per channel needs {count}")
+        if self.y_pass_through and len(self.y_pass_through) != self.n_y:
+            raise ValueError(f"y_pass_through has {len(self.y_pass_through)} value(s), one per output needs {self.n_y}")
         if not self.couplings:
             object.__setattr__(self, "couplings", parse_couplings("full", self.n_u, self.n_y))
         # where each output's other channels sit in the vector [y_0.., u_0..]: picked once per sample
@@ -133,6 +139,9 @@ class MimoStructure:
         """Output ``output``'s structure: its own lags, then each channel it sees (the first in the u
         fields, the rest in ``others``), all predicting from the model's common warm-up."""
         own = f"y{output}" in self.couplings[output]
+        passed = bool(self.y_pass_through[output]) if self.y_pass_through else False
+        if passed and not (own and self.y_lags):
+            raise ValueError(f"y_pass_through: output y{output} passes y(k) through, so it needs its own past")
         scale, offset = self._scale("y", output)
         channels = []
         for kind, index in self.others(output):
@@ -148,7 +157,8 @@ class MimoStructure:
             y_offset=offset,
             others=tuple(channels[1:]),
             history=max(self.y_lags, self.u_lags, 1),
-            output_offset=offset,
+            known_a=(1.0,) if passed else (),
+            output_offset=0.0 if passed else offset,  # (passed: y(k) carries the level, the network learns increments)
             separate=self.separate,
         )
 

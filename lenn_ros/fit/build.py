@@ -303,6 +303,9 @@ def _fit(data: Data, test_from: int, refine: bool, network: str, solver: str, pr
         identifier, described = _single(outputs[0], u[:start, 0], y[:start, 0], network, solver, forgetting, say)
         models = [outputs[0].model]
     else:
+        for fitted in outputs:  # an output no other output reads is read as wide as a single output's
+            if _read_alone(fitted.model, [other.model for other in outputs]):
+                _read_wide(fitted.chosen)  # (an exact integrator only: the node then passes it through)
         identifier = build_mimo_identifier(outputs, data, forgetting)
         models = common_lags([fitted.model for fitted in outputs])
         described = None
@@ -842,16 +845,20 @@ def build_mimo_identifier(outputs: list[OutputFit], data: Data, forgetting: floa
     resolved, network = config.resolve(values)
     identifier = config.build_identifier({**values, **resolved}, network)
 
+    passed = values["y_pass_through"]
+
     def covariance(job: tuple[TermModel, OutputFit]) -> np.ndarray:
         model, fitted = job
         features, _ = model.regression(fitted.record.values)
         return rls_covariance(features[fitted.record.valid_rows(model.warm_up)], forgetting)
 
     covariances = side_by_side(covariance, list(zip(models, outputs, strict=True)), cores())
-    for network_j, model, covariance_j in zip(identifier.models, models, covariances, strict=True):
+    for j, (network_j, model, covariance_j) in enumerate(zip(identifier.models, models, covariances, strict=True)):
         network_j._initialise()
         weights = np.array(model.weights, dtype=np.float64)
         weights[_bias_rows(model)[0]] -= model.layout.y_offset
+        if passed[j]:  # y(k) comes as the known part: the network keeps the rest (pass_through_outside's rule)
+            weights[output_rows(model)] -= model.layout.y_scale
         network_j.weights_ = weights
         network_j.covariance_ = covariance_j
     identifier.learning = False
@@ -1059,6 +1066,7 @@ def describe_mimo(models: list[TermModel], forgetting: float) -> dict[str, Any]:
         "predicts": "each output from its own past, every input and, where coupled, the other outputs' past "
         "(its own terms: per_output)",
         "n_terms": [len(model.exponents) for model in models],
+        "y_pass_through": _passed_through(models),
         "solver": "least squares on all training samples, refined on free-run error as the blocks vouch for; RLS live",
         "live": {"solver": "rls", "forgetting": forgetting},
     }
@@ -1248,6 +1256,7 @@ def mimo_values(models: list[TermModel], data: Data, forgetting: float) -> dict[
         "u_offsets": [float(v) for v in u_offsets],
         "y_scales": [float(model.layout.y_scale) for model in models],
         "y_offsets": [float(model.layout.y_offset) for model in models],
+        "y_pass_through": _passed_through(models),
         "order": max(1, *(int(model.exponents.max(initial=1)) for model in models)),
         "basis": models[0].basis,
         "cross_degree": 0,
@@ -1259,6 +1268,18 @@ def mimo_values(models: list[TermModel], data: Data, forgetting: float) -> dict[
         "u_limit": limit,
         "y_limit": limit,
     }
+
+
+def _passed_through(models: list[TermModel]) -> list[bool]:
+    """Per output, whether the node passes y(k) through (``y_pass_through``): an exact integrator that no
+    other output reads (:func:`_fit` has widened its reading, as :func:`_read_wide` does a single output's)."""
+    return [level_free(model) and _read_alone(model, models) for model in models]
+
+
+def _read_alone(model: TermModel, models: list[TermModel]) -> bool:
+    """Whether no other output's model reads ``model``'s output (its layout's first column)."""
+    name = model.layout.names[0]
+    return not any(name in other.layout.names for other in models if other is not model)
 
 
 def _limit(u: np.ndarray, y: np.ndarray) -> float:

@@ -133,6 +133,14 @@ NODE_PARAMETERS = [
     Parameter("use_header_stamp", True, "time a message by its header stamp when it has one (else receive time)"),
     Parameter("lone_timeout", 3.0, "warn when one input arrives alone this many seconds", 0.1, 3600.0),
     Parameter(
+        "silence_timeout",
+        30.0,
+        "warn once when neither input arrived for this many seconds after data flowed (0 = never)",
+        0.0,
+        86400.0,
+        live=True,
+    ),
+    Parameter(
         "max_lag",
         0.5,
         "stamp/sample overload: a message that waited longer than this many seconds in its queue is shed "

@@ -180,6 +180,46 @@ def test_u_without_y_p_is_said_and_counted(graph: Graph) -> None:
     assert "/u has been arriving alone" in err and "nothing on /y_p" in err
 
 
+def test_inputs_that_stop_are_said_and_their_return_too(graph: Graph) -> None:
+    """A driver publishing both inputs goes quiet with its publishers still matched: after silence_timeout the
+    node says so in one line, counts it, and its status and diagnostics show it until data comes back."""
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from std_msgs.msg import Float64
+
+    identifier = start_node("identifier", "status_period:=0.2", "silence_timeout:=1.0")
+    driver = graph.node("driver")
+    u = driver.create_publisher(Float64, topics.U, topics.data_qos())
+    y = driver.create_publisher(Float64, topics.Y_P, topics.data_qos())
+    graph.listen()
+    graph.spin()
+
+    def both(k: int) -> None:
+        u.publish(Float64(data=0.1 * (k % 7)))
+        y.publish(Float64(data=0.05 * (k % 5)))
+
+    try:
+        graph.ready(u, y)
+        publish_for(1.0, 50, both)
+        silent = graph.wait(lambda s: s["silent_since"] is not None, timeout=20)
+        assert silent["counters"]["silences"] == 1 and silent["counters"]["u_messages"] > 20
+
+        def warned() -> list:  # the diagnostics say it for as long as it lasts
+            return [d.status[0] for d in graph.diagnostics if "silence_timeout" in d.status[0].message]
+
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and not warned():
+            time.sleep(0.1)
+        warned = warned()
+        assert warned and warned[-1].level == DiagnosticStatus.WARN, [d.status[0].message for d in graph.diagnostics]
+        publish_for(0.5, 50, both)
+        back = graph.wait(lambda s: s["silent_since"] is None, timeout=20)
+        assert back["counters"]["silences"] == 1
+    finally:
+        _, err = stop(identifier)
+    assert "nothing on /u or /y_p for 1." in err and "s (silence_timeout 1 s)" in err, err[-2000:]
+    assert "/u arrived again after" in err and "without data: learning goes on" in err, err[-2000:]
+
+
 def test_y_p_whose_field_cannot_be_read_is_said_as_such_not_as_silence(graph: Graph) -> None:
     """JointStates arrive but y_field names a joint they lack: the lone-u line names the field and the error."""
     from sensor_msgs.msg import JointState

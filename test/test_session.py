@@ -373,6 +373,33 @@ def test_a_lone_input_is_reported_and_counted() -> None:
     assert live.counters["lone_u"] > 150
 
 
+def test_inputs_that_stop_are_said_once_and_their_return_too() -> None:
+    """Both inputs stop (a hung driver, or one that publishes only on change): said once after
+    silence_timeout, counted, shown in the status until a message comes, and that return said too."""
+    live = session(pairing="sample", sample_period=0.01, silence_timeout=5.0)
+    live.poll(100.0)
+    assert live.counters["silences"] == 0  # nothing ever came: the lone-input and graph checks say that
+    for k in range(200):
+        live.offer(U, 0.1, k * 0.01)
+        live.offer(Y, 0.2, k * 0.01 + 0.001)
+    live.take_notices()
+    for now in (3.0, 6.9, 7.0, 7.5, 30.0):  # the last message came at 1.991 s: silent from 6.991 s
+        live.poll(now)
+    said = [notice.text for notice in live.take_notices() if notice.kind == "silence"]
+    assert len(said) == 1 and "nothing on u or y_p for 5.0 s" in said[0], said
+    assert live.counters["silences"] == 1 and live.silent and live.status()["silent_since"] == 199 * 0.01 + 0.001
+    live.offer(U, 0.1, 40.0)
+    back = [notice.text for notice in live.take_notices() if notice.kind == "inputs_resumed"]
+    assert back == ["u arrived again after 38.0 s without data: learning goes on"], back
+    assert not live.silent and live.status()["silent_since"] is None
+    live.poll(44.0)  # 4 s after the return: not yet silent again
+    assert live.counters["silences"] == 1
+    never = session(pairing="sample", sample_period=0.01, silence_timeout=0.0)
+    never.offer(U, 0.1, 0.0)
+    never.poll(1e6)
+    assert never.counters["silences"] == 0
+
+
 def test_an_input_whose_field_cannot_be_read_is_not_called_silent() -> None:
     """y_p arrives (2 599 JointStates) but y_field names a joint they lack: the lone-u line says that, not
     "nothing on y_p" (which sends the user to the topic name and QoS), and the field errors are counted."""

@@ -64,7 +64,7 @@ PAIRING_MODES = ("sequence", "stamp", "sample")
 SESSION_COUNTERS = (
     "u_messages", "y_messages", "nan", "out_of_range", "clipped",
     "no_sequence", "misaligned", "refused", "lone_u", "lone_y", "clock_offset", "held_overflow", "shed",
-    "field_errors", "warm_up_discarded", "change_alarms", "test_start_late",
+    "field_errors", "warm_up_discarded", "change_alarms", "test_start_late", "silences",
 )  # fmt: skip
 #: Pairs held (not yet learnt) while the outputs wait for readers: beyond this the oldest are dropped.
 MAX_HELD = 10_000
@@ -125,6 +125,7 @@ class SessionConfig:
     y_max_age: float = 0.0  # sample: reuse an old y_p this long (0 = never: a lost y_p is a gap)
     max_skew: float = 0.25  # sequence: the two halves of a pair published further apart are refused
     lone_timeout: float = 3.0  # say so when one input arrives alone this long
+    silence_timeout: float = 30.0  # say so when neither input has arrived this long after data flowed (0 = never)
     max_clock_offset: float = 0.0  # stamp/sample: say so when the inputs' clocks differ more (0 = max(T/2, 50 ms))
     warn_period: float = 5.0  # s of sample time between repeats of a notice said per sample (clipped_inputs)
     max_lag: float = 0.5  # live: a message that waited longer in its queue is shed (0 = never; see core.overload)
@@ -251,6 +252,7 @@ class Session:
         self._seen_dropped = 0
         self._seen_faults = 0  # sequence mode: stale + duplicate halves already said
         self._last_sources: tuple[float, float] | None = None  # sequence mode: the last pair's (u, y) publish times
+        self._silent_since: float | None = None  # receive time of the last message, while the silence is said
         self._seen_clipped = 0
         self._said_at_count: dict[str, int] = {}  # kinds said when their count doubles: the count then
         self._clipped_said_at = -math.inf
@@ -356,6 +358,10 @@ class Session:
         self.counters["u_messages" if channel == U else "y_messages"] += 1
         self._first_seen.setdefault(channel, received)
         self._last_seen[channel] = received
+        if self._silent_since is not None:
+            self._say("inputs_resumed", f"{self.config.u_name if channel == U else self.config.y_name} arrived "
+                      f"again after {received - self._silent_since:.1f} s without data: learning goes on")  # fmt: skip
+            self._silent_since = None
         if self.pairer is None:
             self._watch_clocks(channel, time, received)
         if self._alone_for(channel, received) > 0.0:
@@ -410,8 +416,9 @@ class Session:
         return self._process(pairs)
 
     def poll(self, now: float) -> list[Sample]:
-        """Time passes (receive clock, s): settle waiting samples, watch for a lone input."""
+        """Time passes (receive clock, s): settle waiting samples, watch for a lone input or none at all."""
         self._check_lone(now)
+        self._check_silence(now)
         if self.aligner is None:
             return []
         pairs = self.aligner.poll(now)
@@ -704,6 +711,31 @@ class Session:
         if other_seen is not None and now - other_seen <= self.config.lone_timeout:
             return 0.0
         return now - max(self._first_seen[channel], other_seen if other_seen is not None else -math.inf)
+
+    def _check_silence(self, now: float) -> None:
+        """Neither input for ``silence_timeout`` s after data flowed: said once, counted, shown in the status
+        until a message comes (said again then, with how long it lasted).
+
+        A driver that died with its publisher still matched, or one that publishes only on change
+        while the robot stands still, looks the same from here: nothing to learn from. Without
+        this line a status that still reads "identifying" would hide it.
+        """
+        timeout = self.config.silence_timeout
+        if not timeout or not self._last_seen or self._silent_since is not None:
+            return
+        last = max(self._last_seen.values())
+        if now - last < timeout:
+            return
+        self._silent_since = last
+        self.counters["silences"] += 1
+        self._say("silence", f"nothing on {self.config.u_name} or {self.config.y_name} for {now - last:.1f} s "
+                  f"(silence_timeout {timeout:g} s): no sample to learn from; a stopped driver, or one that "
+                  "publishes only on change while the robot stands still?")  # fmt: skip
+
+    @property
+    def silent(self) -> bool:
+        """Whether the inputs are silent (said by :meth:`_check_silence`, until a message comes)."""
+        return self._silent_since is not None
 
     def _check_lone(self, now: float) -> None:
         for channel in (U, Y):
@@ -1154,6 +1186,7 @@ class Session:
                 "resume_in": self.identifier.resume_in if self.identifier.diverged else None,
                 "test_start": self.test_start,
                 "refused": self.refusal,
+                "silent_since": self._silent_since,  # receive time of the last message while silent, else None
                 "phase_samples": self.phase_nmse.count,
                 "phase_nmse_db": self.phase_nmse.nmse_db,
                 "phase_rmse": self.phase_nmse.rmse,

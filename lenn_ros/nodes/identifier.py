@@ -80,7 +80,7 @@ _QOS_OVERRIDES = QoSOverridingOptions(
     policy_kinds=(QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY)
 )
 #: Notice kinds that are news, not trouble.
-_INFO_KINDS = ("phase", "resumed", "scales", "parameters", "change_cleared")
+_INFO_KINDS = ("phase", "resumed", "scales", "parameters", "change_cleared", "inputs_resumed")
 
 
 def _descriptor(parameter: Parameter) -> ParameterDescriptor:
@@ -753,6 +753,8 @@ class IdentifierNode(Node):
         elif status["change"]["alarm"]:  # while it is on, whatever else was said
             change = status["change"]
             level, text = DiagnosticStatus.WARN, self.session.change_text(change["since_sample"], change["since_time"])
+        elif self.session.silent:  # for as long as it lasts, not only in the period it was said
+            level, text = DiagnosticStatus.WARN, f"no {self.u_name} or {self.y_name} for silence_timeout or longer"
         elif self._warned_kinds:
             level, text = DiagnosticStatus.WARN, "warnings: " + ", ".join(sorted(self._warned_kinds))
         else:

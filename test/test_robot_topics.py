@@ -48,6 +48,13 @@ class Graph:
         self.executor.add_node(node)
         return node
 
+    def lockstep(self, name: str):
+        """(u, y_p) Float64 publishers of one node, as a lockstep plant has them (``sequence`` pairing)."""
+        from std_msgs.msg import Float64
+
+        node = self.node(name)
+        return tuple(node.create_publisher(Float64, topic, topics.data_qos()) for topic in (topics.U, topics.Y_P))
+
     def listen(self, namespace: str = "") -> None:
         from diagnostic_msgs.msg import DiagnosticArray
         from sensor_msgs.msg import JointState
@@ -187,9 +194,7 @@ def test_inputs_that_stop_are_said_and_their_return_too(graph: Graph) -> None:
     from std_msgs.msg import Float64
 
     identifier = start_node("identifier", "status_period:=0.2", "silence_timeout:=1.0")
-    driver = graph.node("driver")
-    u = driver.create_publisher(Float64, topics.U, topics.data_qos())
-    y = driver.create_publisher(Float64, topics.Y_P, topics.data_qos())
+    u, y = graph.lockstep("driver")
     graph.listen()
     graph.spin()
 
@@ -250,9 +255,7 @@ def test_pairs_held_for_missing_readers_are_said_and_counted(graph: Graph) -> No
     from std_msgs.msg import Float64
 
     identifier = start_node("identifier", "status_period:=0.2", "wait_for_error_subscribers:=2")
-    plant = graph.node("plant")
-    u_pub = plant.create_publisher(Float64, topics.U, topics.data_qos())
-    y_pub = plant.create_publisher(Float64, topics.Y_P, topics.data_qos())
+    u_pub, y_pub = graph.lockstep("plant")
     graph.listen()
     graph.spin()
     try:

@@ -170,9 +170,9 @@ def _add_fit(commands: Any) -> None:
     p = commands.add_parser(
         "fit",
         help="build a model of logged data automatically (family, structure, terms, weights) and score it",
-        description="Choose the model family (polynomial, hinge, increment form), lags and terms by the free "
-        "runs of blocks of the training samples, each simulated by the weights of the others; refine on "
-        "simulation error as far as the blocks vouch for; score on the test part. A bag is read as the "
+        description="Choose the model family (polynomial, hinge, RFF, increment form, stick, FIR, ...), lags and "
+        "terms by the free runs of blocks of the training samples, each simulated by the weights of the others; "
+        "refine on simulation error as far as the blocks vouch for; score on the test part. A bag is read as the "
         "identifier read it (its identifier_config, or --u/--u-field/--y/--y-field/--sample-period). "
         "-o DIR writes a params file and weights the identifier node starts from.",
     )

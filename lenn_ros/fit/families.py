@@ -25,6 +25,16 @@ them by RLS with the same compiled step. What they offer:
   samples (a record sampled far faster than its dynamics, such as a 1 kHz robot) the
   increments are taken over spans 1, 2, 4, ... and the input averaged over them
   (multi-scale), so a long memory costs a few terms, not one per sample.
+- ``stick``: the increment form's linear terms and the dead zone of the friction-free
+  next increment, relu(p - c) and relu(-p - c) at knots c around the Coulomb step: a
+  body with Coulomb friction moves on by what drives it beyond the friction and stops
+  exactly, within one sample, where that is less. This is the exact sampled form of
+  Coulomb friction with sticking, which smooth terms of the velocity only approach (a
+  tanh of it creeps where the body sticks). The direction p and the step come from the
+  training record (:func:`_dead_zone_terms`). Least squares fits the stick threshold
+  badly when the measured velocity at rest is noise (a 1 kHz encoder): its weights are a
+  start that the refinement on simulation error takes further than other families'
+  (``refinement.FAR_ITERATIONS``).
 - ``legendre``: the paper's LeNN expansion, P_1..P_15 of every lag alone (no products):
   a static nonlinearity with several turns (the paper's example 1, sin(5 pi u)), which
   no product of low degrees follows.
@@ -75,6 +85,11 @@ RFF_LAGS = (2, 4)
 RFF_FEATURES = 60
 RFF_SEED = 0
 INCREMENT_LAGS = (2, 3, 4, 6, 10)
+#: lags of the ``stick`` family, and the dead zone's knots in units of the Coulomb step it estimates
+STICK_LAGS = (3, 4)
+STICK_KNOTS = (0.5, 1.0, 2.0)
+#: increment-form families: the target is y(k+1) - y(k), y(k) passed through
+INCREMENT_FAMILIES = ("increment", "stick")
 #: long lag spans (multi-scale increments) for records sampled far faster than their dynamics
 LONG_SPANS = (17, 33, 65)
 #: input-only models: lags tried (the longer with averages of the inputs over spans up to it)
@@ -113,7 +128,7 @@ class Spec:
 
     @property
     def increment(self) -> bool:
-        return self.family == "increment"
+        return self.family in INCREMENT_FAMILIES
 
     def as_dict(self) -> dict:
         return {
@@ -122,13 +137,13 @@ class Spec:
             "u_lags": self.lags,
             "degree": self.degree,
             "form": "increment: y(k+1) = y(k) + f(...)" if self.increment else "y(k+1) = f(...)",
-            "multi_scale": self.increment and self.lags > max(INCREMENT_LAGS),
+            "multi_scale": self.family == "increment" and self.lags > max(INCREMENT_LAGS),
         }
 
     def dictionary(self, x: np.ndarray) -> Dictionary:
         """The terms this candidate offers, their parameters taken from the training inputs ``x``."""
         builder = {"polynomial": _polynomial, "hinge": _hinge, "rff": _fourier, "increment": _increment,
-                   "fir": _input_only, "legendre": _legendre}[self.family]  # fmt: skip
+                   "stick": _stick, "fir": _input_only, "legendre": _legendre}[self.family]  # fmt: skip
         return builder(self, np.asarray(x, dtype=np.float64))
 
 
@@ -139,6 +154,7 @@ GRID = (
     ("rff", RFF_LAGS, (2,)),
     ("increment", INCREMENT_LAGS, (1, 2, 3)),
     ("increment", LONG_SPANS, (1, 3)),
+    ("stick", STICK_LAGS, (2,)),
     ("fir", FIR_LAGS, (1, 2)),
     ("legendre", LEGENDRE_LAGS, LEGENDRE_DEGREES),
 )
@@ -387,6 +403,57 @@ def _increment(spec: Spec, x: np.ndarray) -> Dictionary:
         for start in read:
             built.add(built.power(start, 3))
     return built.build(increment=True)
+
+
+def _stick(spec: Spec, x: np.ndarray) -> Dictionary:
+    """y(k+1) - y(k) from the bias, the output increments, the inputs, and the dead zone of the friction-free
+    next increment (:func:`_dead_zone_terms`)."""
+    lags = spec.lags
+    read = [c * lags for c in range(1, _columns(spec, x))]
+    built = _Builder(x.shape[1])
+    built.add()
+    for s in range(1, lags):
+        built.add(None, "lin", built.unit(s - 1) - built.unit(s))
+    for start in read:
+        _input_terms(built, start, lags, False)
+    _dead_zone_terms(built, x, read)
+    return built.build(increment=True)
+
+
+#: samples whose increment is beyond this share of the increments' spread count as moving
+MOVING = 0.1
+
+
+def _dead_zone_terms(built: _Builder, x: np.ndarray, read: list[int]) -> None:
+    """relu(p - c), relu(-p - c): the dead zone of p, the next increment as it would be without Coulomb friction.
+
+    From the training record's own lags: the increment v = y(k) - y(k-1) is regressed,
+    over the samples moving before it, on the increment before it, each input one lag
+    back, a sign of that increment (tanh, sharp: the Coulomb friction) and a bias. The
+    friction-free next increment is p = a v + sum b_i u_i(k) + bias, and the sign's
+    weight is the Coulomb step c. Sampled Coulomb friction is then exactly: the body
+    moves on by p less c beyond the dead zone [-c, c] and stands still within it. The
+    knots are STICK_KNOTS times c (the estimate is rough; the refinement sets the weights).
+    """
+    now, before = x[:, 0] - x[:, 1], x[:, 1] - x[:, 2]
+    spread = float(np.std(before))
+    moving = np.abs(before) > MOVING * spread
+    regressors = np.column_stack(
+        [before, *(x[:, start + 1] for start in read), np.tanh(before / (0.05 * spread or 1.0)), np.ones(len(x))]
+    )
+    if spread == 0.0 or np.count_nonzero(moving) < 10 * regressors.shape[1]:
+        return
+    c = np.linalg.lstsq(regressors[moving], now[moving], rcond=None)[0]
+    step = abs(float(c[-2]))
+    if not step > 0.0:
+        return
+    w = np.zeros(built.n)
+    w[0], w[1] = c[0], -c[0]
+    for start, b in zip(read, c[1:-2], strict=True):
+        w[start] = b
+    for knot in STICK_KNOTS:
+        built.add(None, "relu", w, float(c[-1]) - knot * step)
+        built.add(None, "relu", -w, -float(c[-1]) - knot * step)
 
 
 def _input_terms(built: _Builder, start: int, lags: int, multi_scale: bool) -> None:

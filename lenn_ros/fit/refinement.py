@@ -41,6 +41,9 @@ from lenn_ros.fit.selection import (
 
 #: most Levenberg-Marquardt iterations tried per fold (and then on all samples)
 ITERATIONS = 15
+#: most iterations for a family whose least-squares start is known to lie far from its simulation-error fit
+#: (``stick``: least squares sets the stick threshold by noise, and the blocks still chose the last of 15)
+FAR_ITERATIONS = {"stick": 40}
 #: a fold stops once its held-out error has not improved for this many iterations
 PATIENCE = 6
 #: the held-out blocks of a long record are simulated on at most this many samples each
@@ -201,7 +204,17 @@ def _training_pieces(blocks: list[tuple[int, int]], fold: int, n: int) -> list[t
     return [piece for piece in ((a - keep_before, a), (b, b + keep_after)) if piece[1] > piece[0]]
 
 
-def cross_validated_refinement(candidate: Candidate, record: Record, iterations: int = ITERATIONS) -> Refinement:
+def iterations_for(candidate: Candidate) -> int:
+    """Most iterations tried for ``candidate``: ITERATIONS, or its family's FAR_ITERATIONS."""
+    return FAR_ITERATIONS.get(candidate.spec.family, ITERATIONS)
+
+
+def _tried(histories: list[tuple[np.ndarray, int]]) -> int:
+    """Iterations the blocks' histories cover (each is 1 + that long)."""
+    return len(histories[0][0]) - 1 if histories else 0
+
+
+def cross_validated_refinement(candidate: Candidate, record: Record, iterations: int | None = None) -> Refinement:
     """Choose the iteration count on the blocks, then refine ``candidate.model`` (all samples) that many times.
 
     ``candidate.model.weights`` are replaced by the refined weights (unchanged if the
@@ -209,14 +222,16 @@ def cross_validated_refinement(candidate: Candidate, record: Record, iterations:
     the others: ``fit`` runs every candidate's blocks side by side) and :func:`refine_on_folds`.
     """
     histories = [fold_history(candidate, record, fold, iterations) for fold in range(len(candidate.fold_weights))]
-    return refine_on_folds(candidate, record, histories, iterations)
+    return refine_on_folds(candidate, record, histories)
 
 
 def fold_history(
-    candidate: Candidate, record: Record, fold: int, iterations: int = ITERATIONS
+    candidate: Candidate, record: Record, fold: int, iterations: int | None = None
 ) -> tuple[np.ndarray, int]:
     """(squared free-run error of block ``fold`` after 0..iterations refinement iterations of the weights fitted
-    without it, samples scored): the weights are refined on the other blocks, the block only scored."""
+    without it, samples scored): the weights are refined on the other blocks, the block only scored.
+    ``iterations``: :func:`iterations_for` the candidate unless given."""
+    iterations = iterations_for(candidate) if iterations is None else iterations
     model = candidate.model
     blocks = fold_blocks(record.n, model.warm_up)
     scored = _held_out(blocks[fold], record.n)
@@ -236,9 +251,7 @@ def fold_history(
     return np.array(history), 0 if first is None else len(first)
 
 
-def refine_on_folds(
-    candidate: Candidate, record: Record, histories: list[tuple[np.ndarray, int]], iterations: int = ITERATIONS
-) -> Refinement:
+def refine_on_folds(candidate: Candidate, record: Record, histories: list[tuple[np.ndarray, int]]) -> Refinement:
     """The count with the lowest pooled held-out error over every block's :func:`fold_history` (in block order),
     then the weights of all samples refined that many times, less the iterations that make the model unsound.
 
@@ -246,6 +259,7 @@ def refine_on_folds(
     some iteration makes that count lose everywhere.
     """
     model = candidate.model
+    iterations = _tried(histories)
     pooled, chosen = _pooled(histories, iterations)
     whole = [(0, record.n)]
     before = residuals(model, record, whole, model.weights)
@@ -283,9 +297,10 @@ def _pooled(histories: list[tuple[np.ndarray, int]], iterations: int) -> tuple[n
     return pooled, int(np.argmin(pooled))
 
 
-def blocks_choice(histories: list[tuple[np.ndarray, int]], iterations: int = ITERATIONS) -> Refinement:
+def blocks_choice(histories: list[tuple[np.ndarray, int]]) -> Refinement:
     """What the blocks choose (:func:`refine_on_folds`' count and score), not applied to the model's weights:
     the score of a candidate before, or instead of, its refinement on all samples."""
+    iterations = _tried(histories)
     pooled, chosen = _pooled(histories, iterations)
     return Refinement(
         iterations=chosen,

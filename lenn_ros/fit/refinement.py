@@ -209,11 +209,6 @@ def iterations_for(candidate: Candidate) -> int:
     return FAR_ITERATIONS.get(candidate.spec.family, ITERATIONS)
 
 
-def _tried(histories: list[tuple[np.ndarray, int]]) -> int:
-    """Iterations the blocks' histories cover (each is 1 + that long)."""
-    return len(histories[0][0]) - 1 if histories else 0
-
-
 def cross_validated_refinement(candidate: Candidate, record: Record, iterations: int | None = None) -> Refinement:
     """Choose the iteration count on the blocks, then refine ``candidate.model`` (all samples) that many times.
 
@@ -259,8 +254,7 @@ def refine_on_folds(candidate: Candidate, record: Record, histories: list[tuple[
     some iteration makes that count lose everywhere.
     """
     model = candidate.model
-    iterations = _tried(histories)
-    pooled, chosen = _pooled(histories, iterations)
+    pooled, chosen = _pooled(histories)
     whole = [(0, record.n)]
     before = residuals(model, record, whole, model.weights)
     unsound = ""
@@ -277,7 +271,7 @@ def refine_on_folds(candidate: Candidate, record: Record, histories: list[tuple[
     after = residuals(model, record, whole, model.weights)
     return Refinement(
         iterations=chosen,
-        tried=iterations,
+        tried=len(pooled) - 1,
         rmse_blocks_before=float(pooled[0]),
         rmse_blocks_after=float(pooled[chosen]),
         rmse_training_before=_rms(before),
@@ -286,10 +280,11 @@ def refine_on_folds(candidate: Candidate, record: Record, histories: list[tuple[
     )
 
 
-def _pooled(histories: list[tuple[np.ndarray, int]], iterations: int) -> tuple[np.ndarray, int]:
-    """(pooled held-out RMSE after 0..iterations iterations, the count with the lowest)."""
-    squared = np.zeros(iterations + 1)
-    counts = np.zeros(iterations + 1)
+def _pooled(histories: list[tuple[np.ndarray, int]]) -> tuple[np.ndarray, int]:
+    """(pooled held-out RMSE after 0, 1, ... iterations, as far as the histories go; the count with the lowest)."""
+    tried = len(histories[0][0]) if histories else 1
+    squared = np.zeros(tried)
+    counts = np.zeros(tried)
     for history, count in histories:
         squared += history
         counts += count
@@ -300,11 +295,10 @@ def _pooled(histories: list[tuple[np.ndarray, int]], iterations: int) -> tuple[n
 def blocks_choice(histories: list[tuple[np.ndarray, int]]) -> Refinement:
     """What the blocks choose (:func:`refine_on_folds`' count and score), not applied to the model's weights:
     the score of a candidate before, or instead of, its refinement on all samples."""
-    iterations = _tried(histories)
-    pooled, chosen = _pooled(histories, iterations)
+    pooled, chosen = _pooled(histories)
     return Refinement(
         iterations=chosen,
-        tried=iterations,
+        tried=len(pooled) - 1,
         rmse_blocks_before=float(pooled[0]),
         rmse_blocks_after=float(pooled[chosen]),
         applied=False,

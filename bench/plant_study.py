@@ -1,6 +1,6 @@
 """Free runs of `lenn-ros fit` on plant classes with hard nonlinearities it was never developed on (issue 17).
 
-    python bench/plant_study.py                  # every plant, 5 seeds
+    python bench/plant_study.py                  # tanks, belt, axis, axis-p2p; 5 seeds
     python bench/plant_study.py --plants tanks --seeds 3
 
 The issue names what polynomials of low degree cannot follow: overflow and saturation,
@@ -15,8 +15,9 @@ its spread over seeds is wide, is a selection that does not generalise.
 
 - ``tanks``: two cascaded tanks (Torricelli outflow), a pump voltage in, the lower
   tank's level out, sampled every 4 s, 1 536 samples. The upper tank overflows above
-  its rim (half of the spill reaches the lower tank) and the lower one spills over its
-  own: the level saturates, which no polynomial of degree 3 follows.
+  its rim (half of the spill reaches the lower tank), so the lower tank's inflow
+  saturates with a level the model never sees: no polynomial of degree 3 follows that.
+  (The lower tank has a rim too, which this pump does not reach.)
 - ``belt``: a motor driving a pulley over an elastic belt (a lightly damped mode at
   1.5 Hz) at 50 Hz, 750 samples; the speed sensor counts pulses, so it reads the
   absolute value of the speed, with 1 % noise.

@@ -754,8 +754,9 @@ def test_the_stick_family_reads_its_dead_zone_from_the_record() -> None:
     """The ``stick`` family's direction p (the friction-free next increment) and Coulomb step come from the
     record's own increments: on an exact sampled Coulomb body (standing still a quarter of the time) they are
     the body's to within what a tanh for the sign allows (measured: a 0.2 %, b 3.5 %, c 7.4 % off); the knots
-    are STICK_KNOTS times the step, on both sides. ``fit`` chooses the family there and simulates the body
-    (measured -44.3 dB; the increment family's tanh terms creep where it stands)."""
+    are STICK_KNOTS times the step, on both sides. ``fit`` chooses the family there (the blocks prefer it) and
+    simulates the body (measured -44.3 dB; without the family the increment family's -47.8 dB: on a record
+    without noise least squares sets the stick threshold right, and both follow it)."""
     from lenn_ros.fit.families import STICK_KNOTS
     from lenn_ros.fit.selection import valid_inputs
 
@@ -781,7 +782,7 @@ def test_fit_simulates_an_axis_standing_stuck_by_the_stick_family_and_the_node_r
     """A 1 kHz carriage with Coulomb friction under a PD controller, moved between set points: it stands stuck
     most of the time and its free run hinges on the stick threshold, which least squares sets by the encoder's
     noise. The ``stick`` family, refined on simulation error (up to FAR_ITERATIONS), is chosen and simulates it
-    (measured -35.7 dB on this seed; before the family an RFF model, -3.4 dB; 5 seeds in bench/RESULTS.md).
+    (measured -35.7 dB on this seed; before the family a hinge model, -3.4 dB; 5 seeds in bench/RESULTS.md).
     The params file starts an identifier that runs the same free run."""
     from lenn_ros.fit.build import write_outputs
 

@@ -266,6 +266,7 @@ def test_pairs_held_for_missing_readers_are_said_and_counted(graph: Graph) -> No
         _, err = stop(identifier)
     assert status["counters"]["learned"] == 0 and status["readers"]["error"] == 0
     assert "pairs held, not learnt" in err and "error has 0 of 2 readers" in err, err[-2000:]
+    assert "stopping with" in err and "pairs held, not learnt: the outputs' readers" in err, err[-2000:]
 
 
 @pytest.mark.parametrize("remap", [("-r", "__ns:=/id3"), ("-r", "__node:=ident3")])

@@ -308,6 +308,8 @@ def test_held_pairs_wait_for_readers_and_one_publisher_of_both_then_are_learnt_i
     assert waiting == ["100 pairs held, not learnt, for 6 s: waiting until y_hat has 0 of 1 readers "
                        "(lower wait_for_*_subscribers or start the readers)"]  # fmt: skip
     assert live.release_ready({"y_hat": 1}, now=16.5) == []  # readers, but who publishes is not known yet
+    assert live.held_at_stop() == ("stopping with 100 pairs held, not learnt: the outputs' readers or the "
+                                   "publishers of u and y_p were not confirmed yet")  # fmt: skip
     live.graph_publishers({U: {("/", "_NODE_NAME_UNKNOWN_")}, Y: {("/", "plant")}})  # discovery not done
     assert not live.publishers_known and live.refusal is None
     live.graph_publishers({U: {("/", "plant")}, Y: {("/", "plant")}})
@@ -317,6 +319,7 @@ def test_held_pairs_wait_for_readers_and_one_publisher_of_both_then_are_learnt_i
     # every held pair after the model's history (Ex. 1: y(k-1), y(k-2)) is learnt
     assert live.all_counters()["learned"] == 100 - live.identifier.structure.warm_up == 98
     assert len(_offer_lockstep(live, series, 100, 10)) == 10  # afterwards: straight through
+    assert live.held_at_stop() is None  # nothing held: nothing to say at a stop
 
 
 def test_two_publishers_refuse_sequence_pairing_and_drop_what_was_held(series) -> None:

@@ -470,6 +470,17 @@ class Session:
         held, self._held = self._held, []
         return self._process(held)
 
+    def held_at_stop(self) -> str | None:
+        """The line to say when the node stops while it holds pairs (None: it holds none). They are not
+        learnt: what they waited for (readers, or who publishes u and y_p) was never confirmed, and a stop
+        within the grace would otherwise lose them without a word."""
+        if not self._held:
+            return None
+        return (
+            f"stopping with {len(self._held)} pairs held, not learnt: the outputs' readers or the publishers "
+            "of u and y_p were not confirmed yet"
+        )
+
     def discard_held(self) -> int:
         """Drop the pairs held so far as refused (the caller found they are not samples)."""
         dropped = len(self._held)

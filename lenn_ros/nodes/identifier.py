@@ -808,6 +808,9 @@ class IdentifierNode(Node):
         """
         if self.values["weights_out"]:
             self._save(self.values["weights_out"])
+        unlearnt = self.session.held_at_stop()
+        if unlearnt is not None:
+            self.get_logger().warning(unlearnt)
         print(f"identifier: {json.dumps(self.status())}", file=sys.stderr, flush=True)
         for subscription in self._data_subscriptions.values():
             (self.companions[0] if self.companions else self).destroy_subscription(subscription)

@@ -375,8 +375,9 @@ def _stiction_terms(built: _Builder, x: np.ndarray, read: list[int], span: int) 
                       coefficients[0] * drive_sharpness / drive_spread)  # fmt: skip
 
 
-def _increment(spec: Spec, x: np.ndarray) -> Dictionary:
-    """y(k+1) - y(k) from output increments, inputs, and (degree >= 2) velocity and position nonlinearities."""
+def _linear_increments(spec: Spec, x: np.ndarray) -> tuple[_Builder, list[int], list[int]]:
+    """The increment form's linear part: the bias, the output's increments and every column read (multi-scale
+    beyond INCREMENT_LAGS). Returns (the terms so far, where each column read starts, the increments' spans)."""
     lags = spec.lags
     read = [c * lags for c in range(1, _columns(spec, x))]  # where each column read besides the output starts
     built = _Builder(x.shape[1])
@@ -389,6 +390,13 @@ def _increment(spec: Spec, x: np.ndarray) -> Dictionary:
         built.add(None, "lin", built.unit(first) - built.unit(s))
     for start in read:
         _input_terms(built, start, lags, multi_scale)
+    return built, read, spans
+
+
+def _increment(spec: Spec, x: np.ndarray) -> Dictionary:
+    """y(k+1) - y(k) from output increments, inputs, and (degree >= 2) velocity and position nonlinearities."""
+    lags = spec.lags
+    built, read, spans = _linear_increments(spec, x)
     if spec.degree >= 2 and lags >= 2:
         velocity_spans = sorted({1, spans[len(spans) // 2], spans[-1]})
         for span in velocity_spans:
@@ -408,14 +416,7 @@ def _increment(spec: Spec, x: np.ndarray) -> Dictionary:
 def _stick(spec: Spec, x: np.ndarray) -> Dictionary:
     """y(k+1) - y(k) from the bias, the output increments, the inputs, and the dead zone of the friction-free
     next increment (:func:`_dead_zone_terms`)."""
-    lags = spec.lags
-    read = [c * lags for c in range(1, _columns(spec, x))]
-    built = _Builder(x.shape[1])
-    built.add()
-    for s in range(1, lags):
-        built.add(None, "lin", built.unit(s - 1) - built.unit(s))
-    for start in read:
-        _input_terms(built, start, lags, False)
+    built, read, _ = _linear_increments(spec, x)
     _dead_zone_terms(built, x, read)
     return built.build(increment=True)
 

@@ -52,6 +52,18 @@ def record(variant: str, period: float, seconds: float, seed: int) -> tuple[np.n
     return torques, np.round((angles + rng.normal(0.0, 2e-4, n)) / 1e-4) * 1e-4
 
 
+def spread(values: list[float]) -> str:
+    """'mean (min..max)' of a figure over seeds, as the tables give it."""
+    return f"{np.mean(values):.1f} ({min(values):.1f}..{max(values):.1f})"
+
+
+def timed_fit(u: np.ndarray, y: np.ndarray, name: str, test_from: int) -> tuple[dict, float]:
+    """(``fit``'s report with its defaults, the seconds it took)."""
+    began = time.perf_counter()
+    report = fit(Data(u, y, name), test_from)["report"]
+    return report, time.perf_counter() - began
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--period", type=float, default=0.005)
@@ -71,16 +83,14 @@ def main(argv: list[str] | None = None) -> int:
             if args.apart:
                 u_test, y_test = record(variant, args.period, args.seconds / 3, seed + 100)
                 u, y = np.r_[u[: test_from - 1], u_test], np.r_[y[: test_from - 1], y_test]
-            began = time.perf_counter()
-            report = fit(Data(u, y, f"{variant} seed {seed}"), test_from)["report"]
-            seconds.append(time.perf_counter() - began)
+            report, took = timed_fit(u, y, f"{variant} seed {seed}", test_from)
+            seconds.append(took)
             one.append(report["nmse_db"])
             free.append(report["nmse_free_run_db"])
             m = report["model"]
             models.append(f"{m['family']} {m['structure']['y_lags']}/{m['n_terms']}")
         print(
-            f"| {variant} | {np.mean(one):.1f} ({min(one):.1f}..{max(one):.1f}) | {np.mean(free):.1f} "
-            f"({min(free):.1f}..{max(free):.1f}) | {np.mean(seconds):.1f} | {', '.join(models)} |",
+            f"| {variant} | {spread(one)} | {spread(free)} | {np.mean(seconds):.1f} | {', '.join(models)} |",
             flush=True,
         )
     return 0

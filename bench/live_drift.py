@@ -16,6 +16,7 @@ import numpy as np
 from peer_narx import DATA
 from plant_study import axis_p2p
 
+from lenn_ros.core.metrics import nmse_db
 from lenn_ros.fit.build import Data, fit
 
 
@@ -23,13 +24,9 @@ def _row(name: str, u: np.ndarray, y: np.ndarray, start: int) -> str:
     identifier = fit(Data(u, y, name), start + 1)["identifier"]
     half = start + (len(y) - start) // 2
 
-    def nmse_db() -> float:
-        error = identifier.free_run(u, y, half) - y[half:]
-        return 10.0 * np.log10(np.mean(error**2) / np.var(y[half:]))
-
-    before = nmse_db()
+    before = nmse_db(y[half:], identifier.free_run(u, y, half))
     identifier.run(u[:half], y[:half], learn=True)
-    return f"| {name} | {before:.1f} | {nmse_db():.1f} |"
+    return f"| {name} | {before:.1f} | {nmse_db(y[half:], identifier.free_run(u, y, half)):.1f} |"
 
 
 def main() -> int:

@@ -39,14 +39,13 @@ from __future__ import annotations
 import argparse
 import functools
 import math
-import time
 from dataclasses import dataclass
 
 import numpy as np
+from joint_study import spread, timed_fit
 from peer_narx import Split, run_arx
 
 from lenn_ros.core.kernels import njit
-from lenn_ros.fit.build import Data, fit
 
 
 def _smooth_levels(rng: np.random.Generator, n: int, hold: tuple[int, int], low: float, high: float) -> np.ndarray:
@@ -226,20 +225,17 @@ def main(argv: list[str] | None = None) -> int:
         for seed in range(args.seeds):
             u, y = PLANTS[name](seed)
             test_from = len(y) * 2 // 3 + 1
-            began = time.perf_counter()
-            report = fit(Data(u, y, f"{name} seed {seed}"), test_from)["report"]
-            seconds.append(time.perf_counter() - began)
+            report, took = timed_fit(u, y, f"{name} seed {seed}", test_from)
+            seconds.append(took)
             free.append(report["nmse_free_run_db"])
             one.append(report["nmse_db"])
             m = report["model"]
             models.append(f"{m['family']} {m['expansion']['degree']}/{m['structure']['y_lags']}/{m['n_terms']}")
             arx_rmse = run_arx(Split(name, u, y, test_from, ""))["rmse_free_run"]
-            y_test = y[test_from - 1 :]
-            arx.append(10.0 * math.log10(arx_rmse**2 / np.mean((y_test - y_test.mean()) ** 2)))
+            arx.append(10.0 * math.log10(arx_rmse**2 / np.var(y[test_from - 1 :])))
         wins = sum(f < a for f, a in zip(free, arx, strict=True))
         print(
-            f"| {name} | {np.mean(free):.1f} ({min(free):.1f}..{max(free):.1f}) | {np.mean(arx):.1f} "
-            f"({min(arx):.1f}..{max(arx):.1f}) | {wins} of {len(free)} | {np.mean(one):.1f} | "
+            f"| {name} | {spread(free)} | {spread(arx)} | {wins} of {len(free)} | {np.mean(one):.1f} | "
             f"{np.mean(seconds):.1f} | {', '.join(models)} |",
             flush=True,
         )

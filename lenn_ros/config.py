@@ -223,6 +223,12 @@ def identifier_parameters(example: int, network: str, parameters: str = "calibra
             -1e12,
             1e12,
         ),
+        Parameter(
+            "y_abs",
+            structure.y_abs,
+            "the sensor reads |y| (a pulse counter on a speed that changes sign): the model is of the signed "
+            "output, each y_p takes the sign of its prediction, y^ is published as |y^| (fit sets it; one output)",
+        ),
         Parameter("separate", structure.separate, "Model 3 structure: N1[y] + N2[u] instead of one network"),
         Parameter(
             "order", int(net.get("order", 4)), "LeNN: polynomial degree per input (paper's terms / inputs)", 1, 30
@@ -397,6 +403,7 @@ def _build_identifier(values: dict[str, Any], network: str) -> Identifier | Mimo
         y_offset=float(values.get("y_offset", 0.0)),
         u_offset=float(values.get("u_offset", 0.0)),
         output_offset=float(values.get("output_offset", 0.0)),
+        y_abs=bool(values.get("y_abs", False)),
     )
     if values.get("weights_in") and not structure.scaled:
         structure = _scaling_of_weights(structure, str(values["weights_in"]))
@@ -545,6 +552,9 @@ def _build_mimo(values: dict[str, Any], network: str) -> MimoIdentifier:
         )
         if given
     ]
+    if values.get("y_abs", False):
+        raise ConfigError("y_abs: a sensor read as |y| is signed by one output's predictions, not supported with "
+                          "several channels (set y_abs: false)")  # fmt: skip
     if unsupported:
         raise ConfigError(
             f"{', '.join(unsupported)}: a known linear part is a single-channel option (which of several inputs "

@@ -237,6 +237,7 @@ def test_the_one_sample_expansion_with_cross_terms_equals_the_batch_bit_for_bit(
         ({"terms": ["y0: 1"]}, "terms name no term for y1"),
         ({"terms": ["y0: 1", "y1: u5_1"]}, "terms of y1: term 'u5_1': no input 'u5_1'"),
         ({"known_a": [0.3, 0.6]}, "known_a: a known linear part is a single-channel option"),
+        ({"y_abs": True}, "y_abs: a sensor read as |y| is signed by one output's predictions"),
         ({"separate": True, "terms": ["y0: u0_1", "y1: u1_1"]}, "terms select one combiner over all inputs"),
         ({"separate": True, "couplings": "y0 u0; u1"}, "separate N1[y] + N2[u] needs both y_lags and u_lags >= 1"),
         ({"u_topics": ["/a", "/b"], "u_field": "data[*]"}, "list the fields instead of [*]"),

@@ -224,6 +224,9 @@ class MimoIdentifier:
     def models(self) -> list:
         return [identifier.model for identifier in self.outputs]
 
+    #: a |y| sensor is one output's option (``y_abs``): never waited for here
+    sign_settled = None
+
     @property
     def learning(self) -> bool:
         return self._learning

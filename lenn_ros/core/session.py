@@ -876,6 +876,8 @@ class Session:
             self.phase_nmse.reset()
             self._say("phase", f"sample {pair.index}: {'training' if learn else 'frozen (test)'} phase")
         result = self.identifier.step(pair.index, pair.u, pair.y, learn)
+        if learn and self.identifier.sign_settled is not self._sign_settled:
+            self._say_sign(pair.index)
         if result.event == "gap":
             self._say_gap(pair)
         elif result.event in ("diverged", "resumed"):
@@ -888,6 +890,17 @@ class Session:
         if self.spread is not None:
             self._watch(pair, result)
         return Sample(pair.index, pair.time, pair.u, pair.y, result)
+
+    def _say_sign(self, index: int) -> None:
+        """A |y| sensor (``y_abs``): learning waits for the sign to settle after each start, and resumes."""
+        self._sign_settled = settled = self.identifier.sign_settled
+        if settled:
+            self._say("sign_settled", f"sample {index}: the sign of |y| has settled: learning")
+        elif settled is not None:
+            self._say("sign_unsettled", f"sample {index}: not learning until the sign of |y| settles (the model's "
+                      "free runs from either sign of the start must agree; counted in sign_unsettled)")  # fmt: skip
+
+    _sign_settled: bool | None = None
 
     def _watch(self, pair: Pair, result: StepResult) -> None:
         """One output: the one-step std of each prediction (core.spread) and the change alarm (core.change)."""

@@ -10,13 +10,14 @@ arithmetic either way.
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
 
-from lenn_ros.core.free_run import OutputRun, free_run_outputs
+from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND, OutputRun, free_run_outputs
 from lenn_ros.core.networks import DivergenceError, OnlineRegressor
 from lenn_ros.core.online_step import (
     CLIPPED,
@@ -50,6 +51,11 @@ class ModelStructure:
       the ``u`` its methods take is then a matrix, one column per channel after the output.
     - ``history``: samples of history before the first prediction, at least (the outputs of
       a several-channel model all predict from the same sample on).
+    - ``y_abs``: the sensor reads the absolute value of the output (a pulse counter on a
+      speed that changes sign). The model is of the signed output, whose sign is a hidden
+      state no NARX of |y| carries through a free run; each measured y takes the sign of
+      the model's own prediction of it (:meth:`Identifier.step`), and what is published
+      and scored is |y^|.
 
     One description for any number of channels: the compiled step and the free run read
     it through :meth:`input_channels` and :meth:`known_parts`.
@@ -67,6 +73,7 @@ class ModelStructure:
     output_offset: float = 0.0
     others: tuple[tuple[int, float, float], ...] = ()
     history: int = 1
+    y_abs: bool = False
 
     def __post_init__(self) -> None:
         if min(self.y_lags, self.u_lags, *(lags for lags, _, _ in self.others)) < 0 or self.n_inputs == 0:
@@ -287,6 +294,91 @@ class Identifier:
     # -- one sample ------------------------------------------------------------------
     def step(self, index: int, u: float, y: float, learn: bool | None = None) -> StepResult:
         """Process the pair (u(k), y_p(k)) with sample index k."""
+        if self.structure.y_abs:
+            return self._step_abs(index, u, y, learn)
+        return self._step(index, u, y, learn)
+
+    def _sign_for(self, index: int) -> float:
+        """The sign a measured |y(index)| takes (``y_abs``).
+
+        Where the free run alongside (:meth:`_step_shadows`) is clearly away from zero
+        (SIGN_MARGIN of ``y_scale``), its sign; nearer zero, where a crossing's timing is
+        uncertain, the sign of the one-step prediction; + with neither (a history that starts
+        over). Why the free run: a history signed the wrong way round is the mirror image of
+        the plant, and one-step predictions from it stay mirrored (a slow output's next value
+        is mostly its last); a stable model's free run forgets its start and follows the input.
+        """
+        if self._last_index is None or index != self._last_index + 1:
+            return 1.0
+        free, one = self._shadow_next, self._signed_next
+        if free is not None and abs(free) >= self.SIGN_MARGIN * self.structure.y_scale:
+            return -1.0 if free < 0.0 else 1.0
+        return -1.0 if one is not None and one < 0.0 else 1.0
+
+    #: ``y_abs``: the free run alongside decides a sign beyond this fraction of ``y_scale`` from zero
+    SIGN_MARGIN: ClassVar[float] = 0.1
+    #: ``y_abs``: two free runs from either sign of a start have forgotten it within this fraction of ``y_scale``
+    SETTLED: ClassVar[float] = 1e-3
+
+    def _step_abs(self, index: int, u: float, y: float, learn: bool | None) -> StepResult:
+        """:meth:`_step` on the signed output, scored and published as the sensor reads it.
+
+        With y signed as its prediction is, y - y^ is +-(|y| - |y^|): the model learns
+        exactly the error the sensor shows, and nothing the sensor cannot tell. Until the
+        sign is settled after a start (the free runs from either sign of it agree), nothing
+        is learnt: a history signed the wrong way round would teach the mirror image of the
+        plant (counted: ``sign_unsettled``).
+        """
+        signed = self._sign_for(index) * y
+        learn = self.learning if learn is None else learn
+        settled = self._settled
+        result = self._step(index, u, signed, learn and settled)
+        if result.event == "duplicate":
+            return result
+        if learn and not settled and result.y_hat is not None:  # a sample it would have learnt from
+            self.counters["sign_unsettled"] = self.counters.get("sign_unsettled", 0) + 1
+        self._signed_next = result.y_hat_next
+        self._step_shadows(index, u, signed)
+        if result.y_hat is not None:
+            result.y_hat = abs(result.y_hat)
+            result.error = y - result.y_hat
+        if result.y_hat_next is not None:
+            result.y_hat_next = abs(result.y_hat_next)
+        return result
+
+    def _step_shadows(self, index: int, u: float, signed: float) -> None:
+        """The free runs alongside (``y_abs``): the same weights, fed their own predictions, seeded by the
+        signed measurements until they predict, and a second one by their mirror image. Where the two
+        agree, the start is forgotten: the sign is settled, and the second one is dropped."""
+        if not self._shadows or self._shadows[0].model is not self.model:
+            plain = dataclasses.replace(self.structure, y_abs=False)
+            self._shadows = [Identifier(plain, self.model, learning=False) for _ in range(2)]
+            self._shadow_next, self._mirror_next, self._settled = None, None, False
+        bound = FREE_RUN_DIVERGENCE_BOUND * self.structure.y_scale
+        following = []
+        feeds = ((self._shadow_next, signed), (self._mirror_next, -signed))
+        for shadow, (own, seed) in zip(self._shadows, feeds[: len(self._shadows)], strict=True):
+            value = shadow.step(index, u, seed if own is None else own, learn=False).y_hat_next
+            inside = value is not None and abs(value - self.structure.y_offset) <= bound
+            following.append(value if inside else None)
+        self._shadow_next, self._mirror_next = following[0], (following[1] if len(following) == 2 else None)
+        close = None not in following and abs(following[0] - following[-1]) <= self.SETTLED * self.structure.y_scale
+        if len(following) == 2 and close:
+            self._settled, self._shadows = True, self._shadows[:1]
+
+    _signed_next: float | None = None  # y_abs: the signed one-step prediction of the next sample
+    _shadows: ClassVar[list] = []  # y_abs: the free runs alongside (an instance sets its own)
+    _shadow_next: float | None = None  # and their predictions of the next sample
+    _mirror_next: float | None = None
+    _settled = False  # y_abs: the free runs have forgotten the start (its sign)
+
+    @property
+    def sign_settled(self) -> bool | None:
+        """``y_abs``: whether the sign of |y| has settled since the history last started (learning waits for
+        it); None for an output read as it is."""
+        return self._settled if self.structure.y_abs else None
+
+    def _step(self, index: int, u: float, y: float, learn: bool | None = None) -> StepResult:
         learn = self.learning if learn is None else learn
         result = StepResult(index=index)
         if self._last_index is not None and index <= self._last_index:
@@ -436,6 +528,8 @@ class Identifier:
         self._restart_history()
 
     def _restart_history(self) -> None:
+        self._signed_next = self._shadow_next = self._mirror_next = None
+        self._shadows, self._settled = [], False
         self._y_past.clear()
         self._u_past.clear()
         self._pending = None
@@ -542,6 +636,11 @@ class Identifier:
         u = np.asarray(u, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
         learn_mask = np.broadcast_to(np.asarray(learn, dtype=bool), y.shape)
+        return (self._run_steps if self.structure.y_abs else self._run_batch)(u, y, learn_mask, changes)
+
+    def _run_batch(
+        self, u: np.ndarray, y: np.ndarray, learn_mask: np.ndarray, changes: Sequence[tuple[int, Callable[[], None]]]
+    ) -> np.ndarray:
         x, linear = self.structure.regressors(u, y)
         self.counters["clipped"] += int(np.count_nonzero(np.abs(x) > 1.0))  # incl. the last row, as step counts it
         inputs, targets, linear = self.structure.pairs_from_regressors(x, linear, y)
@@ -590,6 +689,42 @@ class Identifier:
         self.last_leverage[first + 1 :] = leverage
         return y_hat
 
+    def _run_steps(
+        self, u: np.ndarray, y: np.ndarray, learn: np.ndarray, changes: Sequence[tuple[int, Callable[[], None]]]
+    ) -> np.ndarray:
+        """:meth:`run` as :meth:`step` over a fresh history, one sample at a time: with ``y_abs`` each
+        sample's sign comes from the prediction before it, so no batch can be formed ahead."""
+        self.restart_stream()
+        cuts = sorted(changes, key=lambda c: c[0])
+        y_hat = np.full(len(y), np.nan)
+        self.last_leverage = np.zeros(len(y))
+        leverage = 0.0  # of the prediction made at the sample before
+        for k in range(len(y)):
+            while cuts and cuts[0][0] <= k:
+                cuts.pop(0)[1]()
+            result = self.step(k, float(u[k]), float(y[k]), bool(learn[k]))
+            if result.y_hat is not None:
+                y_hat[k] = result.y_hat
+                self.last_leverage[k] = leverage
+            leverage = result.leverage
+        for _, apply in cuts:
+            apply()
+        self.restart_stream()
+        return y_hat
+
+    def signed(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """``y`` as the model reads it (``y_abs``: each sample signed as the frozen model predicts it, the
+        sign the node gives it); ``y`` itself otherwise. What seeds a free run from measured outputs."""
+        y = np.asarray(y, dtype=np.float64)
+        if not self.structure.y_abs:
+            return y
+        observer = Identifier(self.structure, self.model, learning=False)
+        out = np.empty(len(y))
+        for k in range(len(y)):
+            out[k] = observer._sign_for(k) * y[k]
+            observer.step(k, float(u[k]), float(y[k]), learn=False)
+        return out
+
     def _update(self, inputs: np.ndarray, targets: np.ndarray, learning: bool, leverage: np.ndarray) -> np.ndarray:
         """The model's batch update; an RLS functional-link model also fills ``leverage``, as the live step has it."""
         if getattr(self.model, "solver", None) == "rls" and hasattr(self.model, "term_exponents"):
@@ -621,6 +756,7 @@ class Identifier:
         if start < window:
             raise ValueError(f"free run needs {window} samples of history before it starts")
         values = np.column_stack([np.asarray(y, dtype=np.float64), u])
+        values[:start, 0] = self.signed(u[:start], values[:start, 0])
         clipped, diverged_at = free_run_outputs([OutputRun(self.structure, self.model, 0, (1,))], values, int(start))
         self.counters["clipped_free_run"] += clipped[0]
         self.last_free_run = {
@@ -629,4 +765,4 @@ class Identifier:
             "diverged": diverged_at is not None,
             "diverged_at": diverged_at,
         }
-        return values[start:, 0]
+        return np.abs(values[start:, 0]) if self.structure.y_abs else values[start:, 0]

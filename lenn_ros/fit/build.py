@@ -78,6 +78,7 @@ from lenn_ros.fit.selection import (
     siso_view,
     widened,
 )
+from lenn_ros.fit.signs import recover_signs
 
 #: share of the training samples the epochs of an MLP / SGD fit are early-stopped on
 VALIDATION_FRACTION = 0.2
@@ -237,6 +238,7 @@ class OutputFit:
     refinement: dict[str, Any]
     warnings: list[str] = field(default_factory=list)
     columns: list[int] = field(default_factory=list)  # the view's columns in [y_0.., u_0..]
+    sign: dict[str, Any] | None = None  # an output read as its absolute value: what :func:`_signed_view` did
 
     @property
     def model(self) -> TermModel:
@@ -294,24 +296,16 @@ def _fit(data: Data, test_from: int, refine: bool, network: str, solver: str, pr
         f"selecting a structure on samples 1..{start}: {len(blocks)} blocks, each simulated by the weights "
         f"of the others{f', {len(breaks)} gaps in the record' if breaks else ''}"
     )
+    lenn_ls = network == "lenn" and solver == "ls"
     outputs, coupling = _fit_outputs(data, u[:start], y[:start], breaks, (y_offsets, y_scales, u_offsets, u_scales),
-                                     refine and solver == "ls" and network == "lenn", say)  # fmt: skip
+                                     refine and lenn_ls, say)  # fmt: skip
+    if single and lenn_ls:
+        outputs = _signed_view(data, u[:start], y[:start], breaks, (u_offsets, u_scales), outputs, refine, say)
     forgetting = live_forgetting(start)
-    if single:
-        if network == "lenn" and solver == "ls":  # epochs (MLP, SGD) train on the scaling as selected
-            _read_wide(outputs[0].chosen)
-        identifier, described = _single(outputs[0], u[:start, 0], y[:start, 0], network, solver, forgetting, say)
-        models = [outputs[0].model]
-    else:
-        for fitted in outputs:  # an output no other output reads is read as wide as a single output's
-            if _read_alone(fitted.model, [other.model for other in outputs]):
-                _read_wide(fitted.chosen)  # (an exact integrator only: the node then passes it through)
-        identifier = build_mimo_identifier(outputs, data, forgetting)
-        models = common_lags([fitted.model for fitted in outputs])
-        described = None
+    identifier, described, models = _identifiers(outputs, data, u[:start], y[:start], network, solver, forgetting, say)
     scored = score(identifier, data, start, models, [fitted.columns for fitted in outputs])
     report: dict[str, Any] = {"data": data.source, "test_from": test_from, "train_samples": start}
-    held_out = network == "lenn" and solver == "ls"
+    held_out = lenn_ls
     parts = []
     bands = side_by_side(  # each output's bands are its own: on the cores side by side
         lambda j: fit_intervals(scored["per_output"][j], identifier if single else None, outputs[j], held_out),
@@ -331,6 +325,33 @@ def _fit(data: Data, test_from: int, refine: bool, network: str, solver: str, pr
     report["seconds"] = round(time.perf_counter() - began, 2)
     return {"report": report, "identifier": identifier, "model": models[0] if single else None, "models": models,
             "outputs": outputs}  # fmt: skip
+
+
+def _identifiers(
+    outputs: list[OutputFit],
+    data: Data,
+    u: np.ndarray,
+    y: np.ndarray,
+    network: str,
+    solver: str,
+    forgetting: float,
+    say: Any,
+) -> tuple[Identifier | MimoIdentifier, dict[str, Any] | None, list[TermModel]]:
+    """(the identifier the node runs, a single output's model description, each output's model as it runs)
+    from the training samples ``u``, ``y``."""
+    if data.n_u == 1 and data.n_y == 1:
+        if network == "lenn" and solver == "ls":  # epochs (MLP, SGD) train on the scaling as selected
+            _read_wide(outputs[0].chosen)
+        identifier, described = _single(outputs[0], u[:, 0], y[:, 0], network, solver, forgetting, say)
+        if (outputs[0].sign or {}).get("used"):
+            identifier.set_structure(dataclasses.replace(identifier.structure, y_abs=True))
+            described["structure"]["y_abs"] = True
+        return identifier, described, [outputs[0].model]
+    for fitted in outputs:  # an output no other output reads is read as wide as a single output's
+        if _read_alone(fitted.model, [other.model for other in outputs]):
+            _read_wide(fitted.chosen)  # (an exact integrator only: the node then passes it through)
+    identifier = build_mimo_identifier(outputs, data, forgetting)
+    return identifier, None, common_lags([fitted.model for fitted in outputs])
 
 
 def _joined(
@@ -427,6 +448,47 @@ def _fit_outputs(
         },
     }
     return fits[kind], coupling
+
+
+def _signed_view(
+    data: Data,
+    u: np.ndarray,
+    y: np.ndarray,
+    breaks: list[int],
+    u_scaling: tuple,
+    outputs: list[OutputFit],
+    refine: bool,
+    say: Any,
+) -> list[OutputFit]:
+    """An output that reads like an absolute value (a speed through a pulse counter) is also fitted on
+    its signed record (:mod:`~lenn_ros.fit.signs`); the signed model is kept when its pooled free-run
+    RMSE over the blocks is lower, and the node then runs it with ``y_abs``. (The signed model's block
+    error is against the signed record: at least its error in |y|, so a tie keeps the plain model.)"""
+    signs = recover_signs(u[:, 0], y[:, 0], breaks)
+    if signs is None:
+        return outputs
+    say(
+        f"the output reads like an absolute value (|y| near 0 at {signs.runs} places): fitting its signed "
+        f"record too (signs from a linear model of the input, its free run of |y| {signs.arx_nmse_db:.1f} dB)"
+    )
+    signed = signs.signed[:, None]
+    try:
+        y_offsets, y_scales = ranges(signed, data.y_names)
+    except ValueError:
+        return outputs
+    view, _ = _fit_outputs(data, u, signed, breaks, (y_offsets, y_scales, *u_scaling), refine, say)
+    plain, other = outputs[0].chosen.rmse_validation, view[0].chosen.rmse_validation
+    used = other < plain
+    verdict = "the signed model is used (y_abs: the node signs each y as its model does)" if used else "kept as read"
+    say(f"blocks' pooled free-run RMSE: {plain:.5g} on |y| as read, {other:.5g} on the signed record: {verdict}")
+    kept = view if used else outputs
+    kept[0].sign = {
+        "read_as": "absolute value" if used else "as measured",
+        "used": used,
+        "rmse_blocks": {"as_measured": _finite(plain), "signed": _finite(other)},
+        **signs.as_dict(),
+    }
+    return kept
 
 
 def _views_side_by_side(
@@ -664,6 +726,7 @@ def _choices(fitted: OutputFit, blocks: int, gaps: int) -> dict[str, Any]:
         "chosen": fitted.candidates.index(fitted.chosen),
         "refinement": fitted.refinement,
         "time_scale": time_scale_note(fitted.chosen),
+        **({"sign": fitted.sign} if fitted.sign else {}),
     }
 
 
@@ -1209,6 +1272,7 @@ def params_values(identifier: Identifier, model: TermModel, forgetting: float, u
         "u_scale": float(s.u_scale),
         "y_offset": float(s.y_offset),
         "u_offset": float(s.u_offset),
+        "y_abs": bool(s.y_abs),
         "separate": False,
         "order": int(identifier.model.order),
         "basis": model.basis,

@@ -836,13 +836,14 @@ def test_fit_simulates_a_speed_read_as_its_absolute_value_and_the_node_signs_it(
     the model of the signed record beside it and keeps it by the blocks (measured -38.1 dB on this seed); the
     params file says ``y_abs``, and an identifier from it runs the same free run, seeding it with the signs
     its own predictions and free run give the measured |y|. Step by step, it publishes |y^| and y - |y^|."""
-    from lenn_ros.fit.build import write_outputs
+    from lenn_ros.fit.build import format_report, write_outputs
 
     u, y, speed = _plant_study().belt_speed(0)
     start = len(y) * 2 // 3
     result = fit(Data(u, y, "belt"), start + 1)
     report = result["report"]
     assert report["choices"]["sign"]["used"] and report["model"]["structure"]["y_abs"]
+    assert "the node signs each y_p as its model does (y_abs)" in format_report(report)
     assert report["nmse_free_run_db"] < -35.0 and report["warnings"] == []
     values = read_params_file(write_outputs(tmp_path / "model", result, Data(u, y, "belt"))["params"])
     assert values["y_abs"] is True

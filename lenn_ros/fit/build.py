@@ -1545,6 +1545,13 @@ def _model_lines(part: dict[str, Any], indent: str) -> list[str]:
     ]
     lines += _candidate_lines(c, indent)
     lines.append(f"{indent}time scale: {c['time_scale']}")
+    if sign := c.get("sign"):
+        blocks = sign["rmse_blocks"]
+        lines.append(
+            f"{indent}output read as |y|: fitted on its signed record too ({sign['runs']} runs between near-zero "
+            f"minima; blocks' free-run RMSE {blocks['as_measured']:.5g} as read, {blocks['signed']:.5g} signed): "
+            + ("the node signs each y_p as its model does (y_abs)" if sign["used"] else "kept as read")
+        )
     if m["network"] == "lenn" and "epochs" in m:
         e = m["epochs"]
         lines.append(f"{indent}trained by SGD epochs: {e['epochs']} run, best {e['best_epoch']} ({e['stopped']})")

@@ -85,15 +85,14 @@ def test_node_starts_from_the_fitted_model_and_keeps_adapting(tmp_path: Path, do
         listener.close()
     assert identifier.returncode == 0, err[-2000:]
     counters = final_status(err)["counters"]
-    # |speed|: nothing learnt until the sign has settled (measured: 131 of the 250 samples), and that is said
-    unsettled = counters.get("sign_unsettled", 0)
-    assert (0 < unsettled < 200) == (plant == "belt |speed|")
+    # |speed|: nothing learnt until the sign has settled, nor where it is unsure (measured: 191 of the 250
+    # samples, starting mid-motion), and that is said
+    unsure = counters.get("sign_unsure", 0)
+    assert (150 < unsure < 230) == (plant == "belt |speed|")
     assert (
-        ("not learning until the sign of |y| settles" in err)
-        == ("the sign of |y| has settled" in err)
-        == bool(unsettled)
+        ("not learning until the sign of |y| settles" in err) == ("the sign of |y| has settled" in err) == bool(unsure)
     )
-    assert counters["learned"] == len(live_u) - result["identifier"].structure.warm_up - unsettled
+    assert counters["learned"] == len(live_u) - result["identifier"].structure.warm_up - unsure
     assert counters["clipped_inputs"] == 0  # the network inputs the Identifier clipped (none here)
     # offline: the same files, the same samples, stepped with learning on
     resolved, network = resolve(read_params_file(files["params"]))

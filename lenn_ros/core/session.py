@@ -895,10 +895,11 @@ class Session:
         """A |y| sensor (``y_abs``): learning waits for the sign to settle after each start, and resumes."""
         self._sign_settled = settled = self.identifier.sign_settled
         if settled:
-            self._say("sign_settled", f"sample {index}: the sign of |y| has settled: learning")
+            self._say("sign", f"sample {index}: the sign of |y| has settled: learning (not where a sign is unsure, "
+                      "at a crossing: counted in sign_unsure)")  # fmt: skip
         elif settled is not None:
-            self._say("sign_unsettled", f"sample {index}: not learning until the sign of |y| settles (the model's "
-                      "free runs from either sign of the start must agree; counted in sign_unsettled)")  # fmt: skip
+            self._say("sign", f"sample {index}: not learning until the sign of |y| settles (the model's free runs "
+                      "from either sign of the start must agree; counted in sign_unsure)")  # fmt: skip
 
     _sign_settled: bool | None = None
 
@@ -1110,9 +1111,20 @@ class Session:
             last = np.flatnonzero(valid)[changes[-1]] if changes.size else 0
             scored = valid & finite_rows(y_hat) & (np.arange(len(y)) >= last)
             self.phase_nmse.extend(y[scored], y_hat[scored])
+        self._say_offline()
+        return y_hat
+
+    def _say_offline(self) -> None:
+        """What a batch pass says once for all its samples (live: as it happens)."""
         if self.identifier.counters["clipped"] > self._seen_clipped:
             self._say_clipped(None)
-        return y_hat
+        unsure = self.identifier.counters.get("sign_unsure", 0)
+        if unsure > self._seen_unsure:  # (live: a line at each start and when it settles)
+            self._say("sign", f"{unsure - self._seen_unsure} samples not learnt for an unsure sign of |y|: after a "
+                      "start or a gap until it settled, and at crossings (counted in sign_unsure)")  # fmt: skip
+            self._seen_unsure = unsure
+
+    _seen_unsure = 0
 
     def _run_segments(
         self,

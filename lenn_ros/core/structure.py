@@ -298,45 +298,48 @@ class Identifier:
             return self._step_abs(index, u, y, learn)
         return self._step(index, u, y, learn)
 
-    def _sign_for(self, index: int) -> float:
-        """The sign a measured |y(index)| takes (``y_abs``).
+    def _sign_for(self, index: int) -> tuple[float, bool]:
+        """The sign a measured |y(index)| takes (``y_abs``), and whether it is sure.
 
         Where the free run alongside (:meth:`_step_shadows`) is clearly away from zero
         (SIGN_MARGIN of ``y_scale``), its sign; nearer zero, where a crossing's timing is
         uncertain, the sign of the one-step prediction; + with neither (a history that starts
-        over). Why the free run: a history signed the wrong way round is the mirror image of
-        the plant, and one-step predictions from it stay mirrored (a slow output's next value
-        is mostly its last); a stable model's free run forgets its start and follows the input.
+        over). Sure where the two agree. Why the free run: a history signed the
+        wrong way round is the mirror image of the plant, and one-step predictions from it stay
+        mirrored (a slow output's next value is mostly its last); a stable model's free run
+        forgets its start and follows the input.
         """
         if self._last_index is None or index != self._last_index + 1:
-            return 1.0
+            return 1.0, False
         free, one = self._shadow_next, self._signed_next
+        agree = free is not None and one is not None and (free < 0.0) == (one < 0.0)
         if free is not None and abs(free) >= self.SIGN_MARGIN * self.structure.y_scale:
-            return -1.0 if free < 0.0 else 1.0
-        return -1.0 if one is not None and one < 0.0 else 1.0
+            return (-1.0 if free < 0.0 else 1.0), agree
+        return (-1.0 if one is not None and one < 0.0 else 1.0), agree
 
     #: ``y_abs``: the free run alongside decides a sign beyond this fraction of ``y_scale`` from zero
     SIGN_MARGIN: ClassVar[float] = 0.1
-    #: ``y_abs``: two free runs from either sign of a start have forgotten it within this fraction of ``y_scale``
-    SETTLED: ClassVar[float] = 1e-3
 
     def _step_abs(self, index: int, u: float, y: float, learn: bool | None) -> StepResult:
         """:meth:`_step` on the signed output, scored and published as the sensor reads it.
 
         With y signed as its prediction is, y - y^ is +-(|y| - |y^|): the model learns
-        exactly the error the sensor shows, and nothing the sensor cannot tell. Until the
-        sign is settled after a start (the free runs from either sign of it agree), nothing
-        is learnt: a history signed the wrong way round would teach the mirror image of the
-        plant (counted: ``sign_unsettled``).
+        exactly the error the sensor shows, and nothing the sensor cannot tell. A sample is
+        learnt only once the sign has settled after a start (the free runs from either sign of
+        it agree) and when its sign and those of its whole history were sure: a history signed
+        the wrong way round would teach the mirror image of the plant, and one wrong sign at a
+        crossing a jump it never made (counted: ``sign_unsure``).
         """
-        signed = self._sign_for(index) * y
+        sign, sure = self._sign_for(index)
+        signed = sign * y
+        self._sure_run = self._sure_run + 1 if sure else 0
+        trusted = self._settled and self._sure_run > self.structure.y_history
         learn = self.learning if learn is None else learn
-        settled = self._settled
-        result = self._step(index, u, signed, learn and settled)
+        result = self._step(index, u, signed, learn and trusted)
         if result.event == "duplicate":
             return result
-        if learn and not settled and result.y_hat is not None:  # a sample it would have learnt from
-            self.counters["sign_unsettled"] = self.counters.get("sign_unsettled", 0) + 1
+        if learn and not trusted and result.y_hat is not None:  # a sample it would have learnt from
+            self.counters["sign_unsure"] = self.counters.get("sign_unsure", 0) + 1
         self._signed_next = result.y_hat_next
         self._step_shadows(index, u, signed)
         if result.y_hat is not None:
@@ -348,12 +351,15 @@ class Identifier:
 
     def _step_shadows(self, index: int, u: float, signed: float) -> None:
         """The free runs alongside (``y_abs``): the same weights, fed their own predictions, seeded by the
-        signed measurements until they predict, and a second one by their mirror image. Where the two
-        agree, the start is forgotten: the sign is settled, and the second one is dropped."""
+        signed measurements until they predict, and a second one by their mirror image. Their difference
+        is twice what is left of the start (exactly, for a linear model); once it stays within SIGN_MARGIN
+        over the output's whole history, a sign the free run decides (beyond SIGN_MARGIN from zero) no
+        longer depends on the start's: it is settled, and the second one is dropped. (Mirror images
+        meet at zero: one sample of agreement there says nothing.)"""
         if not self._shadows or self._shadows[0].model is not self.model:
             plain = dataclasses.replace(self.structure, y_abs=False)
             self._shadows = [Identifier(plain, self.model, learning=False) for _ in range(2)]
-            self._shadow_next, self._mirror_next, self._settled = None, None, False
+            self._shadow_next, self._mirror_next, self._settled, self._agreed = None, None, False, 0
         bound = FREE_RUN_DIVERGENCE_BOUND * self.structure.y_scale
         following = []
         feeds = ((self._shadow_next, signed), (self._mirror_next, -signed))
@@ -362,8 +368,10 @@ class Identifier:
             inside = value is not None and abs(value - self.structure.y_offset) <= bound
             following.append(value if inside else None)
         self._shadow_next, self._mirror_next = following[0], (following[1] if len(following) == 2 else None)
-        close = None not in following and abs(following[0] - following[-1]) <= self.SETTLED * self.structure.y_scale
-        if len(following) == 2 and close:
+        margin = self.SIGN_MARGIN * self.structure.y_scale
+        agree = None not in following and abs(following[0] - following[-1]) < margin
+        self._agreed = self._agreed + 1 if agree else 0
+        if len(following) == 2 and self._agreed >= self.structure.y_history:
             self._settled, self._shadows = True, self._shadows[:1]
 
     _signed_next: float | None = None  # y_abs: the signed one-step prediction of the next sample
@@ -371,6 +379,8 @@ class Identifier:
     _shadow_next: float | None = None  # and their predictions of the next sample
     _mirror_next: float | None = None
     _settled = False  # y_abs: the free runs have forgotten the start (its sign)
+    _agreed = 0  # y_abs: samples in a row the two free runs have agreed
+    _sure_run = 0  # y_abs: samples in a row whose sign was sure
 
     @property
     def sign_settled(self) -> bool | None:
@@ -529,7 +539,7 @@ class Identifier:
 
     def _restart_history(self) -> None:
         self._signed_next = self._shadow_next = self._mirror_next = None
-        self._shadows, self._settled = [], False
+        self._shadows, self._settled, self._sure_run = [], False, 0
         self._y_past.clear()
         self._u_past.clear()
         self._pending = None
@@ -721,7 +731,7 @@ class Identifier:
         observer = Identifier(self.structure, self.model, learning=False)
         out = np.empty(len(y))
         for k in range(len(y)):
-            out[k] = observer._sign_for(k) * y[k]
+            out[k] = observer._sign_for(k)[0] * y[k]
             observer.step(k, float(u[k]), float(y[k]), learn=False)
         return out
 

@@ -80,8 +80,7 @@ _QOS_OVERRIDES = QoSOverridingOptions(
     policy_kinds=(QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY)
 )
 #: Notice kinds that are news, not trouble.
-_INFO_KINDS = ("phase", "resumed", "scales", "parameters", "change_cleared", "inputs_resumed", "sign_unsettled",
-               "sign_settled")  # fmt: skip
+_INFO_KINDS = ("phase", "resumed", "scales", "parameters", "change_cleared", "inputs_resumed", "sign")
 
 
 def _descriptor(parameter: Parameter) -> ParameterDescriptor:

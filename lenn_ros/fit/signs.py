@@ -136,13 +136,22 @@ def _misfit(u: np.ndarray, y: np.ndarray, signs: np.ndarray, labels: np.ndarray,
     return float(np.mean((np.abs(simulated) - y) ** 2))
 
 
+@njit(cache=True)
+def _low_pass(x: np.ndarray, span: float) -> np.ndarray:
+    """First-order low-pass of ``x`` with a time constant of ``span`` samples, from 0."""
+    out = np.empty(len(x))
+    level = 0.0
+    for k in range(len(x)):
+        level += (x[k] - level) / span
+        out[k] = level
+    return out
+
+
 def _start(u: np.ndarray, y: np.ndarray) -> np.ndarray:
     """A linear filter of u whose output has y's signs (step 1 of the module's note)."""
-    from scipy.signal import lfilter
-
     shifted = np.r_[0.0, u[:-1]]
     spans = [s for s in SPANS if s <= max(1, len(y) // 8)]
-    bank = np.column_stack([shifted] + [lfilter([1.0 / s], [1.0, 1.0 / s - 1.0], shifted) for s in spans[1:]])
+    bank = np.column_stack([shifted] + [_low_pass(shifted, float(s)) for s in spans[1:]])
     p = bank.shape[1]
     upper = np.triu_indices(p)
     products = np.column_stack([bank[:, i] * bank[:, j] for i, j in zip(*upper, strict=True)] + [np.ones(len(y))])

@@ -53,9 +53,9 @@ class ModelStructure:
       a several-channel model all predict from the same sample on).
     - ``y_abs``: the sensor reads the absolute value of the output (a pulse counter on a
       speed that changes sign). The model is of the signed output, whose sign is a hidden
-      state no NARX of |y| carries through a free run; each measured y takes the sign of
-      the model's own prediction of it (:meth:`Identifier.step`), and what is published
-      and scored is |y^|.
+      state no NARX of |y| carries through a free run; each measured y takes the sign the
+      model gives it (its free run alongside, or its prediction near zero:
+      :meth:`Identifier.step`), and what is published and scored is |y^|.
 
     One description for any number of channels: the compiled step and the free run read
     it through :meth:`input_channels` and :meth:`known_parts`.
@@ -375,7 +375,7 @@ class Identifier:
             self._settled, self._shadows = True, self._shadows[:1]
 
     _signed_next: float | None = None  # y_abs: the signed one-step prediction of the next sample
-    _shadows: ClassVar[list] = []  # y_abs: the free runs alongside (an instance sets its own)
+    _shadows: ClassVar[tuple] = ()  # y_abs: the free runs alongside (an instance sets its own)
     _shadow_next: float | None = None  # and their predictions of the next sample
     _mirror_next: float | None = None
     _settled = False  # y_abs: the free runs have forgotten the start (its sign)
@@ -539,7 +539,7 @@ class Identifier:
 
     def _restart_history(self) -> None:
         self._signed_next = self._shadow_next = self._mirror_next = None
-        self._shadows, self._settled, self._sure_run = [], False, 0
+        self._shadows, self._settled, self._sure_run = (), False, 0
         self._y_past.clear()
         self._u_past.clear()
         self._pending = None
@@ -703,7 +703,7 @@ class Identifier:
         self, u: np.ndarray, y: np.ndarray, learn: np.ndarray, changes: Sequence[tuple[int, Callable[[], None]]]
     ) -> np.ndarray:
         """:meth:`run` as :meth:`step` over a fresh history, one sample at a time: with ``y_abs`` each
-        sample's sign comes from the prediction before it, so no batch can be formed ahead."""
+        sample's sign comes from the predictions made before it, so no batch can be formed ahead."""
         self.restart_stream()
         cuts = sorted(changes, key=lambda c: c[0])
         y_hat = np.full(len(y), np.nan)

@@ -51,6 +51,19 @@ def test_compiled_term_features_are_bitwise_the_numpy_reference(basis: str, rows
         assert np.array_equal(_bits(compiled), _bits(reference))
 
 
+def test_terms_of_factors_only_are_expanded_within_their_table() -> None:
+    """``fit``'s input averages: terms with no polynomial, only a factor g(w . x) over 64 lags. Their inputs are
+    read at table depth 1, which a table sized by the exponents alone (all 0) did not have: the compiled
+    expansion wrote past its end and aborted the process (double free). Now it is the reference's value."""
+    x = _inputs(5000, 64)
+    rng = np.random.default_rng(3)
+    factors = np.column_stack([[1.0, 4.0, 3.0], np.zeros(3), rng.normal(0.0, 0.1, (3, 64))])
+    exponents = np.zeros((3, 64), dtype=np.int64)
+    compiled = term_features(x, exponents, "legendre", factors)
+    reference = term_features_reference(x, exponents, "legendre", factors)
+    assert np.allclose(compiled, reference, rtol=0, atol=1e-12)
+
+
 @pytest.mark.parametrize("number", sorted(EXAMPLES))
 @pytest.mark.parametrize(
     "overrides", [{}, {"basis": "chebyshev"}, {"cross_degree": 3, "branches": None}], ids=["paper", "cheb", "cross"]

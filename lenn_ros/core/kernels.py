@@ -465,7 +465,7 @@ def free_run(
     plan = _sparse_terms(exponents, factors)
     need = plan[6]
     read_start, read = _inputs_read(input_start, input_source, need, n_y)
-    table = np.empty((exponents.shape[1], max(1, _top_degree(exponents)) + 1))
+    table = np.empty((exponents.shape[1], _top_degree(exponents) + 1))
     sums = np.zeros(n_branches)
     for k in range(start - 1, n - 1):
         for j in range(n_y):
@@ -852,7 +852,7 @@ def free_run_jacobian(
     n, n_terms = values.shape[0], exponents.shape[0]
     plan = _sparse_terms(exponents, factors)
     need = plan[6]
-    top = max(1, _top_degree(exponents))
+    top = _top_degree(exponents)
     table = np.empty((len(source), top + 1))
     slopes = np.zeros((y_lags, top + 1))
     sums = np.zeros(1)
@@ -908,8 +908,11 @@ COLUMN_MAJOR_BLOCK = 256
 
 @njit(cache=True, nogil=True, inline="always")
 def _top_degree(exponents: np.ndarray) -> int:
-    """Highest degree any term asks of any input: how far each input's recursion must go."""
-    top = 0
+    """Highest degree any term asks of any input, at least 1: how far each input's recursion must go,
+    and the depth of the table it fills. At least 1 because a factor reads its inputs x_i as table[i, 1]
+    (:func:`_sparse_terms`' ``need``): a model of factor terms only (``fit``'s input averages) had a
+    table of depth 1 written at depth 2, past its end."""
+    top = 1
     for t in range(exponents.shape[0]):
         for i in range(exponents.shape[1]):
             top = max(top, exponents[t, i])

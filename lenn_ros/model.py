@@ -113,8 +113,13 @@ class Model:
         u_all = np.concatenate([u_before, u])
         y_all = np.concatenate([y_before, np.full((len(u), y_before.shape[1]), np.nan)])
         if not self.mimo:
-            return self.identifier.free_run(u_all[:, 0], y_all[:, 0], window)
+            return self._read(self.identifier.free_run(u_all[:, 0], y_all[:, 0], window, seeds_signed=True))
         return self.identifier.free_run(u_all, y_all, window)
+
+    def _read(self, y: np.ndarray) -> np.ndarray:
+        """The model's output as the sensor reads it: |y| for a model of an output read as its absolute value
+        (``y_abs``: its runs go on from signed outputs, :meth:`_history`)."""
+        return np.abs(y) if not self.mimo and self.identifier.structure.y_abs else y
 
     def predict(self, u: np.ndarray, y: np.ndarray, steps: int, u_future: np.ndarray | None = None) -> np.ndarray:
         """The next ``steps`` outputs y(N..N+steps-1) after the measured ``u``, ``y`` (same length >= :attr:`history`).
@@ -159,6 +164,11 @@ class Model:
         for name, a in (("u_initial", u_before), ("y_initial", y_before)):
             if len(a) < window:
                 raise ModelError(f"{name} has {len(a)} samples; the model needs the last {window} before the run")
+        if y_initial is not None and not self.mimo and self.identifier.structure.y_abs:
+            # |y| measured: signed as the node signs it, over all of the history given (the longer, the surer)
+            n = min(len(u_before), len(y_before))
+            y_before = y_before.copy()
+            y_before[-n:, 0] = self.identifier.signed(u_before[-n:, 0], y_before[-n:, 0])
         return u_before[-window:], y_before[-window:]
 
 
@@ -208,15 +218,15 @@ class Stepper:
         window, identifier = self.model.history, self.model.identifier
         if self.model.mimo:
             out = identifier.free_run(self._u, self._y, window)[0]
-        else:
-            out = np.array([identifier.free_run(self._u[:, 0], self._y[:, 0], window)[0]])
+        else:  # (y_abs: the history holds the signed outputs the run goes on from)
+            out = np.array([identifier.free_run(self._u[:, 0], self._y[:, 0], window, seeds_signed=True)[0]])
         self.steps += 1
         if not np.all(np.isfinite(out)):
             self.diverged = True
             return out
         self._u[:-1] = np.concatenate([self._u[1:-1], row[None, :]])
         self._y[:-1] = np.concatenate([self._y[1:-1], out[None, :]])
-        return out
+        return self.model._read(out)
 
 
 def load_model(directory: str | Path, node: str = "/identifier") -> Model:

@@ -751,7 +751,7 @@ class Identifier:
         if len(self._block_errors) == self.health_interval:
             self._check_block()
 
-    def free_run(self, u: np.ndarray, y: np.ndarray, start: int) -> np.ndarray:
+    def free_run(self, u: np.ndarray, y: np.ndarray, start: int, seeds_signed: bool = False) -> np.ndarray:
         """Parallel model from ``start`` on: the network fed its own past outputs.
 
         Plant outputs y(0..start-1) seed the model's history (a live switch from
@@ -760,13 +760,19 @@ class Identifier:
         clipped, so an unstable model saturates instead of overflowing, and counted
         in ``counters["clipped_free_run"]``; ``last_free_run`` says how many and
         whether (and where) the run diverged. Functional-link models run compiled.
+
+        ``y_abs``: the measured |y| before ``start`` is signed as the node signs it
+        (:meth:`signed`), and the run is returned as |y^|; ``seeds_signed``: y before
+        ``start`` is signed already (a run going on from its own outputs, as a twin's),
+        and the run is returned signed.
         """
         u = np.asarray(u, dtype=np.float64)
         window = self.structure.warm_up
         if start < window:
             raise ValueError(f"free run needs {window} samples of history before it starts")
         values = np.column_stack([np.asarray(y, dtype=np.float64), u])
-        values[:start, 0] = self.signed(u[:start], values[:start, 0])
+        if not seeds_signed:
+            values[:start, 0] = self.signed(u[:start], values[:start, 0])
         clipped, diverged_at = free_run_outputs([OutputRun(self.structure, self.model, 0, (1,))], values, int(start))
         self.counters["clipped_free_run"] += clipped[0]
         self.last_free_run = {
@@ -775,4 +781,4 @@ class Identifier:
             "diverged": diverged_at is not None,
             "diverged_at": diverged_at,
         }
-        return np.abs(values[start:, 0]) if self.structure.y_abs else values[start:, 0]
+        return np.abs(values[start:, 0]) if self.structure.y_abs and not seeds_signed else values[start:, 0]

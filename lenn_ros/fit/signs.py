@@ -93,8 +93,9 @@ def _runs(y: np.ndarray, breaks: list[int]) -> tuple[np.ndarray, int]:
 
 
 @njit(cache=True)
-def _arx_weights(u: np.ndarray, s: np.ndarray, starts: np.ndarray, lags: int) -> np.ndarray:
-    """Least squares of y(k) = sum a_i y(k-i) + sum b_i u(k-i) within each run of the record."""
+def _arx_normal_equations(u: np.ndarray, s: np.ndarray, starts: np.ndarray, lags: int) -> tuple:
+    """(Gram matrix, right-hand side) of y(k) = sum a_i y(k-i) + sum b_i u(k-i) within each run of the record
+    (solved outside: numba's own solver would need scipy, which the package does not depend on)."""
     width = 2 * lags
     gram = np.zeros((width, width))
     cross = np.zeros(width)
@@ -106,15 +107,13 @@ def _arx_weights(u: np.ndarray, s: np.ndarray, starts: np.ndarray, lags: int) ->
                 row[lags + i] = u[k - 1 - i]
             cross += row * s[k]
             gram += np.outer(row, row)
-    gram += 1e-9 * (np.trace(gram) / width + 1e-300) * np.eye(width)
-    return np.linalg.solve(gram, cross)
+    return gram, cross
 
 
 @njit(cache=True)
-def _arx_free_run(u: np.ndarray, s: np.ndarray, starts: np.ndarray, lags: int) -> np.ndarray:
-    """:func:`_arx_weights`' model simulated from u (seeded at each run of the record by its first
-    samples); NaN from where it diverged."""
-    w = _arx_weights(u, s, starts, lags)
+def _arx_simulation(u: np.ndarray, s: np.ndarray, starts: np.ndarray, lags: int, w: np.ndarray) -> np.ndarray:
+    """The ARX of weights ``w`` simulated from u (seeded at each run of the record by its first samples);
+    NaN from where it diverged."""
     bound = 1e3 * (np.max(np.abs(s)) + 1e-300)
     sim = s.copy()
     for r in range(len(starts) - 1):
@@ -127,6 +126,13 @@ def _arx_free_run(u: np.ndarray, s: np.ndarray, starts: np.ndarray, lags: int) -
                 return sim
             sim[k] = value
     return sim
+
+
+def _arx_free_run(u: np.ndarray, s: np.ndarray, starts: np.ndarray, lags: int) -> np.ndarray:
+    """The least-squares ARX of the signed record ``s``, simulated from u (NaN from where it diverged)."""
+    gram, cross = _arx_normal_equations(u, s, starts, lags)
+    gram += 1e-9 * (np.trace(gram) / len(cross) + 1e-300) * np.eye(len(cross))
+    return _arx_simulation(u, s, starts, lags, np.linalg.solve(gram, cross))
 
 
 def _misfit(u: np.ndarray, y: np.ndarray, signs: np.ndarray, labels: np.ndarray, starts: np.ndarray) -> float:

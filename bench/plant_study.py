@@ -22,7 +22,8 @@ its spread over seeds is wide, is a selection that does not generalise.
   1.5 Hz) at 50 Hz, 750 samples; the speed sensor counts pulses, so it reads the
   absolute value of the speed, with 1 % noise.
 - ``belt-drag``: the same with the pulley's quadratic air drag (1.0 w_p |w_p| rad/s^2: the speed
-  follows a nonlinear law, its sign still hidden). Not in the default run.
+  follows a nonlinear law, its sign still hidden); ``belt-1khz``: the belt sampled at 1 kHz (15 000
+  samples). Not in the default run.
 - ``axis``: a 2 kg carriage with viscous and Coulomb friction (15 N) under a PD position
   controller (force limited to 200 N) that follows a smooth random trajectory, at 1 kHz,
   40 s; u is the force the controller applied, y the encoder position (1 um, 2 um noise).
@@ -108,13 +109,14 @@ def _belt(u: np.ndarray, period: float, drag: float = 0.0) -> np.ndarray:
     return out
 
 
-def belt_speed(seed: int, drag: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(u, the |speed| sensor's reading, the signed pulley speed it reads)."""
+def belt_speed(seed: int, drag: float = 0.0, period: float = 0.02) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(u, the |speed| sensor's reading, the signed pulley speed it reads): 15 s, commands held 0.06-0.3 s."""
     rng = np.random.default_rng([seed, 2])
-    levels = _smooth_levels(rng, 750, (3, 15), 0.3, 1.5)
-    sign = np.where(_smooth_levels(rng, 750, (3, 15), -1.0, 1.0) >= 0.0, 1.0, -1.0)
+    n, hold = round(15.0 / period), (round(0.06 / period), round(0.3 / period))
+    levels = _smooth_levels(rng, n, hold, 0.3, 1.5)
+    sign = np.where(_smooth_levels(rng, n, hold, -1.0, 1.0) >= 0.0, 1.0, -1.0)
     u = levels * sign
-    speed = _belt(u, 0.02, drag)
+    speed = _belt(u, period, drag)
     y = np.abs(speed)
     return u, y + rng.normal(0.0, 0.01 * np.std(y), len(y)), speed
 
@@ -217,6 +219,7 @@ PLANTS = {
     "tanks": tanks,
     "belt": belt,
     "belt-drag": lambda seed: belt_speed(seed, drag=1.0)[:2],
+    "belt-1khz": lambda seed: belt_speed(seed, period=0.001)[:2],
     "axis": axis,
     "axis-p2p": axis_p2p,
     **{name: functools.partial(axis_p2p, carriage=carriage) for name, carriage in VARIANTS.items()},

@@ -815,8 +815,8 @@ def _plant_study():
 
 def test_the_signs_of_a_speed_read_as_its_absolute_value_are_recovered() -> None:
     """A belt drive's pulley speed through a pulse counter (|speed|, 1 % noise): the signs found from the
-    record alone agree with the hidden ones on 99 % of the samples (measured 99.6, 99.2, 99.2 %). A signed
-    output, and a positive one that never comes near zero, are not taken for an absolute value."""
+    record alone agree with the hidden ones on 99 % of the samples (measured 99.6, 99.2, 99.2 %), also at
+    1 kHz. A signed output, and a positive one that never comes near zero, are not taken for an absolute value."""
     from lenn_ros.fit.signs import looks_absolute, recover_signs
 
     plant_study = _plant_study()
@@ -830,6 +830,14 @@ def test_the_signs_of_a_speed_read_as_its_absolute_value_are_recovered() -> None
         assert not looks_absolute(speed[:n])  # the signed speed itself
     u, y = plant_study.tanks(0)
     assert not looks_absolute(y) and recover_signs(u, y) is None
+    # sampled at 1 kHz, far faster than |y| moves: found on averages of 16 samples (measured 99.1 %; on the
+    # samples themselves the judging ARX fitted the noise and 67 % were right)
+    u, y, speed = plant_study.belt_speed(1, period=0.001)
+    n = len(y) * 2 // 3
+    signs = recover_signs(u[:n], y[:n])
+    assert signs is not None and signs.averaged > 1
+    agree = float(np.mean(np.sign(signs.signed) == np.sign(speed[:n])))
+    assert max(agree, 1.0 - agree) > 0.985
 
 
 def test_fit_simulates_a_speed_read_as_its_absolute_value_and_the_node_signs_it(tmp_path: Path) -> None:

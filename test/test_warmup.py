@@ -106,6 +106,21 @@ def test_given_scales_skip_the_warm_up() -> None:
     assert resolve({"example": 1})[0]["y_scale"] > 0  # a paper preset gives its own
 
 
+def test_a_sensor_read_as_its_absolute_value_learns_a_range_about_zero() -> None:
+    """``y_abs`` with the scales to learn: the model reads the signed output, which spans -max|y|..max|y|; a range
+    centred on |y|'s own middle would clip every negative value."""
+    from lenn_ros.core.structure import ModelStructure
+    from lenn_ros.core.warmup import ScaleWarmUp
+
+    warm = ScaleWarmUp.for_structure(ModelStructure(y_lags=2, u_lags=2, y_scale=0.0, u_scale=0.0, y_abs=True), 50)
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        warm.add(float(rng.uniform(-1.0, 1.0)), float(rng.uniform(0.5, 3.0)))
+    learnt = warm.structure(ModelStructure(y_lags=2, u_lags=2, y_scale=0.0, u_scale=0.0, y_abs=True))
+    assert learnt.y_offset == 0.0 and learnt.y_scale == pytest.approx(warm.result["y"]["high"] * (1.0 + warm.margin))
+    assert learnt.u_offset != 0.0  # the input's range is its own
+
+
 def test_rls_forgetting_is_a_memory_of_minutes() -> None:
     values, _ = resolve({})
     assert values["solver"] == "rls" and values["forgetting"] == 0.0

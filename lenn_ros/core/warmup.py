@@ -94,6 +94,7 @@ class ScaleWarmUp:
     y_offset: float | tuple[float, ...] = 0.0
     u_offset: float | tuple[float, ...] = 0.0
     margin: float = DEFAULT_MARGIN
+    y_abs: bool = False  # y is read as |y| of a signed output (ModelStructure.y_abs): its range is +-max|y|
     valid: int = 0
     restarts: int = 0
     discarded: int = 0
@@ -130,6 +131,7 @@ class ScaleWarmUp:
             y_offset=structure.y_offset,
             u_offset=structure.u_offset,
             margin=margin,
+            y_abs=structure.y_abs,
         )
 
     @property
@@ -174,7 +176,8 @@ class ScaleWarmUp:
                 spread = math.sqrt(max(extent.squares / self.valid - mean * mean, 0.0))
                 entry = {"low": extent.low, "high": extent.high, "mean": mean, "std": spread, "learnt": learn}
                 if learn:
-                    offset = given if given else (extent.high + extent.low) / 2.0
+                    centre = 0.0 if name == "y" and self.y_abs else (extent.high + extent.low) / 2.0
+                    offset = given if given else centre
                     half = max(extent.high - offset, offset - extent.low)
                     entry.update(offset=offset, scale=half * (1.0 + self.margin))
                 entries.append(entry)

@@ -468,8 +468,8 @@ def _signed_view(
     if signs is None:
         return outputs
     say(
-        f"the output reads like an absolute value (|y| near 0 at {signs.runs} places): fitting its signed "
-        f"record too (signs from a linear model of the input, its free run of |y| {signs.arx_nmse_db:.1f} dB)"
+        f"the output reads like an absolute value ({signs.runs} runs between near-zero minima): fitting its "
+        f"signed record too (signs from a linear model of the input, its free run of |y| {signs.arx_nmse_db:.1f} dB)"
     )
     signed = signs.signed[:, None]
     try:

@@ -24,6 +24,8 @@ How the signs are found, and why each step:
    of |y| fits better: alternation stops where a run's sign and the ARX agree with each
    other but not with the record. Within a budget (``SEARCH_BUDGET`` samples simulated),
    so a record of 40 000 samples stays within seconds.
+4. All of it on means of a few samples where the record is sampled far faster than |y|
+   moves (:func:`decimation`): the ARX judges at the time scale of the crossings.
 """
 
 from __future__ import annotations

@@ -227,7 +227,8 @@ def identifier_parameters(example: int, network: str, parameters: str = "calibra
             "y_abs",
             structure.y_abs,
             "the sensor reads |y| (a pulse counter on a speed that changes sign): the model is of the signed "
-            "output, each y_p takes the sign of its prediction, y^ is published as |y^| (fit sets it; one output)",
+            "output, each y_p takes the sign the model gives it (its free run, its prediction near zero; not "
+            "learnt while unsure), y^ is published as |y^| (fit sets it; one output)",
         ),
         Parameter("separate", structure.separate, "Model 3 structure: N1[y] + N2[u] instead of one network"),
         Parameter(

@@ -116,10 +116,14 @@ class Model:
             return self._read(self.identifier.free_run(u_all[:, 0], y_all[:, 0], window, seeds_signed=True))
         return self.identifier.free_run(u_all, y_all, window)
 
+    @property
+    def _reads_abs(self) -> bool:
+        """One output read as its absolute value (``y_abs``): its runs go on from signed outputs (:meth:`_history`)."""
+        return not self.mimo and self.identifier.structure.y_abs
+
     def _read(self, y: np.ndarray) -> np.ndarray:
-        """The model's output as the sensor reads it: |y| for a model of an output read as its absolute value
-        (``y_abs``: its runs go on from signed outputs, :meth:`_history`)."""
-        return np.abs(y) if not self.mimo and self.identifier.structure.y_abs else y
+        """The model's output as the sensor reads it: |y| where it :attr:`_reads_abs`."""
+        return np.abs(y) if self._reads_abs else y
 
     def predict(self, u: np.ndarray, y: np.ndarray, steps: int, u_future: np.ndarray | None = None) -> np.ndarray:
         """The next ``steps`` outputs y(N..N+steps-1) after the measured ``u``, ``y`` (same length >= :attr:`history`).
@@ -164,7 +168,7 @@ class Model:
         for name, a in (("u_initial", u_before), ("y_initial", y_before)):
             if len(a) < window:
                 raise ModelError(f"{name} has {len(a)} samples; the model needs the last {window} before the run")
-        if y_initial is not None and not self.mimo and self.identifier.structure.y_abs:
+        if y_initial is not None and self._reads_abs:
             # |y| measured: signed as the node signs it, over all of the history given (the longer, the surer)
             n = min(len(u_before), len(y_before))
             y_before = y_before.copy()

@@ -771,7 +771,8 @@ class Identifier:
         if start < window:
             raise ValueError(f"free run needs {window} samples of history before it starts")
         values = np.column_stack([np.asarray(y, dtype=np.float64), u])
-        if not seeds_signed:
+        read_abs = self.structure.y_abs and not seeds_signed  # |y| measured in, |y^| out
+        if read_abs:
             values[:start, 0] = self.signed(u[:start], values[:start, 0])
         clipped, diverged_at = free_run_outputs([OutputRun(self.structure, self.model, 0, (1,))], values, int(start))
         self.counters["clipped_free_run"] += clipped[0]
@@ -781,4 +782,4 @@ class Identifier:
             "diverged": diverged_at is not None,
             "diverged_at": diverged_at,
         }
-        return np.abs(values[start:, 0]) if self.structure.y_abs and not seeds_signed else values[start:, 0]
+        return np.abs(values[start:, 0]) if read_abs else values[start:, 0]

@@ -1,6 +1,6 @@
 """Free runs of `lenn-ros fit` on plant classes with hard nonlinearities it was never developed on (issue 17).
 
-    python bench/plant_study.py                  # tanks, belt, axis, axis-p2p; 5 seeds
+    python bench/plant_study.py                  # tanks, belt, axis, axis-p2p, backlash, wiener-hammerstein, heater
     python bench/plant_study.py --plants tanks --seeds 3
 
 The issue names what polynomials of low degree cannot follow: overflow and saturation,
@@ -35,6 +35,14 @@ its spread over seeds is wide, is a selection that does not generalise.
 - ``axis-p2p-200hz``, ``-noisy``, ``-coulomb30``, ``-soft``: the same sampled at 200 Hz,
   with 10 um encoder noise, with twice the Coulomb friction, under a softer loop (kp 1000
   N/m: a dead band four times wider). Not in the default run (``--plants`` names them).
+- ``backlash``: a position-controlled joint (a 5 Hz servo on the motor angle) whose load hangs
+  on the gear through a spring that pushes only beyond a +-0.01 rad gap, at 200 Hz, 40 s; u the
+  commanded angle, y the load encoder. ``backlash-wide``: a +-0.05 rad gap (not in the default run).
+- ``wiener-hammerstein``: an amplifier stage: a resonant filter, the static map tanh(2x) +
+  0.5 max(x, 0) (a kink and a saturation), a second filter; 6 000 samples of band-limited noise.
+- ``heater``: a plate heated by up to 300 W that cannot cool (the command in [-0.2, 1.2] is
+  clipped to [0, 1]), losing heat by convection and by radiation (T^4), read in deg C at 0.1 K
+  resolution every 5 s, 3 000 samples.
 """
 
 from __future__ import annotations
@@ -215,6 +223,95 @@ def axis_p2p(seed: int, carriage: Carriage = Carriage()) -> tuple[np.ndarray, np
     return _axis_run(reference, rng, carriage)
 
 
+@njit(cache=True)
+def _backlash(reference: np.ndarray, period: float, gap: float) -> np.ndarray:
+    # a servo holds the motor angle on the reference (5 Hz, damping 0.7); the load (0.01 kg m^2) hangs on the
+    # gear through a spring (25 N m/rad: 8 Hz) that pushes only beyond +-gap; viscous friction 0.02 N m s
+    wn, zeta = 2.0 * math.pi * 5.0, 0.7
+    inertia, stiffness, damping, friction = 0.01, 25.0, 0.1, 0.02
+    motor, motor_rate, load, load_rate = 0.0, 0.0, 0.0, 0.0
+    out = np.empty(len(reference))
+    substeps = 50
+    h = period / substeps
+    for k in range(len(reference)):
+        out[k] = load
+        for _ in range(substeps):
+            motor_rate += h * (wn * wn * (reference[k] - motor) - 2.0 * zeta * wn * motor_rate)
+            motor += h * motor_rate
+            twist = motor - load
+            torque = 0.0
+            if twist > gap:
+                torque = stiffness * (twist - gap) + damping * (motor_rate - load_rate)
+            elif twist < -gap:
+                torque = stiffness * (twist + gap) + damping * (motor_rate - load_rate)
+            load_rate += h * (torque - friction * load_rate) / inertia
+            load += h * load_rate
+    return out
+
+
+def backlash(seed: int, gap: float = 0.01) -> tuple[np.ndarray, np.ndarray]:
+    """A position-controlled joint whose load hangs on a gear with backlash (200 Hz, 40 s): u the commanded
+    angle (random set points, +-1 rad, held 0.3-2 s, through two 2 Hz lags), y the load encoder (0.2 mrad noise)."""
+    rng = np.random.default_rng([seed, 3])
+    period = 0.005
+    u = _lowpass(_smooth_levels(rng, 8000, (60, 400), -1.0, 1.0), 2.0, period)
+    y = _backlash(u, period, gap)
+    return u, y + rng.normal(0.0, 2e-4, len(y))
+
+
+@njit(cache=True)
+def _filtered(x: np.ndarray, w: float, zeta: float) -> np.ndarray:
+    # a second-order low-pass (natural frequency w rad/sample, damping zeta), simulated with substeps
+    out = np.empty(len(x))
+    state, rate = 0.0, 0.0
+    substeps = 20
+    h = 1.0 / substeps
+    for k in range(len(x)):
+        out[k] = state
+        for _ in range(substeps):
+            rate += h * (w * w * (x[k] - state) - 2.0 * zeta * w * rate)
+            state += h * rate
+    return out
+
+
+def wiener_hammerstein(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A filter, a static diode-and-saturation map, a filter (an amplifier stage): 6 000 samples of
+    band-limited noise in, 1 % output noise. The map tanh(2x) + 0.5 max(x, 0) has a kink at 0 and saturates."""
+    rng = np.random.default_rng([seed, 4])
+    u = _filtered(rng.normal(0.0, 1.0, 6000), 2.0 * math.pi * 0.15, 0.7)
+    u *= 0.6 / np.std(u)
+    x = _filtered(u, 2.0 * math.pi * 0.05, 0.3)
+    y = _filtered(np.tanh(2.0 * x) + 0.5 * np.maximum(x, 0.0), 2.0 * math.pi * 0.08, 0.5)
+    return u, y + rng.normal(0.0, 0.01 * np.std(y), len(y))
+
+
+@njit(cache=True)
+def _heater(u: np.ndarray, period: float) -> np.ndarray:
+    # a plate (600 J/K) heated by up to 300 W (it cannot cool: the power is clipped to [0, 300]); convection
+    # 2 W/K and radiation to a 293 K room
+    capacity, convection, radiation, ambient = 600.0, 2.0, 0.8 * 5.67e-8 * 0.05, 293.0
+    temp = ambient
+    out = np.empty(len(u))
+    substeps = 20
+    h = period / substeps
+    for k in range(len(u)):
+        out[k] = temp - 273.15
+        power = 300.0 * min(max(u[k], 0.0), 1.0)
+        for _ in range(substeps):
+            loss = convection * (temp - ambient) + radiation * (temp**4 - ambient**4)
+            temp += h * (power - loss) / capacity
+    return out
+
+
+def heater(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A heated plate read in deg C (5 s, 3 000 samples): the command in [-0.2, 1.2] is clipped to the heater's
+    [0, 1], radiation grows with T^4; the sensor reads 0.05 K noise at 0.1 K resolution."""
+    rng = np.random.default_rng([seed, 5])
+    u = _smooth_levels(rng, 3000, (12, 120), -0.2, 1.2)
+    y = _heater(u, 5.0)
+    return u, np.round((y + rng.normal(0.0, 0.05, len(y))) / 0.1) * 0.1
+
+
 PLANTS = {
     "tanks": tanks,
     "belt": belt,
@@ -223,13 +320,17 @@ PLANTS = {
     "axis": axis,
     "axis-p2p": axis_p2p,
     **{name: functools.partial(axis_p2p, carriage=carriage) for name, carriage in VARIANTS.items()},
+    "backlash": backlash,
+    "backlash-wide": functools.partial(backlash, gap=0.05),
+    "wiener-hammerstein": wiener_hammerstein,
+    "heater": heater,
 }
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=5)
-    parser.add_argument("--plants", default="tanks,belt,axis,axis-p2p")
+    parser.add_argument("--plants", default="tanks,belt,axis,axis-p2p,backlash,wiener-hammerstein,heater")
     args = parser.parse_args(argv)
     print("| plant | fit free-run NMSE dB, mean (min..max) | ARX free-run NMSE dB, mean (min..max) | "
           "fit better than ARX | fit one-step dB, mean | fit time s, mean | models chosen |")  # fmt: skip

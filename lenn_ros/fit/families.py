@@ -13,7 +13,11 @@ them by RLS with the same compiled step. What they offer:
 - ``rff``: the linear terms plus random Fourier features cos(w . x + b) of the recent
   lags, w drawn with the spread of the training regressors (the median-distance rule):
   a smooth nonlinearity of several lags at once, the feature map of a GP-NARX's
-  squared-exponential kernel, of which FROLS keeps the few that matter.
+  squared-exponential kernel, of which FROLS keeps the few that matter. From 16 lags on,
+  the features read every lag of the inputs and none of the output: a static map between
+  two filters (Wiener-Hammerstein: an amplifier stage, a sensor) acts on a filtered
+  input, a combination of many input lags that the recent ones do not hold, and the
+  output's lags enter linearly, so the model simulates as stably as its linear part.
 - ``increment``: the model predicts the change y(k+1) - y(k) from the increments of the
   output, the inputs and, from degree 2, friction-like functions of the velocity:
   tanh (Coulomb friction), |v| and v|v| (drag), and stiction: tanh(a v + b d), friction
@@ -80,9 +84,14 @@ class OutputScaling(Protocol):
 #: lags (equal for y and u) tried per family, and the degrees
 POLYNOMIAL_LAGS = (1, 2, 3, 4, 6, 8, 10)
 HINGE_LAGS = (1, 2, 4, 8)
-RFF_LAGS = (2, 4)
+RFF_LAGS = (2, 4, 16)
 #: random Fourier features offered, and the seed they are drawn with (fixed: a fit is repeatable)
 RFF_FEATURES = 60
+#: from these lags on, the features read every lag of the inputs (none of the output), and more are offered;
+#: the ranked list stops at RFF_WIDE_TERMS terms (each costs a cosine of every input lag per simulated sample)
+RFF_WIDE_LAGS = 16
+RFF_WIDE_FEATURES = 300
+RFF_WIDE_TERMS = 24
 RFF_SEED = 0
 INCREMENT_LAGS = (2, 3, 4, 6, 10)
 #: lags of the ``stick`` family, and the dead zone's knots in units of the Coulomb step it estimates
@@ -129,6 +138,15 @@ class Spec:
     @property
     def increment(self) -> bool:
         return self.family in INCREMENT_FAMILIES
+
+    @property
+    def wide(self) -> bool:
+        """Random Fourier features of every input lag (:func:`_fourier`)."""
+        return self.family == "rff" and self.lags >= RFF_WIDE_LAGS
+
+    def term_limit(self, limit: int) -> int:
+        """The most terms the ranked list may hold, given the selection's own ``limit``."""
+        return min(limit, RFF_WIDE_TERMS) if self.wide else limit
 
     def as_dict(self) -> dict:
         return {
@@ -316,17 +334,24 @@ def _hinge(spec: Spec, x: np.ndarray) -> Dictionary:
 
 
 def _fourier(spec: Spec, x: np.ndarray) -> Dictionary:
-    """Linear terms and RFF_FEATURES cos(w . x_recent + b), w ~ N(0, 1 / l^2), l the regressors' median distance."""
+    """Linear terms and RFF_FEATURES cos(w . x_recent + b), w ~ N(0, 1 / l^2), l the regressors' median distance.
+
+    From RFF_WIDE_LAGS on, the features read every lag of the inputs and none of the output, and
+    RFF_WIDE_FEATURES are offered: a nonlinearity that acts on a filtered input (a Wiener-Hammerstein
+    stage: a filter, a static map, a filter) reads many input lags at once, which the RECENT lags do
+    not hold. With the output's lags linear, the features are exogenous: the free run is as stable
+    as the linear part, and the refinement's sensitivities do not run through them.
+    """
     n = x.shape[1]
     built = _Builder(n)
     for row in dictionary_exponents(n, 1):
         built.add(row)
-    recent = _recent(spec, _columns(spec, x))
+    recent = list(range(spec.lags, n)) if spec.wide else _recent(spec, _columns(spec, x))
     rng = np.random.default_rng(RFF_SEED)
     sample = x[rng.choice(len(x), min(len(x), 400), replace=False)][:, recent]
     distances = np.sqrt(((sample[:, None, :] - sample[None, :, :]) ** 2).sum(axis=-1))
     length = float(np.median(distances[distances > 0])) if np.any(distances > 0) else 1.0
-    for _ in range(RFF_FEATURES):
+    for _ in range(RFF_WIDE_FEATURES if spec.wide else RFF_FEATURES):
         w = np.zeros(n)
         w[recent] = rng.normal(0.0, 1.0 / length, len(recent))
         built.add(None, "cos", w, float(rng.uniform(0.0, 2.0 * np.pi)))

@@ -40,6 +40,8 @@ its spread over seeds is wide, is a selection that does not generalise.
   commanded angle, y the load encoder. ``backlash-wide``: a +-0.05 rad gap (not in the default run).
 - ``wiener-hammerstein``: an amplifier stage: a resonant filter, the static map tanh(2x) +
   0.5 max(x, 0) (a kink and a saturation), a second filter; 6 000 samples of band-limited noise.
+  ``wh-clip`` and ``wh-dead-zone`` change the map (a hard clip at +-0.4, a dead zone of +-0.3);
+  ``hammerstein`` drops the first filter, ``wiener`` the second (not in the default run).
 - ``heater``: a plate heated by up to 300 W that cannot cool (the command in [-0.2, 1.2] is
   clipped to [0, 1]), losing heat by convection and by radiation (T^4), read in deg C at 0.1 K
   resolution every 5 s, 3 000 samples.
@@ -274,14 +276,26 @@ def _filtered(x: np.ndarray, w: float, zeta: float) -> np.ndarray:
     return out
 
 
-def wiener_hammerstein(seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """A filter, a static diode-and-saturation map, a filter (an amplifier stage): 6 000 samples of
-    band-limited noise in, 1 % output noise. The map tanh(2x) + 0.5 max(x, 0) has a kink at 0 and saturates."""
+#: the static maps of the ``wiener-hammerstein`` variants: a diode with saturation, a hard clip, a dead zone
+STATIC_MAPS = {
+    "diode": lambda x: np.tanh(2.0 * x) + 0.5 * np.maximum(x, 0.0),
+    "clip": lambda x: np.clip(x, -0.4, 0.4),
+    "dead-zone": lambda x: np.sign(x) * np.maximum(np.abs(x) - 0.3, 0.0),
+}
+
+
+def wiener_hammerstein(
+    seed: int, shape: str = "diode", before: bool = True, after: bool = True
+) -> tuple[np.ndarray, np.ndarray]:
+    """A filter, a static map, a filter (an amplifier stage): 6 000 samples of band-limited noise in, 1 % output
+    noise. The default map tanh(2x) + 0.5 max(x, 0) has a kink at 0 and saturates; ``before`` / ``after`` False
+    drop the first filter (a Hammerstein system) or the second (a Wiener system)."""
     rng = np.random.default_rng([seed, 4])
     u = _filtered(rng.normal(0.0, 1.0, 6000), 2.0 * math.pi * 0.15, 0.7)
     u *= 0.6 / np.std(u)
-    x = _filtered(u, 2.0 * math.pi * 0.05, 0.3)
-    y = _filtered(np.tanh(2.0 * x) + 0.5 * np.maximum(x, 0.0), 2.0 * math.pi * 0.08, 0.5)
+    x = _filtered(u, 2.0 * math.pi * 0.05, 0.3) if before else u
+    mapped = STATIC_MAPS[shape](x)
+    y = _filtered(mapped, 2.0 * math.pi * 0.08, 0.5) if after else mapped
     return u, y + rng.normal(0.0, 0.01 * np.std(y), len(y))
 
 
@@ -323,6 +337,10 @@ PLANTS = {
     "backlash": backlash,
     "backlash-wide": functools.partial(backlash, gap=0.05),
     "wiener-hammerstein": wiener_hammerstein,
+    "wh-clip": functools.partial(wiener_hammerstein, shape="clip"),
+    "wh-dead-zone": functools.partial(wiener_hammerstein, shape="dead-zone"),
+    "hammerstein": functools.partial(wiener_hammerstein, before=False),
+    "wiener": functools.partial(wiener_hammerstein, after=False),
     "heater": heater,
 }
 

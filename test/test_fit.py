@@ -958,6 +958,7 @@ def test_fit_simulates_a_static_map_between_two_filters_by_features_of_the_whole
     assert report["model"]["family"] == "rff" and report["model"]["structure"]["y_lags"] >= families.RFF_WIDE_LAGS
     assert report["warnings"] == []
     assert report["nmse_free_run_db"] < -17.5
+    assert "every input lag" in report["choices"]["time_scale"]
     values = read_params_file(write_outputs(tmp_path / "model", result, data)["params"])
     resolved, network = resolve(values)
     identifier = build_identifier(resolved, network)

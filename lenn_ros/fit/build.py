@@ -766,6 +766,11 @@ def time_scale_note(candidate: Candidate) -> str:
         )
     if spec.increment:
         return "increment form: y(k+1) = y(k) + f(increments, inputs), the integrator kept exactly"
+    if spec.wide:
+        return (
+            f"lags {spec.lags} samples at the recorded rate; the nonlinear terms read every input lag (a "
+            "nonlinearity of a filtered input), the output's lags enter linearly"
+        )
     return f"lags {spec.lags} samples at the recorded rate"
 
 

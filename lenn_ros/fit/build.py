@@ -58,7 +58,7 @@ from lenn_ros.core.scaling import DEFAULT_MARGIN, ranges
 from lenn_ros.core.structure import Identifier
 from lenn_ros.core.threads import cores, side_by_side
 from lenn_ros.fit.data import REPORT_FILE, Data, FitError
-from lenn_ros.fit.families import INCREMENT_LAGS, candidate_specs, pass_through_weights
+from lenn_ros.fit.families import INCREMENT_LAGS, INDEX_SHIFTS, candidate_specs, pass_through_weights
 from lenn_ros.fit.refinement import Refinement, blocks_choice, fold_history, refine_on_folds
 from lenn_ros.fit.selection import (
     NONLINEAR_GAIN,
@@ -766,10 +766,10 @@ def time_scale_note(candidate: Candidate) -> str:
         )
     if spec.increment:
         return "increment form: y(k+1) = y(k) + f(increments, inputs), the integrator kept exactly"
-    if spec.wide:
+    if spec.family == "index":
         return (
-            f"lags {spec.lags} samples at the recorded rate; the nonlinear terms read every input lag (a "
-            "nonlinearity of a filtered input), the output's lags enter linearly"
+            f"lags {spec.lags} samples at the recorded rate; hinges of one filtered input over "
+            f"{spec.lags - INDEX_SHIFTS} input lags (a static map between filters), the output's lags linear"
         )
     return f"lags {spec.lags} samples at the recorded rate"
 

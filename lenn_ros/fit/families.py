@@ -13,11 +13,15 @@ them by RLS with the same compiled step. What they offer:
 - ``rff``: the linear terms plus random Fourier features cos(w . x + b) of the recent
   lags, w drawn with the spread of the training regressors (the median-distance rule):
   a smooth nonlinearity of several lags at once, the feature map of a GP-NARX's
-  squared-exponential kernel, of which FROLS keeps the few that matter. From 16 lags on,
-  the features read every lag of the inputs and none of the output: a static map between
-  two filters (Wiener-Hammerstein: an amplifier stage, a sensor) acts on a filtered
-  input, a combination of many input lags that the recent ones do not hold, and the
-  output's lags enter linearly, so the model simulates as stably as its linear part.
+  squared-exponential kernel, of which FROLS keeps the few that matter.
+- ``index``: the linear terms plus hinges relu(z - c) of one index z = h . (the inputs'
+  lags), a filtered input, at its three newest lags and at knots on its training
+  quantiles. A static map between two filters (Wiener-Hammerstein: an amplifier stage,
+  a sensor or an actuator that saturates) acts on the first filter's output, a
+  combination of many input lags that no term of a few lags holds; h is found from the
+  record (:func:`index_direction`: Gauss-Newton on the one-step residual, the rest
+  least squares). The hinges read no output, so the model is as stable in free run as
+  its linear part.
 - ``increment``: the model predicts the change y(k+1) - y(k) from the increments of the
   output, the inputs and, from degree 2, friction-like functions of the velocity:
   tanh (Coulomb friction), |v| and v|v| (drag), and stiction: tanh(a v + b d), friction
@@ -84,15 +88,20 @@ class OutputScaling(Protocol):
 #: lags (equal for y and u) tried per family, and the degrees
 POLYNOMIAL_LAGS = (1, 2, 3, 4, 6, 8, 10)
 HINGE_LAGS = (1, 2, 4, 8)
-RFF_LAGS = (2, 4, 16)
+RFF_LAGS = (2, 4)
 #: random Fourier features offered, and the seed they are drawn with (fixed: a fit is repeatable)
 RFF_FEATURES = 60
-#: from these lags on, the features read every lag of the inputs (none of the output), and more are offered;
-#: the ranked list stops at RFF_WIDE_TERMS terms (each costs a cosine of every input lag per simulated sample)
-RFF_WIDE_LAGS = 16
-RFF_WIDE_FEATURES = 300
-RFF_WIDE_TERMS = 24
 RFF_SEED = 0
+#: the ``index`` family: lags tried, how many newest lags of the index its hinges read, their knots (quantiles
+#: of the index over the training rows), and the Gauss-Newton iterations that find its direction
+INDEX_LAGS = (17, 33)
+INDEX_SHIFTS = 3
+INDEX_KNOTS = (0.1, 0.3, 0.5, 0.7, 0.9)
+INDEX_ITERATIONS = 30
+#: rows of the view the direction is searched on (evenly spread; a direction needs far fewer than 40 000), and
+#: the relative fall in the residual below which the search stops
+INDEX_ROWS = 2000
+INDEX_TOLERANCE = 1e-5
 INCREMENT_LAGS = (2, 3, 4, 6, 10)
 #: lags of the ``stick`` family, and the dead zone's knots in units of the Coulomb step it estimates
 STICK_LAGS = (3, 4)
@@ -139,15 +148,6 @@ class Spec:
     def increment(self) -> bool:
         return self.family in INCREMENT_FAMILIES
 
-    @property
-    def wide(self) -> bool:
-        """Random Fourier features of every input lag (:func:`_fourier`)."""
-        return self.family == "rff" and self.lags >= RFF_WIDE_LAGS
-
-    def term_limit(self, limit: int) -> int:
-        """The most terms the ranked list may hold, given the selection's own ``limit``."""
-        return min(limit, RFF_WIDE_TERMS) if self.wide else limit
-
     def as_dict(self) -> dict:
         return {
             "family": self.family,
@@ -161,7 +161,8 @@ class Spec:
     def dictionary(self, x: np.ndarray) -> Dictionary:
         """The terms this candidate offers, their parameters taken from the training inputs ``x``."""
         builder = {"polynomial": _polynomial, "hinge": _hinge, "rff": _fourier, "increment": _increment,
-                   "stick": _stick, "fir": _input_only, "legendre": _legendre}[self.family]  # fmt: skip
+                   "stick": _stick, "fir": _input_only, "legendre": _legendre,
+                   "index": _index}[self.family]  # fmt: skip
         return builder(self, np.asarray(x, dtype=np.float64))
 
 
@@ -170,6 +171,7 @@ GRID = (
     ("polynomial", POLYNOMIAL_LAGS, (1, 2, 3)),
     ("hinge", HINGE_LAGS, (2,)),
     ("rff", RFF_LAGS, (2,)),
+    ("index", INDEX_LAGS, (2,)),
     ("increment", INCREMENT_LAGS, (1, 2, 3)),
     ("increment", LONG_SPANS, (1, 3)),
     ("stick", STICK_LAGS, (2,)),
@@ -334,28 +336,137 @@ def _hinge(spec: Spec, x: np.ndarray) -> Dictionary:
 
 
 def _fourier(spec: Spec, x: np.ndarray) -> Dictionary:
-    """Linear terms and RFF_FEATURES cos(w . x_recent + b), w ~ N(0, 1 / l^2), l the regressors' median distance.
-
-    From RFF_WIDE_LAGS on, the features read every lag of the inputs and none of the output, and
-    RFF_WIDE_FEATURES are offered: a nonlinearity that acts on a filtered input (a Wiener-Hammerstein
-    stage: a filter, a static map, a filter) reads many input lags at once, which the RECENT lags do
-    not hold. With the output's lags linear, the features are exogenous: the free run is as stable
-    as the linear part, and the refinement's sensitivities do not run through them.
-    """
+    """Linear terms and RFF_FEATURES cos(w . x_recent + b), w ~ N(0, 1 / l^2), l the regressors' median distance."""
     n = x.shape[1]
     built = _Builder(n)
     for row in dictionary_exponents(n, 1):
         built.add(row)
-    recent = list(range(spec.lags, n)) if spec.wide else _recent(spec, _columns(spec, x))
+    recent = _recent(spec, _columns(spec, x))
     rng = np.random.default_rng(RFF_SEED)
     sample = x[rng.choice(len(x), min(len(x), 400), replace=False)][:, recent]
     distances = np.sqrt(((sample[:, None, :] - sample[None, :, :]) ** 2).sum(axis=-1))
     length = float(np.median(distances[distances > 0])) if np.any(distances > 0) else 1.0
-    for _ in range(RFF_WIDE_FEATURES if spec.wide else RFF_FEATURES):
+    for _ in range(RFF_FEATURES):
         w = np.zeros(n)
         w[recent] = rng.normal(0.0, 1.0 / length, len(recent))
         built.add(None, "cos", w, float(rng.uniform(0.0, 2.0 * np.pi)))
     return built.build()
+
+
+def _index(spec: Spec, x: np.ndarray) -> Dictionary:
+    """Linear terms of every lag and hinges relu(z_j - c) of one index z, a filtered input (:func:`index_direction`),
+    at its INDEX_SHIFTS newest lags j and INDEX_KNOTS quantiles c."""
+    n = x.shape[1]
+    built = _Builder(n)
+    for row in dictionary_exponents(n, 1):
+        built.add(row)
+    found = index_direction(x, spec.lags)
+    if found is None:
+        return built.build()
+    columns, h, middle, spread, knots = found
+    for j in range(INDEX_SHIFTS):
+        w = np.zeros(n)
+        w[columns + j] = h / spread
+        for knot in knots:
+            built.add(None, "relu", w, -(middle / spread + knot))
+    return built.build()
+
+
+def index_direction(x: np.ndarray, lags: int) -> tuple[np.ndarray, np.ndarray, float, float, np.ndarray] | None:
+    """The filtered input a static map acts on: z(k) = h . (the inputs' lags), h found from the record.
+
+    A static map between two filters (Wiener-Hammerstein: an amplifier stage, a sensor with a
+    saturation) acts on the first filter's output, a combination of many input lags that no
+    term of a few lags holds. Within each row of the view, the newest output lag is regressed
+    on the older ones (the model's own problem one sample earlier): on the output's RECENT + 1
+    lags before it, the inputs' as many, and hinges of z at its INDEX_SHIFTS lags. The hinges'
+    knots sit at quantiles of z, so for a given h the rest is least squares, and h follows by
+    Gauss-Newton on that residual (variable projection), from the least-squares FIR of the
+    inputs' window. Returns (the window's columns at shift 0, h, z's middle and spread over the
+    rows, the knots in units of the spread), or None where the view is too short or flat.
+    """
+    n = x.shape[1]
+    columns_read, taps = n // lags, lags - INDEX_SHIFTS
+    if columns_read < 2 or taps < 2 or len(x) < 10 * n:
+        return None
+    problem = _IndexProblem(x[:: -(-len(x) // INDEX_ROWS)], lags, taps)  # at most INDEX_ROWS rows, evenly spread
+    start = np.column_stack([np.ones(len(problem.target)), problem.shifted[0]])
+    found = problem.solve(np.linalg.lstsq(start, problem.target, rcond=None)[0][1:])
+    if found is None:
+        return None
+    found = _gauss_newton(problem, found)
+    # the model's own z reads the window one sample later than the sub-problem: columns `window`, not `window + 1`
+    return problem.window, found.h, found.middle, found.spread, np.array([_round6(k) for k in found.knots])
+
+
+@dataclass
+class _IndexFit:
+    """One direction h and what least squares makes of it."""
+
+    h: np.ndarray
+    cost: float
+    theta: np.ndarray
+    residual: np.ndarray
+    zs: list[np.ndarray]
+    knots: np.ndarray
+    middle: float
+    spread: float
+
+
+class _IndexProblem:
+    """The sub-problem :func:`index_direction` solves over the rows of a view."""
+
+    def __init__(self, x: np.ndarray, lags: int, taps: int) -> None:
+        columns_read = x.shape[1] // lags
+        self.window = np.array([c * lags + i for c in range(1, columns_read) for i in range(taps)])
+        own = min(RECENT + 1, lags - 1)
+        read = [x[:, c * lags + 1 : c * lags + 1 + own] for c in range(1, columns_read)]
+        self.fixed = np.column_stack([np.ones(len(x)), x[:, 1 : 1 + own], *read])
+        self.target = x[:, 0]
+        self.shifted = [x[:, self.window + 1 + j] for j in range(INDEX_SHIFTS)]  # z at lag j, one sample back
+
+    def solve(self, h: np.ndarray) -> _IndexFit | None:
+        """Knots at z's quantiles, the rest by least squares; None where z is flat."""
+        z0 = self.shifted[0] @ h
+        middle, spread = float(np.mean(z0)), float(np.std(z0))
+        if not spread > 0.0:
+            return None
+        knots = np.quantile((z0 - middle) / spread, INDEX_KNOTS)
+        zs = [(block @ h - middle) / spread for block in self.shifted]
+        features = np.column_stack([self.fixed, *(np.maximum(z[:, None] - knots[None, :], 0.0) for z in zs)])
+        theta = np.linalg.lstsq(features, self.target, rcond=None)[0]
+        residual = features @ theta - self.target
+        return _IndexFit(h, float(residual @ residual), theta, residual, zs, knots, middle, spread)
+
+    def slope(self, found: _IndexFit) -> np.ndarray:
+        """d residual / d h, the knots and the least-squares weights held."""
+        slope = np.zeros((len(self.target), len(found.h)))
+        first, width = self.fixed.shape[1], len(found.knots)
+        for j, z in enumerate(found.zs):
+            weights = found.theta[first + j * width : first + (j + 1) * width]
+            dz = (z[:, None] > found.knots[None, :]) @ weights
+            slope += (dz / found.spread)[:, None] * self.shifted[j]
+        return slope
+
+
+def _gauss_newton(problem: _IndexProblem, found: _IndexFit) -> _IndexFit:
+    """Damped Gauss-Newton steps on h while they lower the residual (INDEX_ITERATIONS at most)."""
+    damping = 1e-3
+    for _ in range(INDEX_ITERATIONS):
+        slope = problem.slope(found)
+        gram = slope.T @ slope
+        ridge = damping * (np.trace(gram) / len(found.h)) * np.eye(len(found.h))
+        trial = problem.solve(found.h + np.linalg.solve(gram + ridge, -slope.T @ found.residual))
+        if trial is None or trial.cost >= found.cost:
+            damping *= 4.0
+            if damping > 1e6:
+                break
+            continue
+        converged = found.cost - trial.cost < INDEX_TOLERANCE * found.cost
+        found, damping = trial, damping * 0.5
+        if converged:
+            break
+    return found
 
 
 def _velocity_terms(built: _Builder, x: np.ndarray, span: int) -> None:

@@ -823,7 +823,7 @@ def evaluate_candidate(spec: Spec, record: Record, layout: Layout, design: Desig
     candidate = Candidate(spec, len(dictionary.exponents))
     base = TermModel(layout.with_lags(spec.lags), dictionary.exponents, "legendre", factors=dictionary.factors)
     warm = base.warm_up
-    limit = min(spec.term_limit(MAX_TERMS), len(dictionary.exponents), max(1, len(design.targets) // SAMPLES_PER_TERM))
+    limit = min(MAX_TERMS, len(dictionary.exponents), max(1, len(design.targets) // SAMPLES_PER_TERM))
     ranked, _ = forward_regression_gram(design.gram, design.moment, design.energy, limit)
     if not ranked:
         candidate.rejected = "no usable term"

@@ -56,7 +56,16 @@ def _belt() -> tuple[np.ndarray, np.ndarray, int]:
     return u, y, 500
 
 
-PLANTS = {"cubic": lambda: (*cubic_plant(2600, 7), 2000), "belt |speed|": _belt}
+def _amplifier() -> tuple[np.ndarray, np.ndarray, int]:
+    """A Wiener-Hammerstein stage: ``fit`` chooses the ``index`` family (hinges of one filtered input)."""
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+    import plant_study
+
+    u, y = plant_study.wiener_hammerstein(0)
+    return u[:4600], y[:4600], 4000
+
+
+PLANTS = {"cubic": lambda: (*cubic_plant(2600, 7), 2000), "belt |speed|": _belt, "amplifier": _amplifier}
 
 
 @pytest.mark.parametrize("plant", PLANTS)
@@ -64,6 +73,7 @@ def test_node_starts_from_the_fitted_model_and_keeps_adapting(tmp_path: Path, do
     u, y, start = PLANTS[plant]()
     result = fit(Data(u, y, "synthetic"), start + 1)
     assert result["identifier"].structure.y_abs == (plant == "belt |speed|")
+    assert (result["report"]["model"]["family"] == "index") == (plant == "amplifier")
     files = write_outputs(tmp_path / "model", result, Data(u, y, "fitted"))
     live_u, live_y = u[start:], y[start:]
     listener = Listener(domain)

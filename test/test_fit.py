@@ -946,7 +946,7 @@ def test_fit_simulates_a_static_map_between_two_filters_by_hinges_of_a_filtered_
     """A Wiener-Hammerstein stage (a filter, tanh(2x) + 0.5 max(x, 0), a filter): the map acts on a filtered
     input, a combination of many input lags, which terms of the three newest lags do not reach (every family
     then scored about the linear ARX: -13.0 dB over 5 seeds against -12.7, and -12.4 dB on this seed).
-    Hinges of one index z = h . (input lags), h found from the record, do: measured -29.9 dB on this seed
+    Hinges of one index z = h . (input lags), h found from the record, do: measured -31.2 dB on this seed
     (5 seeds in bench/RESULTS.md). The params file starts an identifier that runs the same free run."""
     from lenn_ros.fit.build import write_outputs
 
@@ -956,7 +956,7 @@ def test_fit_simulates_a_static_map_between_two_filters_by_hinges_of_a_filtered_
     result = fit(data, start + 1)
     report = result["report"]
     assert report["model"]["family"] == "index" and report["warnings"] == []
-    assert report["nmse_free_run_db"] < -29.0
+    assert report["nmse_free_run_db"] < -30.0
     assert "hinges of one filtered input" in report["choices"]["time_scale"]
     values = read_params_file(write_outputs(tmp_path / "model", result, data)["params"])
     resolved, network = resolve(values)
@@ -982,7 +982,7 @@ def test_the_index_direction_is_the_first_filter_of_a_wiener_system() -> None:
     columns, h, _middle, _spread, knots = families.index_direction(rows, lags)
     assert list(columns) == list(range(lags, lags + taps))
     start = np.linalg.lstsq(np.c_[np.ones(len(rows)), rows[:, columns + 1]], rows[:, 0], rcond=None)[0][1:]
-    # measured: 0.999994 found, 0.99834 at the start
+    # measured: 0.999977 found, 0.99834 at the start
     assert abs(np.corrcoef(h, impulse)[0, 1]) > 0.9999 and abs(np.corrcoef(start, impulse)[0, 1]) < 0.999
     assert len(knots) == len(families.INDEX_KNOTS)
 

@@ -96,8 +96,8 @@ RFF_SEED = 0
 #: of the index over the training rows), and the Gauss-Newton iterations that find its direction
 INDEX_LAGS = (17, 33)
 INDEX_SHIFTS = 3
-INDEX_KNOTS = (0.1, 0.3, 0.5, 0.7, 0.9)
-INDEX_ITERATIONS = 30
+INDEX_KNOTS = (0.05, 0.2, 0.35, 0.5, 0.65, 0.8, 0.95)
+INDEX_ITERATIONS = 60
 #: rows of the view the direction is searched on (evenly spread; a direction needs far fewer than 40 000), and
 #: the relative fall in the residual below which the search stops
 INDEX_ROWS = 2000

@@ -7,8 +7,8 @@ each step reported:
    bag's record stay gaps (nothing is fitted or simulated across them);
 2. takes offsets and scale factors of every channel from the training samples (with a
    margin: :func:`lenn_ros.core.scaling.ranges`);
-3. for each output, selects the family (polynomial, hinge, rff, increment:
-   :mod:`lenn_ros.fit.families`), the lags and the terms over that output's *view*:
+3. for each output, selects the family (polynomial, hinge, rff, index, increment, stick,
+   legendre, fir: :mod:`lenn_ros.fit.families`), the lags and the terms over that output's *view*:
    its own past and every input (:class:`~lenn_ros.fit.selection.Layout`). Orthogonal
    forward regression ranks the terms; every candidate is judged by the free runs of
    blocks of the training samples, each simulated by the weights of the other blocks,

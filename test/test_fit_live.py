@@ -9,7 +9,6 @@ fitted weights), and the weights it saves must have moved.
 from __future__ import annotations
 
 import signal
-import sys
 import time
 from pathlib import Path
 
@@ -21,7 +20,7 @@ pytestmark = [pytest.mark.ros, pytest.mark.timeout(180)]
 rclpy = pytest.importorskip("rclpy")
 
 from rosutil import Listener, Talker, final_status, start_node, stop  # noqa: E402
-from test_fit import cubic_plant  # noqa: E402
+from test_fit import _plant_study, cubic_plant  # noqa: E402
 
 from lenn_ros.config import build_identifier, read_params_file, resolve  # noqa: E402
 from lenn_ros.core.networks import OnlineRegressor  # noqa: E402
@@ -49,19 +48,13 @@ class SeriesTalker(Talker):
 
 def _belt() -> tuple[np.ndarray, np.ndarray, int]:
     """A belt drive's speed read by a pulse counter as |speed| (``y_abs``: the node signs each sample)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-    import plant_study
-
-    u, y, _ = plant_study.belt_speed(0)
+    u, y, _ = _plant_study().belt_speed(0)
     return u, y, 500
 
 
 def _amplifier() -> tuple[np.ndarray, np.ndarray, int]:
     """A Wiener-Hammerstein stage: ``fit`` chooses the ``index`` family (hinges of one filtered input)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-    import plant_study
-
-    u, y = plant_study.wiener_hammerstein(0)
+    u, y = _plant_study().wiener_hammerstein(0)
     return u[:4600], y[:4600], 4000
 
 

@@ -452,11 +452,11 @@ class _IndexProblem:
 def _gauss_newton(problem: _IndexProblem, found: _IndexFit) -> _IndexFit:
     """Damped Gauss-Newton steps on h while they lower the residual (INDEX_ITERATIONS at most)."""
     damping = 1e-3
+    slope = problem.slope(found)
+    gram, gradient = slope.T @ slope, slope.T @ found.residual  # of the current h: a refused step keeps them
     for _ in range(INDEX_ITERATIONS):
-        slope = problem.slope(found)
-        gram = slope.T @ slope
         ridge = damping * (np.trace(gram) / len(found.h)) * np.eye(len(found.h))
-        trial = problem.solve(found.h + np.linalg.solve(gram + ridge, -slope.T @ found.residual))
+        trial = problem.solve(found.h + np.linalg.solve(gram + ridge, -gradient))
         if trial is None or trial.cost >= found.cost:
             damping *= 4.0
             if damping > 1e6:
@@ -466,6 +466,8 @@ def _gauss_newton(problem: _IndexProblem, found: _IndexFit) -> _IndexFit:
         found, damping = trial, damping * 0.5
         if converged:
             break
+        slope = problem.slope(found)
+        gram, gradient = slope.T @ slope, slope.T @ found.residual
     return found
 
 

@@ -326,6 +326,17 @@ def heater(seed: int) -> tuple[np.ndarray, np.ndarray]:
     return u, np.round((y + rng.normal(0.0, 0.05, len(y))) / 0.1) * 0.1
 
 
+def dead_time(plant, samples: int):
+    """``plant`` behind a dead time of ``samples`` (a pipe, a conveyor, a command pipeline): each input acts
+    that many samples later than it did."""
+
+    def delayed(seed: int) -> tuple[np.ndarray, np.ndarray]:
+        u, y = plant(seed)
+        return u[samples:], y[: len(y) - samples]
+
+    return delayed
+
+
 PLANTS = {
     "tanks": tanks,
     "belt": belt,
@@ -342,13 +353,18 @@ PLANTS = {
     "hammerstein": functools.partial(wiener_hammerstein, before=False),
     "wiener": functools.partial(wiener_hammerstein, after=False),
     "heater": heater,
+    "hammerstein-dead-time": dead_time(functools.partial(wiener_hammerstein, before=False), 8),
+    "wh-dead-time": dead_time(wiener_hammerstein, 8),
+    "heater-dead-time": dead_time(heater, 6),
 }
 
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=5)
-    parser.add_argument("--plants", default="tanks,belt,axis,axis-p2p,backlash,wiener-hammerstein,heater")
+    parser.add_argument(
+        "--plants", default="tanks,belt,axis,axis-p2p,backlash,wiener-hammerstein,heater,hammerstein-dead-time"
+    )
     args = parser.parse_args(argv)
     print("| plant | fit free-run NMSE dB, mean (min..max) | ARX free-run NMSE dB, mean (min..max) | "
           "fit better than ARX | fit one-step dB, mean | fit time s, mean | models chosen |")  # fmt: skip

@@ -58,7 +58,8 @@ from lenn_ros.core.scaling import DEFAULT_MARGIN, ranges
 from lenn_ros.core.structure import Identifier
 from lenn_ros.core.threads import cores, side_by_side
 from lenn_ros.fit.data import REPORT_FILE, Data, FitError
-from lenn_ros.fit.families import INCREMENT_LAGS, INDEX_SHIFTS, candidate_specs, pass_through_weights
+from lenn_ros.fit.delay import input_delays, shifted
+from lenn_ros.fit.families import INCREMENT_LAGS, INDEX_SHIFTS, RECENT, candidate_specs, pass_through_weights
 from lenn_ros.fit.refinement import Refinement, blocks_choice, fold_history, refine_on_folds
 from lenn_ros.fit.selection import (
     NONLINEAR_GAIN,
@@ -239,6 +240,7 @@ class OutputFit:
     warnings: list[str] = field(default_factory=list)
     columns: list[int] = field(default_factory=list)  # the view's columns in [y_0.., u_0..]
     sign: dict[str, Any] | None = None  # an output read as its absolute value: what :func:`_signed_view` did
+    delays: tuple[int, ...] = ()  # dead time of each column after the output, in samples (() or 0: none)
 
     @property
     def model(self) -> TermModel:
@@ -414,9 +416,15 @@ def _fit_outputs(
         specs = None if alone is None else _coupled_specs(alone, record.n, len(where))
         layout = Layout(1, offsets, scales, names)
         workers = cores() if n_y == 1 else 1  # one output: its candidates side by side; several: the outputs
-        fitted = _fit_output(
-            data.y_names[j], record, layout, refine and n_y == 1, say if n_y == 1 else said.append, specs, workers
-        )
+        # each input's dead time (the coupled view reads the inputs as the output's own view settled them; the
+        # other outputs' past has none): :func:`_fit_behind_dead_time`
+        own = _placed(input_delays(record.values, record.breaks)) if alone is None else alone.delays
+        delays = (0,) * len(others) + own[-n_u:] if own else ()
+        tell = say if n_y == 1 else said.append
+        if any(delays) and alone is None:
+            tell(f"output {data.y_names[j]}: dead time {_dead_times(delays, names[1:])}")
+        fitted = _fit_behind_dead_time(data.y_names[j], record, layout, delays, refine and n_y == 1, tell, specs,
+                                       workers)  # fmt: skip
         fitted.columns = where
         return fitted
 
@@ -489,6 +497,48 @@ def _signed_view(
         **signs.as_dict(),
     }
     return kept
+
+
+def _fit_behind_dead_time(
+    name: str,
+    record: Record,
+    layout: Layout,
+    delays: tuple[int, ...],
+    refine: bool,
+    say: Any,
+    specs: list | None,
+    workers: int,
+) -> OutputFit:
+    """One output's fit with its inputs' dead times (``delays``, per column after the output): the families are
+    built over the view with each input moved down by its dead time (:func:`~lenn_ros.fit.delay.shifted`), so
+    the nonlinear terms' newest lags are those that act, and the models are then written over the view as
+    measured (:meth:`~lenn_ros.fit.selection.TermModel.delayed`), which refinement, scoring and the node use."""
+    if not any(delays):
+        fitted = _fit_output(name, record, layout, refine, say, specs, workers)
+        fitted.delays = delays
+        return fitted
+    late = _fit_output(name, Record.of(*shifted(record.values, record.breaks, delays)), layout, False, say, specs,
+                       workers)  # fmt: skip
+    for candidate in late.candidates:
+        if candidate.model is not None:
+            candidate.model = candidate.model.delayed((0, *delays))
+    late.record, late.delays = record, delays
+    if refine:
+        _refine_outputs([late], say, workers)
+    return late
+
+
+def _placed(delays: tuple[int, ...]) -> tuple[int, ...]:
+    """The dead times worth a shift: those the nonlinear terms' RECENT newest lags would not reach. A shorter
+    one leaves them an input lag that acts, and the linear terms read every lag."""
+    return tuple(d if d >= RECENT else 0 for d in delays)
+
+
+def _dead_times(delays: tuple[int, ...], names: tuple[str, ...]) -> str:
+    """``u 5 samples`` (the columns with one): what the report says of the inputs' dead times."""
+    return ", ".join(f"{name} {d} samples" for name, d in zip(names, delays, strict=True) if d) + (
+        " (its terms read that input from there back)"
+    )
 
 
 def _views_side_by_side(
@@ -726,6 +776,7 @@ def _choices(fitted: OutputFit, blocks: int, gaps: int) -> dict[str, Any]:
         "chosen": fitted.candidates.index(fitted.chosen),
         "refinement": fitted.refinement,
         "time_scale": time_scale_note(fitted.chosen),
+        "dead_time": dict(zip(fitted.layout.names[1:], fitted.delays, strict=True)) if any(fitted.delays) else {},
         **({"sign": fitted.sign} if fitted.sign else {}),
     }
 
@@ -1550,6 +1601,11 @@ def _model_lines(part: dict[str, Any], indent: str) -> list[str]:
     ]
     lines += _candidate_lines(c, indent)
     lines.append(f"{indent}time scale: {c['time_scale']}")
+    if dead := c.get("dead_time"):
+        lines.append(
+            f"{indent}dead time: {_dead_times(tuple(dead.values()), tuple(dead))}, found by testing which newest "
+            "input lags add nothing to a least-squares model"
+        )
     if sign := c.get("sign"):
         blocks = sign["rmse_blocks"]
         lines.append(

@@ -221,11 +221,20 @@ class TermModel:
 
     def with_lags(self, lags: int) -> TermModel:
         """The same terms and weights over ``lags`` >= the model's lags of every column (the extra lags unused)."""
+        return self._placed(lags, (0,) * self.layout.n_columns)
+
+    def delayed(self, shifts: tuple[int, ...] | list[int]) -> TermModel:
+        """The same terms and weights, column c's lag i read at lag i + shifts[c]: a model fitted on a view whose
+        inputs were shifted by their dead times (:func:`lenn_ros.fit.delay.shifted`), over the view as
+        measured. Its lags grow by the longest shift; the lags before a column's shift are unused."""
+        return self._placed(self.layout.lags + max(shifts), tuple(shifts))
+
+    def _placed(self, lags: int, shifts: tuple[int, ...]) -> TermModel:
         old = self.layout.lags
-        if lags < old:
-            raise ValueError(f"a model of lags {old} cannot be written over {lags}")
         columns = self.layout.n_columns
-        where = np.array([c * lags + i for c in range(columns) for i in range(old)], dtype=np.int64)
+        if len(shifts) != columns or min(shifts) < 0 or lags < old + max(shifts):
+            raise ValueError(f"a model of lags {old} cannot be written over {lags} with shifts {shifts}")
+        where = np.array([c * lags + i + shifts[c] for c in range(columns) for i in range(old)], dtype=np.int64)
         exponents = np.zeros((len(self.exponents), columns * lags), dtype=np.int64)
         exponents[:, where] = self.exponents
         factors = self.factors

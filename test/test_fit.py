@@ -1259,7 +1259,7 @@ def test_fit_finds_a_dead_time_and_simulates_behind_it_as_without_it(tmp_path: P
     report = result["report"]
     assert report["choices"]["dead_time"] == {"u": 8} and report["warnings"] == []
     assert report["nmse_free_run_db"] < -37.5
-    assert "dead time: u 8 samples" in format_report(report)
+    assert "dead time: u 8 samples (the newest lags that add nothing" in format_report(report)
     values = read_params_file(write_outputs(tmp_path / "model", result, data)["params"])
     resolved, network = resolve(values)
     identifier = build_identifier(resolved, network)

@@ -58,7 +58,18 @@ def _amplifier() -> tuple[np.ndarray, np.ndarray, int]:
     return u[:4600], y[:4600], 4000
 
 
-PLANTS = {"cubic": lambda: (*cubic_plant(2600, 7), 2000), "belt |speed|": _belt, "amplifier": _amplifier}
+def _transport() -> tuple[np.ndarray, np.ndarray, int]:
+    """A Hammerstein stage behind a dead time of 8 samples: the model reads the input from its lag 8 back."""
+    u, y = _plant_study().PLANTS["hammerstein-dead-time"](0)
+    return u[:4600], y[:4600], 4000
+
+
+PLANTS = {
+    "cubic": lambda: (*cubic_plant(2600, 7), 2000),
+    "belt |speed|": _belt,
+    "amplifier": _amplifier,
+    "transport delay": _transport,
+}
 
 
 @pytest.mark.parametrize("plant", PLANTS)
@@ -67,6 +78,7 @@ def test_node_starts_from_the_fitted_model_and_keeps_adapting(tmp_path: Path, do
     result = fit(Data(u, y, "synthetic"), start + 1)
     assert result["identifier"].structure.y_abs == (plant == "belt |speed|")
     assert (result["report"]["model"]["family"] == "index") == (plant == "amplifier")
+    assert result["report"]["choices"]["dead_time"] == ({"u": 8} if plant == "transport delay" else {})
     files = write_outputs(tmp_path / "model", result, Data(u, y, "fitted"))
     live_u, live_y = u[start:], y[start:]
     listener = Listener(domain)

@@ -422,7 +422,8 @@ def _fit_outputs(
         delays = (0,) * len(others) + own[-n_u:] if own else ()
         tell = say if n_y == 1 else said.append
         if any(delays) and alone is None:
-            tell(f"output {data.y_names[j]}: dead time {_dead_times(delays, names[1:])}")
+            tell(f"output {data.y_names[j]}: dead time {_dead_times(delays, names[1:])}; the terms read each input "
+                 "from its dead time back")  # fmt: skip
         fitted = _fit_behind_dead_time(data.y_names[j], record, layout, delays, refine and n_y == 1, tell, specs,
                                        workers)  # fmt: skip
         fitted.columns = where
@@ -536,9 +537,7 @@ def _placed(delays: tuple[int, ...]) -> tuple[int, ...]:
 
 def _dead_times(delays: tuple[int, ...], names: tuple[str, ...]) -> str:
     """``u 5 samples`` (the columns with one): what the report says of the inputs' dead times."""
-    return ", ".join(f"{name} {d} samples" for name, d in zip(names, delays, strict=True) if d) + (
-        " (its terms read that input from there back)"
-    )
+    return ", ".join(f"{name} {d} samples" for name, d in zip(names, delays, strict=True) if d)
 
 
 def _views_side_by_side(
@@ -776,7 +775,7 @@ def _choices(fitted: OutputFit, blocks: int, gaps: int) -> dict[str, Any]:
         "chosen": fitted.candidates.index(fitted.chosen),
         "refinement": fitted.refinement,
         "time_scale": time_scale_note(fitted.chosen),
-        "dead_time": dict(zip(fitted.layout.names[1:], fitted.delays, strict=True)) if any(fitted.delays) else {},
+        "dead_time": {name: d for name, d in zip(fitted.layout.names[1:], fitted.delays, strict=False) if d},
         **({"sign": fitted.sign} if fitted.sign else {}),
     }
 
@@ -1603,8 +1602,8 @@ def _model_lines(part: dict[str, Any], indent: str) -> list[str]:
     lines.append(f"{indent}time scale: {c['time_scale']}")
     if dead := c.get("dead_time"):
         lines.append(
-            f"{indent}dead time: {_dead_times(tuple(dead.values()), tuple(dead))}, found by testing which newest "
-            "input lags add nothing to a least-squares model"
+            f"{indent}dead time: {_dead_times(tuple(dead.values()), tuple(dead))} (the newest lags that add nothing "
+            "to a least-squares model, up to a sharp onset): the terms read each input from there back"
         )
     if sign := c.get("sign"):
         blocks = sign["rmse_blocks"]

@@ -1198,6 +1198,10 @@ def test_a_dead_time_is_found_by_the_lags_that_add_nothing() -> None:
     assert input_delays(np.column_stack([plant(late(u, 6)), u])) == (6,)
     assert input_delays(np.column_stack([plant(late(u, 4) ** 2), u])) == (4,)
     assert input_delays(np.column_stack([plant(late(u, 3) + 0.5 * late(v, 9)), u, v])) == (3, 9)
+    # nine inputs, more than one model tests (JOINT_INPUTS): each alone, the same dead times, the idle ones none
+    idle = rng.standard_normal((n, 7))
+    found = input_delays(np.column_stack([plant(late(u, 3) + 0.5 * late(v, 9)), u, v, idle]))
+    assert found == (3, 9) + (0,) * 7
     assert input_delays(np.column_stack([plant(u), u])) == (0,)
     assert input_delays(np.column_stack([plant(v), u])) == (0,)
     assert input_delays(np.column_stack([plant(late(u, 6)), u])[:400]) == (0,)

@@ -45,6 +45,9 @@ DELAY_Z = 3.09
 #: transport delay, 0.01-0.41 and 1.6-6.3x where a filter's or a drive's response starts smoothly
 SHARP_SHARE = 0.1
 SHARP_CHANCE = 20.0
+#: inputs tested in one model (six: 487 regressors); beyond, each input is tested alone with the output's lags,
+#: as the regressors' normal equations would grow with their square and the solves with their cube
+JOINT_INPUTS = 6
 #: rows the test is fitted on (evenly spread; a few thousand pin a dead time down), and the fewest per
 #: regressor it needs
 DELAY_ROWS = 20000
@@ -66,6 +69,8 @@ def input_delays(values: np.ndarray, breaks: np.ndarray | list[int] | None = Non
     """
     values = np.asarray(values, dtype=np.float64)
     inputs = values.shape[1] - 1
+    if inputs > JOINT_INPUTS:  # each input on its own (the others' share is then noise to its test)
+        return tuple(input_delays(values[:, [0, 1 + c]], breaks)[0] for c in range(inputs))
     if inputs < 1:
         return ()
     test = _DelayTest(values, breaks)

@@ -3,6 +3,7 @@
     python bench/joint_study.py                    # 200 Hz, 5 seeds, every joint variant
     python bench/joint_study.py --period 0.001     # 1 kHz
     python bench/joint_study.py --apart            # the test third recorded as a run of its own
+    python bench/joint_study.py --ticks 4096       # a 12-bit encoder (1.5 mrad) instead of 0.1 mrad
 
 A pendulum joint in radians (``paper.physical.FrictionJoint``: gravity, viscous and
 Coulomb friction, stiction) under torque steps of +-2 N m (commands at 50 Hz, levels
@@ -36,8 +37,11 @@ VARIANTS = {
 COMMAND_PERIOD = 0.02  # 50 Hz controller
 
 
-def record(variant: str, period: float, seconds: float, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """(torques, measured angles) of one run: angle k is measured before torque k acts."""
+def record(
+    variant: str, period: float, seconds: float, seed: int, resolution: float = 1e-4
+) -> tuple[np.ndarray, np.ndarray]:
+    """(torques, measured angles) of one run: angle k is measured before torque k acts, in steps of
+    ``resolution`` rad (an encoder's tick: 2 pi / 4096 = 1.5e-3 rad for a 12-bit one)."""
     n = round(seconds / period)
     hold = max(1, round(COMMAND_PERIOD / period))
     excitation = Excitation(seed, "steps")
@@ -49,7 +53,7 @@ def record(variant: str, period: float, seconds: float, seed: int) -> tuple[np.n
             torques[a : a + stretch] -= torques[a : a + stretch].mean()
     angles = FrictionJoint(period=period, **VARIANTS[variant]).run(torques)[:n]
     rng = np.random.default_rng(seed + 1000)
-    return torques, np.round((angles + rng.normal(0.0, 2e-4, n)) / 1e-4) * 1e-4
+    return torques, np.round((angles + rng.normal(0.0, 2e-4, n)) / resolution) * resolution
 
 
 def spread(values: list[float]) -> str:
@@ -71,6 +75,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", type=int, default=5)
     parser.add_argument("--variants", default=",".join(VARIANTS))
     parser.add_argument("--apart", action="store_true", help="the test third recorded as a run of its own")
+    parser.add_argument("--ticks", type=int, default=0, help="an encoder of this many ticks per turn (0: 0.1 mrad)")
     args = parser.parse_args(argv)
     print(f"| joint ({1 / args.period:.0f} Hz, {args.seconds:.0f} s) | one-step NMSE dB, mean (min..max) | "
           "free-run NMSE dB, mean (min..max) | fit time s, mean | models chosen |")  # fmt: skip
@@ -78,10 +83,11 @@ def main(argv: list[str] | None = None) -> int:
     for variant in args.variants.split(","):
         one, free, seconds, models = [], [], [], []
         for seed in range(args.seeds):
-            u, y = record(variant, args.period, args.seconds, seed)
+            resolution = 2.0 * np.pi / args.ticks if args.ticks else 1e-4
+            u, y = record(variant, args.period, args.seconds, seed, resolution)
             test_from = len(y) * 2 // 3 + 1
             if args.apart:
-                u_test, y_test = record(variant, args.period, args.seconds / 3, seed + 100)
+                u_test, y_test = record(variant, args.period, args.seconds / 3, seed + 100, resolution)
                 u, y = np.r_[u[: test_from - 1], u_test], np.r_[y[: test_from - 1], y_test]
             report, took = timed_fit(u, y, f"{variant} seed {seed}", test_from)
             seconds.append(took)

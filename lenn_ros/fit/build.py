@@ -59,7 +59,7 @@ from lenn_ros.core.structure import Identifier
 from lenn_ros.core.threads import cores, side_by_side
 from lenn_ros.fit.data import REPORT_FILE, Data, FitError
 from lenn_ros.fit.delay import input_delays, shifted
-from lenn_ros.fit.families import INCREMENT_LAGS, INDEX_SHIFTS, RECENT, candidate_specs, pass_through_weights
+from lenn_ros.fit.families import INCREMENT_LAGS, INDEX_SHIFTS, candidate_specs, pass_through_weights
 from lenn_ros.fit.refinement import Refinement, blocks_choice, fold_history, refine_on_folds
 from lenn_ros.fit.selection import (
     NONLINEAR_GAIN,
@@ -418,7 +418,7 @@ def _fit_outputs(
         workers = cores() if n_y == 1 else 1  # one output: its candidates side by side; several: the outputs
         # each input's dead time (the coupled view reads the inputs as the output's own view settled them; the
         # other outputs' past has none): :func:`_fit_behind_dead_time`
-        own = _placed(input_delays(record.values, record.breaks)) if alone is None else alone.delays
+        own = input_delays(record.values, record.breaks) if alone is None else alone.delays
         delays = (0,) * len(others) + own[-n_u:] if own else ()
         tell = say if n_y == 1 else said.append
         if any(delays) and alone is None:
@@ -527,12 +527,6 @@ def _fit_behind_dead_time(
     if refine:
         _refine_outputs([late], say, workers)
     return late
-
-
-def _placed(delays: tuple[int, ...]) -> tuple[int, ...]:
-    """The dead times worth a shift: those the nonlinear terms' RECENT newest lags would not reach. A shorter
-    one leaves them an input lag that acts, and the linear terms read every lag."""
-    return tuple(d if d >= RECENT else 0 for d in delays)
 
 
 def _dead_times(delays: tuple[int, ...], names: tuple[str, ...]) -> str:

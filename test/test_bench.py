@@ -67,7 +67,7 @@ def test_quick_offline_bench_runs_and_reports_every_figure() -> None:
     """`python bench/speed.py --quick --skip-online` end to end (smaller sizes still, to stay fast)."""
     sizes = dataclasses.replace(
         offline.QUICK,
-        repeats=1,
+        repeats=3,  # medians of 3 interleaved runs: one timing hit by a load spike does not decide a ratio
         fit_samples=1000,
         single_calls=20,
         train_samples=5000,

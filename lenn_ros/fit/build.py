@@ -419,7 +419,7 @@ def _fit_outputs(
         # each input's dead time (the coupled view reads the inputs as the output's own view settled them; the
         # other outputs' past has none): :func:`_fit_behind_dead_time`
         own = input_delays(record.values, record.breaks) if alone is None else alone.delays
-        delays = (0,) * len(others) + own[-n_u:] if own else ()
+        delays = (0,) * len(others) + own
         tell = say if n_y == 1 else said.append
         if any(delays) and alone is None:
             tell(f"output {data.y_names[j]}: dead time {_dead_times(delays, names[1:])}; the terms read each input "
@@ -769,7 +769,7 @@ def _choices(fitted: OutputFit, blocks: int, gaps: int) -> dict[str, Any]:
         "chosen": fitted.candidates.index(fitted.chosen),
         "refinement": fitted.refinement,
         "time_scale": time_scale_note(fitted.chosen),
-        "dead_time": {name: d for name, d in zip(fitted.layout.names[1:], fitted.delays, strict=False) if d},
+        "dead_time": {name: d for name, d in zip(fitted.layout.names[1:], fitted.delays, strict=True) if d},
         **({"sign": fitted.sign} if fitted.sign else {}),
     }
 

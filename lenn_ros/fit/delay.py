@@ -27,12 +27,12 @@ which. Such an onset is left to the families' own lags.
 
 from __future__ import annotations
 
-import itertools
 import math
 
 import numpy as np
 
 from lenn_ros.fit.families import RECENT
+from lenn_ros.fit.selection import Record, runs
 
 #: longest dead time looked for, in samples (shorter in a short record), the shortest that counts (one the
 #: families' RECENT newest lags would not reach), and the input lags the test reads beyond the longest (a third
@@ -101,11 +101,7 @@ class _DelayTest:
         self.longest = span - min(DELAY_WINDOW, span // 3)  # the longest dead time looked for
         warm = max(DELAY_Y_LAGS, span)
         self.width = 1 + DELAY_Y_LAGS + 2 * (columns - 1) * span
-        target = np.arange(warm, n)
-        valid = np.ones(len(target), dtype=bool)
-        for b in np.asarray([] if breaks is None else breaks, dtype=np.int64):
-            valid &= ~((target >= b) & (target - warm < b))
-        self.target = target = target[valid]
+        self.target = target = np.arange(warm, n)[Record.of(values, breaks).valid_rows(warm)]
         self.noise = 0.0
         if len(target) < ROWS_PER_REGRESSOR * self.width or self.longest < MIN_DELAY:
             return
@@ -171,9 +167,8 @@ def shifted(
     values = np.asarray(values, dtype=np.float64)
     shifts = (0, *delays)
     longest = max(shifts)
-    cuts = sorted({0, len(values), *(int(b) for b in (breaks if breaks is not None else []) if 0 < b < len(values))})
     pieces, starts, at = [], [], 0
-    for a, b in itertools.pairwise(cuts):
+    for a, b in runs(0, len(values), np.asarray([] if breaks is None else breaks, dtype=np.int64)):
         if b - a <= longest:
             continue
         piece = np.column_stack([values[a + longest - s : b - s, c] for c, s in enumerate(shifts)])

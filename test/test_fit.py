@@ -785,7 +785,6 @@ def test_fit_simulates_an_axis_standing_stuck_by_the_stick_family_and_the_node_r
     noise. The ``stick`` family, refined on simulation error (up to FAR_ITERATIONS), is chosen and simulates it
     (measured -35.7 dB on this seed; before the family a hinge model, -3.4 dB; 5 seeds in bench/RESULTS.md).
     The params file starts an identifier that runs the same free run."""
-    from lenn_ros.fit.build import write_outputs
 
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     import plant_study
@@ -798,12 +797,19 @@ def test_fit_simulates_an_axis_standing_stuck_by_the_stick_family_and_the_node_r
     assert report["choices"]["refinement"]["tried"] == refinement.FAR_ITERATIONS["stick"]
     assert report["nmse_free_run_db"] < -34.0
     assert level_free(result["model"])  # the integrator is kept exactly, and passed through by the node
-    values = read_params_file(write_outputs(tmp_path / "model", result, Data(u, y, "axis"))["params"])
+    y_free = _identifier_from_params(tmp_path, result, Data(u, y, "axis"))[1].free_run(u, y, start)
+    assert float(np.sqrt(np.mean((y_free - y[start:]) ** 2))) == pytest.approx(report["rmse_free_run"], rel=1e-6)
+
+
+def _identifier_from_params(tmp_path: Path, result: dict, data: Data) -> tuple[dict, Identifier]:
+    """(the params file's values, the identifier built from them): what ``fit -o`` wrote, as the node starts."""
+    from lenn_ros.fit.build import write_outputs
+
+    values = read_params_file(write_outputs(tmp_path / "model", result, data)["params"])
     resolved, network = resolve(values)
     identifier = build_identifier(resolved, network)
     identifier.model.load_state(values["weights_in"])
-    y_free = identifier.free_run(u, y, start)
-    assert float(np.sqrt(np.mean((y_free - y[start:]) ** 2))) == pytest.approx(report["rmse_free_run"], rel=1e-6)
+    return values, identifier
 
 
 def _plant_study():
@@ -845,7 +851,7 @@ def test_fit_simulates_a_speed_read_as_its_absolute_value_and_the_node_signs_it(
     the model of the signed record beside it and keeps it by the blocks (measured -38.1 dB on this seed); the
     params file says ``y_abs``, and an identifier from it runs the same free run, seeding it with the signs
     its own predictions and free run give the measured |y|. Step by step, it publishes |y^| and y - |y^|."""
-    from lenn_ros.fit.build import format_report, write_outputs
+    from lenn_ros.fit.build import format_report
 
     u, y, speed = _plant_study().belt_speed(0)
     start = len(y) * 2 // 3
@@ -854,11 +860,8 @@ def test_fit_simulates_a_speed_read_as_its_absolute_value_and_the_node_signs_it(
     assert report["choices"]["sign"]["used"] and report["model"]["structure"]["y_abs"]
     assert "the node signs each y_p as its model does (y_abs)" in format_report(report)
     assert report["nmse_free_run_db"] < -35.0 and report["warnings"] == []
-    values = read_params_file(write_outputs(tmp_path / "model", result, Data(u, y, "belt"))["params"])
+    values, identifier = _identifier_from_params(tmp_path, result, Data(u, y, "belt"))
     assert values["y_abs"] is True
-    resolved, network = resolve(values)
-    identifier = build_identifier(resolved, network)
-    identifier.model.load_state(values["weights_in"])
     y_free = identifier.free_run(u, y, start)
     assert np.all(y_free >= 0.0)
     assert float(np.sqrt(np.mean((y_free - y[start:]) ** 2))) == pytest.approx(report["rmse_free_run"], rel=1e-6)
@@ -948,7 +951,6 @@ def test_fit_simulates_a_static_map_between_two_filters_by_hinges_of_a_filtered_
     then scored about the linear ARX: -13.0 dB over 5 seeds against -12.7, and -12.4 dB on this seed).
     Hinges of one index z = h . (input lags), h found from the record, do: measured -31.2 dB on this seed
     (5 seeds in bench/RESULTS.md). The params file starts an identifier that runs the same free run."""
-    from lenn_ros.fit.build import write_outputs
 
     u, y = _plant_study().wiener_hammerstein(0)
     start = len(y) * 2 // 3
@@ -958,11 +960,7 @@ def test_fit_simulates_a_static_map_between_two_filters_by_hinges_of_a_filtered_
     assert report["model"]["family"] == "index" and report["warnings"] == []
     assert report["nmse_free_run_db"] < -30.0
     assert "hinges of one filtered input" in report["choices"]["time_scale"]
-    values = read_params_file(write_outputs(tmp_path / "model", result, data)["params"])
-    resolved, network = resolve(values)
-    identifier = build_identifier(resolved, network)
-    identifier.model.load_state(values["weights_in"])
-    y_free = identifier.free_run(u, y, start)
+    y_free = _identifier_from_params(tmp_path, result, data)[1].free_run(u, y, start)
     assert float(np.sqrt(np.mean((y_free - y[start:]) ** 2))) == pytest.approx(report["rmse_free_run"], rel=1e-6)
 
 
@@ -1257,7 +1255,7 @@ def test_fit_finds_a_dead_time_and_simulates_behind_it_as_without_it(tmp_path: P
     the three newest input lags read inputs that have not acted yet (-30.9 dB on this seed, -30.1 over three);
     with it, the free run is that of the same plant without a dead time (-38.6 dB). The report says it, and the
     params file starts an identifier that runs the same free run."""
-    from lenn_ros.fit.build import format_report, write_outputs
+    from lenn_ros.fit.build import format_report
 
     u, y = _plant_study().PLANTS["hammerstein-dead-time"](0)
     start = len(y) * 2 // 3
@@ -1267,11 +1265,7 @@ def test_fit_finds_a_dead_time_and_simulates_behind_it_as_without_it(tmp_path: P
     assert report["choices"]["dead_time"] == {"u": 8} and report["warnings"] == []
     assert report["nmse_free_run_db"] < -37.5
     assert "dead time: u 8 samples (the newest lags that add nothing" in format_report(report)
-    values = read_params_file(write_outputs(tmp_path / "model", result, data)["params"])
-    resolved, network = resolve(values)
-    identifier = build_identifier(resolved, network)
-    identifier.model.load_state(values["weights_in"])
-    y_free = identifier.free_run(u, y, start)
+    y_free = _identifier_from_params(tmp_path, result, data)[1].free_run(u, y, start)
     assert float(np.sqrt(np.mean((y_free - y[start:]) ** 2))) == pytest.approx(report["rmse_free_run"], rel=1e-6)
 
 

@@ -4,18 +4,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
-
-from lenn_ros.core import kernels
-
-# The benchmarks are scripts of the source checkout (bench/), not part of the installed package.
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 import speed as bench
 import speed_offline as offline
+
+from lenn_ros.core import kernels
 
 #: The kernels the package ships, each with the network configuration that drives it.
 REQUIRED = ("lenn_sgd", "lenn_nlms", "lenn_rls", "mlp")

@@ -76,7 +76,6 @@ def test_the_quick_start_commands_are_make_targets() -> None:
 
 def test_the_readme_robot_command_is_the_one_test_robot_defaults_runs() -> None:
     """The README says "nothing else is needed": test_robot_defaults.py runs exactly its parameters."""
-    sys.path.insert(0, str(REPO / "test"))
     try:
         from test_robot_defaults import README_COMMAND
     except pytest.skip.Exception:

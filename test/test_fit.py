@@ -574,7 +574,6 @@ def test_fit_holds_a_sticky_joint_where_it_sticks() -> None:
     """A joint whose stiction holds it against gravity: the increment form's stiction terms (friction that
     opposes the net drive at rest) keep the simulated joint where the real one sticks instead of creeping.
     Measured on this seed -35.0 dB (before the stiction terms: -21.0; 5 seeds in bench/RESULTS.md)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     import joint_study
 
     u, y = joint_study.record("sticky", 0.005, 40.0, 2)
@@ -657,7 +656,6 @@ def test_ball_and_beam_chosen_structure_simulates_its_own_training_data() -> Non
 
 
 def test_peer_table_shows_the_test_mean_predictor_and_marks_rows_worse_than_it() -> None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     import peer_narx
 
     split = peer_narx.Split("s", np.zeros(10), np.array([0.0] * 5 + [1.0, -1.0, 1.0, -1.0, 1.0]), 6, "")
@@ -680,7 +678,6 @@ def test_peer_table_shows_the_test_mean_predictor_and_marks_rows_worse_than_it()
 
 
 def test_peer_linear_arx_is_least_squares_with_lags_chosen_on_the_tail() -> None:
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     import peer_narx
 
     u, y = cubic_plant(3000, 2)
@@ -730,7 +727,6 @@ def test_fit_keeps_the_integrator_of_a_joint_without_gravity() -> None:
     outside the training range, as the joint itself would. ``fit`` judges the exact integrators (the increment
     form) there by their increments, keeps one, and its free run follows the test part (before: an RFF model
     was chosen, +0.8 dB, worse than the mean; the 5-seed study in bench/RESULTS.md)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     import joint_study
 
     u, y = joint_study.record("horizontal", 0.005, 40.0, 0)
@@ -786,7 +782,6 @@ def test_fit_simulates_an_axis_standing_stuck_by_the_stick_family_and_the_node_r
     (measured -35.7 dB on this seed; before the family a hinge model, -3.4 dB; 5 seeds in bench/RESULTS.md).
     The params file starts an identifier that runs the same free run."""
 
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     import plant_study
 
     u, y = plant_study.axis_p2p(1)
@@ -813,7 +808,6 @@ def _identifier_from_params(tmp_path: Path, result: dict, data: Data) -> tuple[d
 
 
 def _plant_study():
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     import plant_study
 
     return plant_study
@@ -907,10 +901,9 @@ def test_an_exact_integrator_is_delivered_with_its_pass_through_outside_the_netw
     that keeps turning). Delivered with y(k) as the known part (known_a [1], output_offset -y_offset) and its
     output's differences read over ten training ranges, the one-step prediction three ranges away is the
     prediction inside, shifted; inside the range it is the same model."""
-    from lenn_ros.fit.build import write_outputs
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     import joint_study
+
+    from lenn_ros.fit.build import write_outputs
 
     u, y = joint_study.record("horizontal", 0.005, 40.0, 0)
     start = len(y) * 2 // 3

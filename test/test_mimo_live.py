@@ -8,7 +8,6 @@ show the coupling captured, and equal what the core computes offline from the sa
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
@@ -17,7 +16,6 @@ pytestmark = [pytest.mark.ros, pytest.mark.timeout(300)]
 
 rclpy = pytest.importorskip("rclpy")
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 from mimo_live import NAMES, run_live, run_offline  # noqa: E402
 
 TRAIN, TEST, NOISE_DB = 3000, 600, -30.0

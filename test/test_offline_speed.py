@@ -7,9 +7,6 @@ a row-by-row QR must give ``np.linalg.lstsq``'s NMSE (the README reports it to 0
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -159,7 +156,6 @@ def test_floor_scored_on_the_test_window_equals_scoring_the_whole_series() -> No
 # -- the benchmark ----------------------------------------------------------------------------
 def test_marginal_benchmark_runs_and_reports_the_rate() -> None:
     """bench/reproduce_marginal.py at tiny sizes, one run each (two short processes)."""
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
     import reproduce_marginal
 
     result = reproduce_marginal.measure(1000, 3000, repeats=1, numpy_samples=200, warmup=False)

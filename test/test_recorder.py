@@ -59,9 +59,7 @@ def test_sigkill_loss_counted_at_the_publisher(tmp_path: Path, domain: int) -> N
     written (measured up to ~0.55 s on the loaded 2-core CI machine, see bench/recorder_kill.py).
     A recorder that never flushed, or lost its queue wholesale, loses all 1500 samples.
     """
-    import sys
 
-    sys.path.insert(0, str(REPO / "bench"))
     from recorder_kill import one_run
 
     rate, flush_period = 500.0, 0.2

@@ -561,14 +561,11 @@ def test_a_sensor_read_as_its_absolute_value_is_replayed_offline_as_it_was_stepp
     samples lost and one refused: each start waits until the sign settles, says so, and counts the samples
     not learnt (and those at crossings where its free run and prediction disagree); the batch pass over the same
     samples gives the same predictions, weights and count."""
-    import sys
-    from pathlib import Path
+
+    import plant_study
 
     from lenn_ros.config import read_params_file
     from lenn_ros.fit.build import Data, fit, write_outputs
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-    import plant_study
 
     u_all, y_all, _ = plant_study.belt_speed(0)
     files = write_outputs(tmp_path / "model", fit(Data(u_all, y_all, "belt"), 501), Data(u_all, y_all, "belt"))

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import pytest
@@ -13,7 +12,6 @@ REPO = Path(__file__).resolve().parents[1]
 
 
 def test_soak_at_ci_size(tmp_path: Path, domain: int) -> None:
-    sys.path.insert(0, str(REPO / "bench"))
     from soak import soak
 
     from lenn_ros.bag import read_run

@@ -178,8 +178,9 @@ def _add_fit(commands: Any) -> None:
     )
     p.add_argument(
         "data",
-        help="CSV file (columns by name or 0-based index) or a bag: its u / y_p topics as the identifier read them "
-        "(identifier_config: types, fields, pairing, remapped topics), or the topics named by --u/--y",
+        help="CSV file (columns by name or 0-based index; commas, semicolons, tabs or whitespace; # and %% comment "
+        "lines; a row with a cell empty, NaN or inf is a gap) or a bag: its u / y_p topics as the identifier read "
+        "them (identifier_config: types, fields, pairing, remapped topics), or the topics named by --u/--y",
     )
     p.add_argument(
         "--u",
@@ -247,7 +248,7 @@ def _add_fit(commands: Any) -> None:
 
 def _add_import_csv(commands: Any) -> None:
     p = commands.add_parser("import-csv", help="make a bag (u, y_p) from a logged CSV file")
-    p.add_argument("file")
+    p.add_argument("file", help="delimited text: commas, semicolons, tabs or whitespace; # and %% comment lines")
     p.add_argument(
         "--u",
         required=True,

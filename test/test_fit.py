@@ -226,7 +226,7 @@ def test_params_file_keys_and_typos(tmp_path: Path) -> None:
     [
         (["--test-from", "5"], "at least 100"),
         (["--test-from", "9999"], "outside the data's samples"),
-        (["--u", "speed", "--test-from", "500"], "no column 'speed'; columns are u, y, z"),
+        (["--u", "speed", "--test-from", "500"], "no column 'speed' (columns: u, y, z)"),
         (["--y", "z", "--test-from", "500"], "constant"),
     ],
 )

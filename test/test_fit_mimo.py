@@ -184,7 +184,7 @@ def test_cli_import_csv_then_fit_the_vector_bag(tmp_path: Path) -> None:
     assert done.returncode == 0 and "NMSE one-step" in done.stdout and plot.stat().st_size > 10_000, done.stderr
     text = lenn_ros("fit", str(csv), "--u", "u1", "--u", "u2", "--y", "y1", "--y", "speed", "--test-from", "2001")
     assert text.returncode == 2 and text.stderr.count("\n") == 1
-    assert "no column 'speed'; columns are t, u1, u2, y1, y2" in text.stderr
+    assert "no column 'speed' (columns: t, u1, u2, y1, y2)" in text.stderr
 
 
 def test_load_model_runs_the_mimo_fit_as_fit_reported(fitted: dict) -> None:

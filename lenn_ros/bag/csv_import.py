@@ -5,45 +5,17 @@ Errors name the file line and column, so a user can fix the CSV instead of guess
 
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
-
-import numpy as np
 
 from lenn_ros import topics
 from lenn_ros.bag.errors import BagError
 from lenn_ros.bag.vectors import write_vector_run
 from lenn_ros.bag.writer import BagWriter
+from lenn_ros.table import TableError, read_table
 
 __all__ = ["import_csv"]
-
-
-def _column_index(header: list[str] | None, column: str | int, csv_path: Path) -> int:
-    if isinstance(column, int) or (header is None and str(column).isdigit()):
-        index = int(column)
-    elif header is not None and column in header:
-        return header.index(column)
-    elif header is not None and str(column).isdigit():
-        index = int(column)
-    else:
-        shown = ", ".join(header) if header else "no header row"
-        raise BagError(f"{csv_path}: no column {column!r} (columns: {shown}); pass a column name or 0-based index")
-    width = len(header) if header is not None else None
-    if index < 0 or (width is not None and index >= width):
-        raise BagError(f"{csv_path}: column index {index} out of range (0..{(width or 1) - 1})")
-    return index
-
-
-def is_number(text: str) -> bool:
-    """Whether a CSV cell is a number (a first row of numbers is data, not a header)."""
-    try:
-        float(text)
-    except ValueError:
-        return False
-    return True
 
 
 Column = str | int
@@ -73,27 +45,32 @@ def import_csv(
         raise BagError(f"dt must be a positive number of seconds, got {dt}")
     if not csv_path.is_file():
         raise BagError(f"{csv_path}: no such file; pass the CSV with the logged input and output")
-    rows = _read_rows(csv_path)
-    first = [cell.strip() for cell in rows[0][1]]
-    named = any(isinstance(c, str) and not c.isdigit() for c in (*u_columns, *y_columns))
-    has_header = named or not all(is_number(c) for c in first if c)
-    header = first if has_header else None
-    columns = [(_column_index(header, column, csv_path), column) for column in (*u_columns, *y_columns)]
-    values = _read_values(csv_path, rows[1:] if has_header else rows, tuple(columns))
-    if not values[0]:
-        raise BagError(f"{csv_path}: no data rows after the header")
-    if test_from is not None and not 1 <= test_from <= len(values[0]):
+    named = any(isinstance(c, str) and not c.strip().isdigit() for c in (*u_columns, *y_columns))
+    try:
+        table = read_table(csv_path, named)
+        indices = [table.column(column) for column in (*u_columns, *y_columns)]
+        matrix, missing = table.values(indices)
+    except TableError as error:
+        raise BagError(str(error)) from None
+    if missing:
+        line = missing[0]
         raise BagError(
-            f"test_from={test_from} is outside samples 1..{len(values[0])} of {csv_path} (1-based, like test_start)"
+            f"{csv_path}: line {line} has no number in a column asked for (empty, NaN, inf or short): a run "
+            f"bag has no gaps; drop or fill that row ({len(missing)} such rows; lenn-ros fit reads them as gaps)"
+        )
+    if not len(matrix):
+        raise BagError(f"{csv_path}: no data rows after the header")
+    if test_from is not None and not 1 <= test_from <= len(matrix):
+        raise BagError(
+            f"test_from={test_from} is outside samples 1..{len(matrix)} of {csv_path} (1-based, like test_start)"
         )
     if len(u_columns) == len(y_columns) == 1:
-        _write_run_bag(out_path, values[0], values[1], dt, test_from)
+        _write_run_bag(out_path, matrix[:, 0].tolist(), matrix[:, 1].tolist(), dt, test_from)
         return out_path
-    names = [header[index] if header else str(index) for index, _ in columns]
+    names = [table.header[index] if table.header else str(index) for index in indices]
     split = len(u_columns)
     _check_names(csv_path, names[:split], "--u")
     _check_names(csv_path, names[split:], "--y")
-    matrix = np.array(values, dtype=np.float64).T
     u_rows, y_rows = matrix[:, :split], matrix[:, split:]
     return write_vector_run(out_path, u_rows, y_rows, (names[:split], names[split:]), dt, test_from)
 
@@ -113,44 +90,6 @@ def _check_names(csv_path: Path, names: list[str], option: str) -> None:
             raise BagError(f"{csv_path}: column name {name!r} cannot name a channel (empty or with a comma); rename it")
         if names.count(name) > 1:
             raise BagError(f"{csv_path}: column {name!r} given twice as {option}; name each channel once")
-
-
-def _read_rows(csv_path: Path) -> list[tuple[int, list[str]]]:
-    """The non-empty rows, each with its 1-based file line, so every later error can name the line."""
-    text = csv_path.read_text(encoding="utf-8-sig")
-    try:
-        dialect: Any = csv.Sniffer().sniff(text[:4096], delimiters=",;\t")
-    except csv.Error:
-        dialect = csv.excel
-    rows = [(n, row) for n, row in enumerate(csv.reader(text.splitlines(), dialect), start=1) if any(row)]
-    if not rows:
-        raise BagError(f"{csv_path}: the file has no rows")
-    return rows
-
-
-def _read_values(
-    csv_path: Path, data: list[tuple[int, list[str]]], columns: tuple[tuple[int, str | int], ...]
-) -> list[list[float]]:
-    """One list of floats per (index, name) column, row by row, so the first bad cell in file order is reported."""
-    values: list[list[float]] = [[] for _ in columns]
-    for line, row in data:
-        for (index, column), column_values in zip(columns, values, strict=True):
-            column_values.append(_cell_value(csv_path, line, row, index, column))
-    return values
-
-
-def _cell_value(csv_path: Path, line: int, row: list[str], index: int, column: str | int) -> float:
-    """The finite number in one cell; a short row, a non-number or an inf/nan is refused with its line and column."""
-    if index >= len(row):
-        raise BagError(f"{csv_path}: line {line} has {len(row)} cells, no column {column!r}; fix that row")
-    cell = row[index].strip()
-    try:
-        value = float(cell)
-    except ValueError:
-        raise BagError(f"{csv_path}: line {line}, column {column!r}: {cell!r} is not a number") from None
-    if not math.isfinite(value):
-        raise BagError(f"{csv_path}: line {line}, column {column!r}: {cell!r} is not finite")
-    return value
 
 
 def _write_run_bag(out_path: Path, u_vals: list[float], y_vals: list[float], dt: float, test_from: int | None) -> None:

@@ -34,7 +34,6 @@ structure by epochs instead (:func:`fit_mlp`, :func:`fit_lenn_sgd`).
 
 from __future__ import annotations
 
-import csv
 import dataclasses
 import functools
 import itertools
@@ -49,7 +48,6 @@ import numpy as np
 import yaml
 
 from lenn_ros import topics
-from lenn_ros.bag.csv_import import is_number
 from lenn_ros.core.evaluation import free_run_problems, free_run_segments
 from lenn_ros.core.metrics import band_half_width, coverage, nmse_db, rmse
 from lenn_ros.core.mimo import MimoIdentifier
@@ -80,6 +78,7 @@ from lenn_ros.fit.selection import (
     widened,
 )
 from lenn_ros.fit.signs import recover_signs
+from lenn_ros.table import TableError, read_table
 
 #: share of the training samples the epochs of an MLP / SGD fit are early-stopped on
 VALIDATION_FRACTION = 0.2
@@ -124,53 +123,50 @@ def _configured(path: Path, flags: dict[str, Any]) -> bool:
     return has_identifier_config(path) or any(value for key, value in flags.items() if key not in ("u", "y"))
 
 
-def read_csv_rows(path: Path) -> tuple[list[str] | None, list[list[str]], int]:
-    """(header or None, the data rows, the width): blank lines dropped; a first row of numbers is data."""
-    with path.open(newline="") as stream:
-        rows = [row for row in csv.reader(stream) if row and any(cell.strip() for cell in row)]
-    if not rows:
-        raise FitError(f"{path} is empty")
-    header = None if all(is_number(cell) for cell in rows[0]) else [cell.strip() for cell in rows[0]]
-    return header, rows[1:] if header else rows, len(rows[0])
-
-
 def _load_csv(path: Path, u_columns: list[str], y_columns: list[str]) -> Data:
-    header, body, width = read_csv_rows(path)
-    if not u_columns or not y_columns:
-        if header and "u" in header and "y" in header:
-            u_columns, y_columns = u_columns or ["u"], y_columns or ["y"]
-        elif width == 2:
-            u_columns, y_columns = u_columns or ["0"], y_columns or ["1"]
-        else:
-            shown = ", ".join(header) if header else f"{width} unnamed columns"
-            raise FitError(f"{path} has columns {shown}: pass --u COL --y COL (name or 0-based index)")
-    wanted = [*u_columns, *y_columns]
-    indices = [_column(header, column, width, path) for column in wanted]
-    values = np.empty((len(body), len(indices)))
-    for n, row in enumerate(body):
-        try:
-            values[n] = [float(row[i]) for i in indices]
-        except (ValueError, IndexError):
-            line = n + (2 if header else 1)
-            shown = " or ".join(wanted) if len(wanted) == 2 else ", ".join(wanted)
-            raise FitError(f"{path}, line {line}: not a number in column {shown}: {row}") from None
+    """The columns asked for (:mod:`lenn_ros.table` reads any delimiter). A row missing a sample in one of
+    them is a gap: dropped, the record broken there (never joined across), its rows still counted by
+    ``--test-from`` (``Data.index``), and the lines named in the report's data line."""
+    named = any(not column.strip().isdigit() for column in (*u_columns, *y_columns))
+    try:
+        table = read_table(path, named)
+        header, width = table.header, table.width
+        if not u_columns or not y_columns:
+            if header and "u" in header and "y" in header:
+                u_columns, y_columns = u_columns or ["u"], y_columns or ["y"]
+            elif width == 2:
+                u_columns, y_columns = u_columns or ["0"], y_columns or ["1"]
+            else:
+                shown = ", ".join(header) if header else f"{width} unnamed columns"
+                raise FitError(f"{path} has columns {shown}: pass --u COL --y COL (name or 0-based index)")
+        wanted = [*u_columns, *y_columns]
+        indices = [table.column(column) for column in wanted]
+        values, missing = table.values(indices)
+    except TableError as error:
+        raise FitError(str(error)) from None
+    kept = np.isfinite(values).all(axis=1)
+    if not kept.any():
+        raise FitError(f"{path}: no data row holds a number in every column asked for")
+    rows = np.flatnonzero(kept)
+    breaks = [int(b) for b in np.flatnonzero(np.diff(rows) > 1) + 1]  # a kept row after a dropped one
     names = tuple(header[i] if header else str(i) for i in indices)
     split = len(u_columns)
     u_names, y_names = names[:split], names[split:]
     plural = "s" if len(wanted) > 2 else ""
     source = f"CSV {path}: u = column{plural} {', '.join(u_names)}, y = column{plural} {', '.join(y_names)}"
-    u, y = values[:, :split], values[:, split:]
-    return Data(u[:, 0] if split == 1 else u, y[:, 0] if len(y_names) == 1 else y, source, u_names=u_names,
-                y_names=y_names)  # fmt: skip
+    if missing:
+        lines = ", ".join(map(str, missing[:MISSING_SHOWN])) + (", ..." if len(missing) > MISSING_SHOWN else "")
+        source += (
+            f"; {len(missing)} row{'s' if len(missing) > 1 else ''} missing a sample (empty, NaN, inf or short; "
+            f"line{'s' if len(missing) > 1 else ''} {lines}): gaps, never fitted or scored across"
+        )
+    u, y = values[kept, :split], values[kept, split:]
+    return Data(u[:, 0] if split == 1 else u, y[:, 0] if len(y_names) == 1 else y, source, breaks=breaks,
+                index=rows + 1 if missing else None, u_names=u_names, y_names=y_names)  # fmt: skip
 
 
-def _column(header: list[str] | None, column: str, width: int, path: Path) -> int:
-    if header and column in header:
-        return header.index(column)
-    if column.lstrip("-").isdigit() and 0 <= int(column) < width:
-        return int(column)
-    shown = ", ".join(header) if header else f"indices 0..{width - 1}"
-    raise FitError(f"{path}: no column {column!r}; columns are {shown}")
+#: lines of rows missing a sample named in the report (the count is always given)
+MISSING_SHOWN = 5
 
 
 def _load_vector_bag(path: Path, u_columns: list[str], y_columns: list[str]) -> Data:

@@ -2,6 +2,7 @@
 
     python bench/plant_study.py                  # tanks, belt, axis, axis-p2p, backlash, wiener-hammerstein, heater
     python bench/plant_study.py --plants tanks --seeds 3
+    python bench/plant_study.py --frols          # and SysIdentPy's FROLS (polynomial NARX) beside them
 
 The issue names what polynomials of low degree cannot follow: overflow and saturation,
 a sensor that reads an absolute value, Coulomb friction on an axis sampled far faster
@@ -56,7 +57,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from joint_study import spread, timed_fit
-from peer_narx import Split, run_arx
+from peer_narx import Split, run_arx, run_frols
 
 from lenn_ros.core.kernels import njit
 
@@ -365,12 +366,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--plants", default="tanks,belt,axis,axis-p2p,backlash,wiener-hammerstein,heater,hammerstein-dead-time"
     )
+    parser.add_argument(
+        "--frols", action="store_true", help="also SysIdentPy's FROLS (polynomial NARX, peer_narx.py's grid)"
+    )
     args = parser.parse_args(argv)
+    peer = " FROLS free-run NMSE dB, mean (min..max) | fit better than FROLS |" if args.frols else ""
     print("| plant | fit free-run NMSE dB, mean (min..max) | ARX free-run NMSE dB, mean (min..max) | "
-          "fit better than ARX | fit one-step dB, mean | fit time s, mean | models chosen |")  # fmt: skip
-    print("|---|---|---|---|---|---|---|")
+          f"fit better than ARX | fit one-step dB, mean | fit time s, mean | models chosen |{peer}")  # fmt: skip
+    print("|---|---|---|---|---|---|---|" + ("---|---|" if args.frols else ""))
     for name in args.plants.split(","):
-        free, arx, one, seconds, models = [], [], [], [], []
+        free, arx, frols, one, seconds, models = [], [], [], [], [], []
         for seed in range(args.seeds):
             u, y = PLANTS[name](seed)
             test_from = len(y) * 2 // 3 + 1
@@ -380,15 +385,28 @@ def main(argv: list[str] | None = None) -> int:
             one.append(report["nmse_db"])
             m = report["model"]
             models.append(f"{m['family']} {m['expansion']['degree']}/{m['structure']['y_lags']}/{m['n_terms']}")
-            arx_rmse = run_arx(Split(name, u, y, test_from, ""))["rmse_free_run"]
-            arx.append(10.0 * math.log10(arx_rmse**2 / np.var(y[test_from - 1 :])))
+            split = Split(name, u, y, test_from, "")
+            arx.append(_db(run_arx(split)["rmse_free_run"], y[test_from - 1 :]))
+            if args.frols:
+                frols.append(_db(run_frols(split)["rmse_free_run"], y[test_from - 1 :]))
         wins = sum(f < a for f, a in zip(free, arx, strict=True))
+        beyond = ""
+        if args.frols:  # a FROLS run that diverged (NaN) counts as beaten
+            beaten = sum(not f >= p for f, p in zip(free, frols, strict=True))
+            finite = [v for v in frols if math.isfinite(v)]
+            diverged = f", {len(frols) - len(finite)} diverged" if len(finite) < len(frols) else ""
+            beyond = f" {spread(finite) if finite else '-'}{diverged} | {beaten} of {len(free)} |"
         print(
             f"| {name} | {spread(free)} | {spread(arx)} | {wins} of {len(free)} | {np.mean(one):.1f} | "
-            f"{np.mean(seconds):.1f} | {', '.join(models)} |",
+            f"{np.mean(seconds):.1f} | {', '.join(models)} |{beyond}",
             flush=True,
         )
     return 0
+
+
+def _db(rmse: float, y_test: np.ndarray) -> float:
+    """A peer's free-run RMSE over the test part as NMSE in dB (NaN if its run diverged)."""
+    return 10.0 * math.log10(rmse**2 / np.var(y_test)) if math.isfinite(rmse) else math.nan
 
 
 if __name__ == "__main__":

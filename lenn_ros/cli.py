@@ -217,6 +217,12 @@ def _add_fit(commands: Any) -> None:
     )
     p.add_argument("--dt", type=float, help="sample time in seconds (reported only)")
     p.add_argument(
+        "--time",
+        metavar="COL",
+        help="CSV: the column of the samples' times in seconds; a jump of more than 1.5 sample periods (the "
+        "median step) is a gap, never fitted across; rows out of order are refused",
+    )
+    p.add_argument(
         "--test-from",
         type=int,
         metavar="K",

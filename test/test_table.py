@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from test_fit import cubic_plant
 
-from lenn_ros.fit.build import Data, fit, load_data
+from lenn_ros.fit.build import Data, FitError, fit, load_data
 from lenn_ros.table import TableError, read_table
 
 NUMBERS = [[0.5, -1.25], [1e-3, 2.0], [-3.0, 4.5e2]]
@@ -93,3 +93,41 @@ def _row_of(data: Data, given: int) -> int:
     from lenn_ros.fit.build import test_row
 
     return test_row(data.index, given, data.test_start)
+
+
+def test_a_time_column_gives_the_sample_period_and_its_jumps_are_gaps(tmp_path: Path) -> None:
+    """``--time``: the median step is the sample period (the report's test duration), a jump of more than
+    1.5 periods is a gap like a missing row (the same fit as the rows with those breaks given), jitter is
+    counted, and rows out of order are refused naming the line; a bag or a CSV refuses the other's flags."""
+    u, y = cubic_plant(1000, 4)
+    times = 0.01 * np.arange(1000)
+    times[400:] += 0.05  # five samples lost before row 401: a jump of 6 periods
+    times[700] += 0.002  # jitter: 0.012 and 0.008 s steps around it, within the gap limit
+    path = tmp_path / "log.csv"
+    path.write_text("t,u,y\n" + "".join(f"{t:.6f},{a:.17g},{b:.17g}\n" for t, a, b in zip(times, u, y, strict=True)))
+    data = load_data(path, flags={"time": "t"})
+    assert data.breaks == [400] and data.index is None and data.sample_period == pytest.approx(0.01)
+    assert "time column 't': sample period 0.01 s (the median step), 1 jump longer than 1.5 periods (before " in (
+        data.source
+    )
+    assert "line 402): gaps, never fitted or scored across, 2 steps off it by more than 10%" in data.source
+    report = fit(data, 801, refine=False)["report"]
+    alone = fit(Data(u, y, "x", breaks=[400]), 801, refine=False)["report"]
+    assert report["nmse_free_run_db"] == alone["nmse_free_run_db"] < -30.0
+    done = subprocess.run(
+        [sys.executable, "-m", "lenn_ros.cli", "fit", str(path), "--time", "t", "--test-from", "801", "--no-refine"],
+        capture_output=True, text=True, timeout=300, check=True,
+    )  # fmt: skip
+    assert "sample time 0.01 s: test part 2 s" in done.stdout
+    wrong = subprocess.run(
+        [sys.executable, "-m", "lenn_ros.cli", "fit", str(path), "--time", "t", "--dt", "0.005", "--test-from", "801"],
+        capture_output=True, text=True, timeout=300, check=False,
+    )  # fmt: skip
+    assert wrong.returncode == 2
+    assert "--dt 0.005 s disagrees with the time column's sample period 0.01 s" in wrong.stderr
+    times[500] = times[499]
+    path.write_text("t,u,y\n" + "".join(f"{t:.6f},{a:.17g},{b:.17g}\n" for t, a, b in zip(times, u, y, strict=True)))
+    with pytest.raises(FitError, match=r"time column 't', line 502: 5.04 does not come after 5.04 \(line 501\)"):
+        load_data(path, flags={"time": "t"})
+    with pytest.raises(FitError, match=r"--u-field: for a bag, not a CSV file"):
+        load_data(path, flags={"u_field": "data[0]"})

@@ -106,14 +106,20 @@ def load_data(
     if not path.exists():
         raise FitError(f"{path} does not exist (expected a CSV file or a bag directory)")
     if path.is_dir() or path.suffix == ".mcap":
-        flags = {**(flags or {}), "u": u_columns or None, "y": y_columns or None}
+        if (flags or {}).get("time"):
+            raise FitError("--time: for a CSV file; a bag's samples carry their stamps (--sample-period sets a grid)")
+        flags = {**{k: v for k, v in (flags or {}).items() if k != "time"}, "u": u_columns or None,
+                 "y": y_columns or None}  # fmt: skip
         if is_vector_bag(path) and not _configured(path, flags):
             return _load_vector_bag(path, u_columns, y_columns)
         from lenn_ros.fit.bag import load_bag
 
         return load_bag(path, {key: value[0] if isinstance(value, list) and len(value) == 1 else value
                                for key, value in flags.items()})  # fmt: skip
-    return _load_csv(path, u_columns, y_columns)
+    bag_only = sorted(key for key, value in (flags or {}).items() if value and key != "time")
+    if bag_only:
+        raise FitError(f"{', '.join('--' + k.replace('_', '-') for k in bag_only)}: for a bag, not a CSV file")
+    return _load_csv(path, u_columns, y_columns, (flags or {}).get("time"))
 
 
 def _configured(path: Path, flags: dict[str, Any]) -> bool:
@@ -123,10 +129,11 @@ def _configured(path: Path, flags: dict[str, Any]) -> bool:
     return has_identifier_config(path) or any(value for key, value in flags.items() if key not in ("u", "y"))
 
 
-def _load_csv(path: Path, u_columns: list[str], y_columns: list[str]) -> Data:
+def _load_csv(path: Path, u_columns: list[str], y_columns: list[str], time_column: str | None = None) -> Data:
     """The columns asked for (:mod:`lenn_ros.table` reads any delimiter). A row missing a sample in one of
     them is a gap: dropped, the record broken there (never joined across), its rows still counted by
-    ``--test-from`` (``Data.index``), and the lines named in the report's data line."""
+    ``--test-from`` (``Data.index``), and the lines named in the report's data line. ``time_column``: the
+    samples' times, whose jumps are gaps too (:func:`_time_gaps`)."""
     named = any(not column.strip().isdigit() for column in (*u_columns, *y_columns))
     try:
         table = read_table(path, named)
@@ -141,7 +148,8 @@ def _load_csv(path: Path, u_columns: list[str], y_columns: list[str]) -> Data:
                 raise FitError(f"{path} has columns {shown}: pass --u COL --y COL (name or 0-based index)")
         wanted = [*u_columns, *y_columns]
         indices = [table.column(column) for column in wanted]
-        values, missing = table.values(indices)
+        timed = [table.column(time_column)] if time_column is not None else []
+        values, missing = table.values(indices + timed)
     except TableError as error:
         raise FitError(str(error)) from None
     kept = np.isfinite(values).all(axis=1)
@@ -149,24 +157,64 @@ def _load_csv(path: Path, u_columns: list[str], y_columns: list[str]) -> Data:
         raise FitError(f"{path}: no data row holds a number in every column asked for")
     rows = np.flatnonzero(kept)
     breaks = [int(b) for b in np.flatnonzero(np.diff(rows) > 1) + 1]  # a kept row after a dropped one
+    period, timing = None, ""
+    if timed:
+        name = header[timed[0]] if header else str(timed[0])
+        lines = [table.rows[r][0] for r in rows]
+        period, late, timing = _time_gaps(values[kept, -1], lines, f"{path}: time column {name!r}")
+        breaks, values = sorted({*breaks, *late}), values[:, :-1]
     names = tuple(header[i] if header else str(i) for i in indices)
     split = len(u_columns)
     u_names, y_names = names[:split], names[split:]
     plural = "s" if len(wanted) > 2 else ""
     source = f"CSV {path}: u = column{plural} {', '.join(u_names)}, y = column{plural} {', '.join(y_names)}"
     if missing:
-        lines = ", ".join(map(str, missing[:MISSING_SHOWN])) + (", ..." if len(missing) > MISSING_SHOWN else "")
+        shown = ", ".join(map(str, missing[:MISSING_SHOWN])) + (", ..." if len(missing) > MISSING_SHOWN else "")
         source += (
             f"; {len(missing)} row{'s' if len(missing) > 1 else ''} missing a sample (empty, NaN, inf or short; "
-            f"line{'s' if len(missing) > 1 else ''} {lines}): gaps, never fitted or scored across"
+            f"line{'s' if len(missing) > 1 else ''} {shown}): gaps, never fitted or scored across"
         )
     u, y = values[kept, :split], values[kept, split:]
-    return Data(u[:, 0] if split == 1 else u, y[:, 0] if len(y_names) == 1 else y, source, breaks=breaks,
-                index=rows + 1 if missing else None, u_names=u_names, y_names=y_names)  # fmt: skip
+    return Data(u[:, 0] if split == 1 else u, y[:, 0] if len(y_names) == 1 else y, source + timing,
+                breaks=breaks, index=rows + 1 if missing else None, u_names=u_names, y_names=y_names,
+                sample_period=period)  # fmt: skip
 
 
 #: lines of rows missing a sample named in the report (the count is always given)
 MISSING_SHOWN = 5
+#: a time step longer than this many sample periods (the median step) is a gap: samples were lost there
+GAP_STEPS = 1.5
+#: steps further than this share from the sample period are counted as irregular
+JITTER = 0.1
+
+
+def _time_gaps(times: np.ndarray, lines: list[int], where: str) -> tuple[float, list[int], str]:
+    """(the sample period: the median step, the rows after a jump of more than GAP_STEPS periods, what the
+    report's data line says). A time that does not increase is an error naming its line: rows out of order or
+    repeated would be fitted as the plant's own dynamics."""
+    steps = np.diff(times)
+    if not len(steps):
+        raise FitError(f"{where}: one row only")
+    back = np.flatnonzero(steps <= 0.0)
+    if len(back):
+        i = int(back[0]) + 1
+        raise FitError(
+            f"{where}, line {lines[i]}: {times[i]:g} does not come after {times[i - 1]:g} (line {lines[i - 1]}): "
+            "sort the rows or drop the repeats"
+        )
+    period = float(np.median(steps))
+    late = [int(i) + 1 for i in np.flatnonzero(steps > GAP_STEPS * period)]
+    irregular = int(np.count_nonzero(np.abs(steps - period) > JITTER * period)) - len(late)
+    text = f"; {where.split(': ', 1)[1]}: sample period {period:.6g} s (the median step)"
+    if late:
+        shown = ", ".join(str(lines[i]) for i in late[:MISSING_SHOWN]) + (", ..." if len(late) > MISSING_SHOWN else "")
+        text += (
+            f", {len(late)} jump{'s' if len(late) > 1 else ''} longer than {GAP_STEPS:g} periods (before "
+            f"line{'s' if len(late) > 1 else ''} {shown}): gaps, never fitted or scored across"
+        )
+    if irregular:
+        text += f", {irregular} step{'s' if irregular > 1 else ''} off it by more than {JITTER:.0%}"
+    return period, late, text
 
 
 def _load_vector_bag(path: Path, u_columns: list[str], y_columns: list[str]) -> Data:
@@ -1507,8 +1555,8 @@ def _jsonable(report: dict[str, Any]) -> dict[str, Any]:
     return clean({k: v for k, v in report.items() if not k.endswith(("_test", "_train"))})
 
 
-#: the command line's flags that say how a bag's topics become samples (fit_bag.load_bag)
-BAG_FLAGS = ("u_field", "y_field", "u_names", "y_names", "sample_period", "pairing")
+#: the command line's flags that say how the data become samples: a bag's topics (fit_bag.load_bag), a CSV's times
+BAG_FLAGS = ("u_field", "y_field", "u_names", "y_names", "sample_period", "pairing", "time")
 
 
 def bag_flags(args: Any) -> dict[str, Any]:
@@ -1528,6 +1576,9 @@ def main(args: Any) -> int:
     import sys
 
     data = load_data(args.data, args.u, args.y, bag_flags(args))
+    dt = args.dt or data.sample_period
+    if args.dt and data.sample_period and abs(args.dt - data.sample_period) > 0.01 * data.sample_period:
+        raise FitError(f"--dt {args.dt:g} s disagrees with the time column's sample period {data.sample_period:g} s")
     progress = None if args.json else (lambda text: print(text, file=sys.stderr, flush=True))
     network = getattr(args, "network", "lenn") or "lenn"
     test_from = test_row(data.index, args.test_from, data.test_start)
@@ -1541,7 +1592,7 @@ def main(args: Any) -> int:
     if args.json:
         print(json.dumps(_jsonable(report), indent=1, allow_nan=False))
         return 0
-    print(format_report(report, args.dt))
+    print(format_report(report, dt))
     return 0
 
 

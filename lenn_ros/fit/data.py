@@ -31,7 +31,8 @@ class Data:
     (``--test-from`` is one). ``interpretation``: the node values that say how the bag's
     topics became these samples (types, fields, names, pairing, sample period), written
     into the params file; empty for a CSV or an ``import-csv`` bag. ``u_names`` /
-    ``y_names``: the channels' names (default ``u``, ``y``, or ``u0``, ``u1``...).
+    ``y_names``: the channels' names (default ``u``, ``y``, or ``u0``, ``u1``...). ``sample_period``: seconds
+    between samples where the data say it (a CSV's time column), else None.
     """
 
     u: np.ndarray
@@ -43,6 +44,7 @@ class Data:
     interpretation: dict[str, Any] = dataclasses.field(default_factory=dict)
     u_names: tuple[str, ...] = ()
     y_names: tuple[str, ...] = ()
+    sample_period: float | None = None
 
     def __post_init__(self) -> None:
         self.u, self.y = np.asarray(self.u, dtype=np.float64), np.asarray(self.y, dtype=np.float64)

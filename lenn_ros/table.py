@@ -79,25 +79,29 @@ class Table:
 
     def values(self, columns: list[int]) -> tuple[np.ndarray, list[int]]:
         """(one row per data row, one column per index asked, NaN where a sample is missing; the 1-based
-        lines of the rows with a missing sample). A cell that is text raises TableError naming it."""
+        lines of the rows with a missing sample). A cell that is text raises TableError naming the first one
+        in file order."""
         out = np.empty((len(self.rows), len(columns)))
+        text: list[tuple[int, int, int]] = []  # (row, column position, index) of the first text cell per column
         for c, index in enumerate(columns):
             cells = [row[index] if index < len(row) else "" for _, row in self.rows]
             try:  # numpy parses a column of plain numbers in one call; anything else cell by cell
                 out[:, c] = np.array(cells, dtype=np.float64)
             except ValueError:
-                out[:, c] = [self._cell(cell, r, index) for r, cell in enumerate(cells)]
+                parsed = [_number(cell, decimal_comma=self.delimiter != ",") for cell in cells]
+                bad = next((r for r, value in enumerate(parsed) if isinstance(value, str)), None)
+                if bad is not None:
+                    text.append((bad, c, index))
+                    continue
+                out[:, c] = [math.nan if value is None else value for value in parsed]
+        if text:
+            r, _, index = min(text)
+            name = self.header[index] if self.header is not None else str(index)
+            shown = self.rows[r][1][index].strip()
+            raise TableError(f"{self.path}: line {self.rows[r][0]}, column {name!r}: {shown!r} is not a number")
         out[~np.isfinite(out)] = np.nan
         missing = [self.rows[r][0] for r in np.flatnonzero(np.isnan(out).any(axis=1))]
         return out, missing
-
-    def _cell(self, cell: str, r: int, index: int) -> float:
-        value = _number(cell, decimal_comma=self.delimiter != ",")
-        if value == "text":
-            name = self.header[index] if self.header is not None else str(index)
-            shown = cell.strip()
-            raise TableError(f"{self.path}: line {self.rows[r][0]}, column {name!r}: {shown!r} is not a number")
-        return math.nan if value is None else float(value)
 
 
 def _number(cell: str, decimal_comma: bool) -> float | str | None:

@@ -57,10 +57,10 @@ def test_a_missing_sample_is_nan_with_its_line_and_text_is_an_error_naming_line_
     assert values[0].tolist() == [1.0, 2.0] and values[-1].tolist() == [8.0, 9.0]
     assert np.isnan(values[1:5, 0]).all() and values[5, 0] == 7.0 and np.isnan(values[5, 1])
     assert table.values([0])[1] == []  # the column t is complete
-    path.write_text("u,y\n1,2\n3,volts\n")
+    path.write_text("u,y\n1,2\n3,volts\namps,4\n")
     table = read_table(path)
     with pytest.raises(TableError, match=r"log.csv: line 3, column 'y': 'volts' is not a number"):
-        table.values([0, 1])
+        table.values([0, 1])  # the first in file order, though column u's comes first
 
 
 def test_fit_reads_missing_samples_as_gaps_and_counts_test_from_by_row(tmp_path: Path) -> None:

@@ -59,6 +59,7 @@ from lenn_ros.fit.data import REPORT_FILE, Data, FitError
 from lenn_ros.fit.delay import input_delays, shifted
 from lenn_ros.fit.families import INCREMENT_LAGS, INDEX_SHIFTS, candidate_specs, pass_through_weights
 from lenn_ros.fit.refinement import Refinement, blocks_choice, fold_history, refine_on_folds
+from lenn_ros.fit.rest import without_rest
 from lenn_ros.fit.selection import (
     NONLINEAR_GAIN,
     PARSIMONY,
@@ -314,7 +315,13 @@ def fit(
     # the selection's linear algebra is thousands of small products: BLAS threads only
     # contend for the cores (a 2666 x 40 Gram took 1.8 ms threaded, 0.34 ms on one thread)
     with threadpool_limits(limits=1, user_api="blas"):
-        return _fit(data, test_from, refine, network, solver, progress)
+        moving, moving_test_from, rest = without_rest(data, check_split(len(data.y), test_from) + 1)
+        if rest and progress:
+            progress(f"note: {rest['text']}")
+        result = _fit(moving, moving_test_from, refine, network, solver, progress)
+    if rest:  # the report counts samples as the user does
+        result["report"].update(test_from=test_from, train_samples=test_from - 1, rest=rest)
+    return result
 
 
 def _fit(data: Data, test_from: int, refine: bool, network: str, solver: str, progress: Any) -> dict[str, Any]:
@@ -1632,6 +1639,8 @@ def format_report(report: dict[str, Any], dt: float | None = None) -> str:
         f"{report['data']}: built on samples 1..{report['train_samples']}, "
         f"tested on {report['samples']} samples from {report['test_from']}",
     ]
+    if report.get("rest"):
+        lines.append(f"  note: {report['rest']['text']}")
     if report["free_run"].get("test_record_of_its_own"):
         lines.append(f"  note: {report['free_run']['test_record_of_its_own']}")
     if "per_output" not in report:

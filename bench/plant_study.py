@@ -46,6 +46,8 @@ its spread over seeds is wide, is a selection that does not generalise.
 - ``heater``: a plate heated by up to 300 W that cannot cool (the command in [-0.2, 1.2] is
   clipped to [0, 1]), losing heat by convection and by radiation (T^4), read in deg C at 0.1 K
   resolution every 5 s, 3 000 samples.
+- ``tanks-idle``, ``heater-idle``: the same, resting for 2 000 samples before the record (the input
+  held at its first level; the heater off): a log started long before the experiment moves.
 """
 
 from __future__ import annotations
@@ -338,8 +340,30 @@ def dead_time(plant, samples: int):
     return delayed
 
 
+#: samples a plant rests before its record in the ``-idle`` variants
+IDLE = 2000
+
+
+def tanks_idle(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The tanks resting for IDLE samples, the pump held at its first level, before their record moves (a log
+    started long before the experiment)."""
+    u, _ = tanks(seed)
+    u = np.r_[np.full(IDLE, u[0]), u]
+    return u, _tanks(u, 4.0) + np.random.default_rng([seed, 11]).normal(0.0, 0.02, len(u))
+
+
+def heater_idle(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """The plate at room temperature, its heater off for IDLE samples, before its record."""
+    u, _ = heater(seed)
+    u = np.r_[np.zeros(IDLE), u]
+    y = _heater(u, 5.0) + np.random.default_rng([seed, 12]).normal(0.0, 0.05, len(u))
+    return u, np.round(y / 0.1) * 0.1
+
+
 PLANTS = {
     "tanks": tanks,
+    "tanks-idle": tanks_idle,
+    "heater-idle": heater_idle,
     "belt": belt,
     "belt-drag": lambda seed: belt_speed(seed, drag=1.0)[:2],
     "belt-1khz": lambda seed: belt_speed(seed, period=0.001)[:2],

@@ -318,13 +318,15 @@ def fit(
         moving, moving_test_from, rest = without_rest(data, check_split(len(data.y), test_from) + 1)
         if rest and progress:
             progress(f"note: {rest['text']}")
-        result = _fit(moving, moving_test_from, refine, network, solver, progress)
+        result = _fit(moving, moving_test_from, refine, network, solver, progress, test_from - moving_test_from)
     if rest:  # the report counts samples as the user does
         result["report"].update(test_from=test_from, train_samples=test_from - 1, rest=rest)
     return result
 
 
-def _fit(data: Data, test_from: int, refine: bool, network: str, solver: str, progress: Any) -> dict[str, Any]:
+def _fit(
+    data: Data, test_from: int, refine: bool, network: str, solver: str, progress: Any, left_out: int = 0
+) -> dict[str, Any]:
     began = time.perf_counter()
     say = progress or (lambda text: None)
     u, y = data.matrices()
@@ -356,7 +358,7 @@ def _fit(data: Data, test_from: int, refine: bool, network: str, solver: str, pr
         outputs = _signed_view(data, u[:start], y[:start], breaks, (u_offsets, u_scales), outputs, refine, say)
     forgetting = live_forgetting(start)
     identifier, described, models = _identifiers(outputs, data, u[:start], y[:start], network, solver, forgetting, say)
-    scored = score(identifier, data, start, models, [fitted.columns for fitted in outputs])
+    scored = score(identifier, data, start, models, [fitted.columns for fitted in outputs], left_out)
     report: dict[str, Any] = {"data": data.source, "test_from": test_from, "train_samples": start}
     held_out = lenn_ls
     parts = []
@@ -1029,7 +1031,12 @@ def build_mimo_identifier(outputs: list[OutputFit], data: Data, forgetting: floa
 
 
 def score(
-    identifier: Identifier | MimoIdentifier, data: Data, start: int, models: list[TermModel], columns: list[list[int]]
+    identifier: Identifier | MimoIdentifier,
+    data: Data,
+    start: int,
+    models: list[TermModel],
+    columns: list[list[int]],
+    left_out: int = 0,
 ) -> dict[str, Any]:
     """Test-part figures of the frozen model, per output: one-step and free run from sample ``start``.
 
@@ -1039,6 +1046,8 @@ def score(
     that seed them are not scored. Several outputs run their free run together, each fed the
     model's outputs. ``models``: each output's terms as the identifier runs them, over the
     ``columns`` of [y, u] of its view (clipped inputs and the training range are counted there).
+    ``left_out``: training rows :func:`~lenn_ros.fit.rest.without_rest` left out, added to the sample
+    numbers the report names.
     """
     u, y = data.matrices()
     single = isinstance(identifier, Identifier)
@@ -1058,12 +1067,13 @@ def score(
         cuts = sorted([*cuts, start])
     index = np.arange(len(y)) + np.searchsorted(cuts, np.arange(len(y)), side="right")  # one lost per break
     y_free, info = free_run_segments(identifier, index, run_u, run_y, start)
+    first = start + left_out  # the test's first sample as the user counts (rows of long rest left out before it)
     y_free = y_free.reshape(len(y) - start, -1)
     info = {
         **info,
-        "starts_from": f"measured outputs of samples {start + 1}..{start + window}, not scored"
+        "starts_from": f"measured outputs of samples {first + 1}..{first + window}, not scored"
         if start in cuts
-        else f"measured outputs before sample {start + 1}",
+        else f"measured outputs before sample {first + 1}",
         "test_record_of_its_own": record_of_its_own,
     }
     healthy = not info["diverged"]

@@ -36,17 +36,19 @@ SPAN = max(LONG_SPANS)
 #: end (the lags of the first samples that move again)
 REST_HEAD = 2 * SPAN
 REST_TAIL = SPAN
+#: samples each signal is averaged over before the band is applied
+SMOOTHING = 16
 
 
 def rest_stretches(values: np.ndarray, stop: int, breaks: list[int], least: int) -> list[tuple[int, int]]:
-    """The stretches [a, b) of rows < ``stop``, at least ``least`` long, in which every column of ``values`` stays
-    within REST_BAND of its range over those rows; none crosses a break.
+    """The stretches [a, b) of rows < ``stop``, at least ``least`` long, in which every column of ``values``,
+    averaged over SMOOTHING samples, stays within REST_BAND of its range over those rows; none crosses a break.
 
     Such a stretch holds a whole chunk of ``least // 2`` rows that stays within the band, so only around
     those chunks (found at once, by their ranges) is a stretch grown row by row: a record that moves costs
     one pass of numpy over its rows."""
-    part = values[:stop]
-    width = REST_BAND * np.ptp(part, axis=0)
+    part = _smoothed(values[:stop])
+    width = REST_BAND * np.ptp(values[:stop], axis=0)
     chunk = max(1, least // 2)
     found: list[tuple[int, int]] = []
     for a, b in runs(0, stop, np.asarray(breaks, dtype=np.int64)):
@@ -69,6 +71,16 @@ def rest_stretches(values: np.ndarray, stop: int, breaks: list[int], least: int)
             if end - begin >= least and not (found and begin < found[-1][1]):
                 found.append((begin, end))
     return found
+
+
+def _smoothed(values: np.ndarray) -> np.ndarray:
+    """Each column's mean over SMOOTHING samples centred on each row (the ends: over the rows there are): a
+    sensor's noise at rest (a tank's level read to 0.3 % of its range) would otherwise break the band."""
+    n = len(values)
+    total = np.vstack([np.zeros((1, values.shape[1])), np.cumsum(values, axis=0)])
+    low = np.clip(np.arange(n) - SMOOTHING // 2, 0, n)
+    high = np.clip(np.arange(n) + SMOOTHING - SMOOTHING // 2, 0, n)
+    return (total[high] - total[low]) / (high - low)[:, None]
 
 
 def without_rest(data: Data, test_from: int) -> tuple[Data, int, dict[str, Any]]:

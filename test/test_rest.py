@@ -44,6 +44,8 @@ def test_rest_is_a_stretch_within_the_band_of_every_signal_and_never_crosses_a_b
     assert rest_stretches(values, len(values), [], 1001) == []  # shorter than asked
     assert near(rest_stretches(values, 1000, [], 500), [(400, 1000)])  # rows before the stop only
     assert near(rest_stretches(values, len(values), [900], 400), [(400, 900), (900, 1400)])  # cut at the break
+    held = np.column_stack([values, np.full(len(values), 0.3)])  # a channel held over the whole record
+    assert near(rest_stretches(held, len(held), [], 500), [(400, 1400)])  # its averages' rounding breaks nothing
     values[1100:1102, 1] += 0.3  # one signal leaves the band: the rest ends before it, and starts again after
     assert near(rest_stretches(values, len(values), [], 250), [(400, 1100), (1102, 1400)])
 

@@ -48,7 +48,9 @@ def rest_stretches(values: np.ndarray, stop: int, breaks: list[int], least: int)
     those chunks (found at once, by their ranges) is a stretch grown row by row: a record that moves costs
     one pass of numpy over its rows."""
     part = _smoothed(values[:stop])
-    width = REST_BAND * np.ptp(values[:stop], axis=0)
+    # plus the running sums' rounding (1e-14 of a signal's size after 50 000 rows): a channel held constant over
+    # the whole record has no range, and its average must not break a rest by a hair
+    width = REST_BAND * np.ptp(values[:stop], axis=0) + 1e-9 * np.abs(values[:stop]).max(axis=0)
     chunk = max(1, least // 2)
     found: list[tuple[int, int]] = []
     for a, b in runs(0, stop, np.asarray(breaks, dtype=np.int64)):

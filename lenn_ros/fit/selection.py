@@ -529,15 +529,17 @@ class Folds:
         # every fold's system at once: the total less each block
         self._fold_grams = self.gram[None] - np.array(self.block_grams)
         self._fold_moments = self.moment[None] - np.array(self.block_moments)
+        self._eye = np.eye(len(self.gram))  # sliced for each prefix: a prefix is scored in tens of microseconds
 
     def all_weights(self, m: int) -> np.ndarray | None:
         """Every fold's least-squares weights of the first ``m`` columns, one row per fold, in one solve."""
         g = self._fold_grams[:, :m, :m]
         ridge = RIDGE * np.maximum(np.trace(g, axis1=1, axis2=2) / m, 1e-300)
         try:
-            return np.linalg.solve(g + ridge[:, None, None] * np.eye(m), self._fold_moments[:, :m, None])[:, :, 0]
+            weights = np.linalg.solve(g + ridge[:, None, None] * self._eye[:m, :m], self._fold_moments[:, :m, None])
         except np.linalg.LinAlgError:
             return None
+        return weights[:, :, 0]
 
     def weights(self, m: int, fold: int | None = None) -> np.ndarray | None:
         """Least-squares weights of the first ``m`` columns without block ``fold`` (None: all rows)."""
@@ -920,16 +922,19 @@ class Prefixes:
 
     def arrays(self, m: int) -> tuple[np.ndarray, np.ndarray]:
         """(exponents, factors) of prefix ``m`` as scored (the pass-through appended)."""
-        keep = np.concatenate([np.arange(m), np.arange(len(self.ranked), len(self.rows))])
-        factors = self.factor_rows[keep]
-        return np.ascontiguousarray(self.rows[keep]), factors if factors[:, 0].any() else factors[:0]
+        if len(self.rows) == len(self.ranked):  # no pass-through rows: the prefix is the first m rows
+            rows, factors = self.rows[:m], self.factor_rows[:m]
+        else:
+            keep = np.concatenate([np.arange(m), np.arange(len(self.ranked), len(self.rows))])
+            rows, factors = self.rows[keep], self.factor_rows[keep]
+        return np.ascontiguousarray(rows), factors if factors[:, 0].any() else factors[:0]
 
     def fold_weights(self, m: int) -> np.ndarray | None:
         """Each block's least-squares weights of prefix ``m`` as scored, one row per block (None: singular)."""
         self.reach(m)
         weights = self.folds.all_weights(m)
-        if weights is None:
-            return None
+        if weights is None or not len(self.passing):
+            return weights
         return np.hstack([weights, np.broadcast_to(self.passing, (len(weights), len(self.passing)))])
 
     def input_only(self, m: int) -> bool:

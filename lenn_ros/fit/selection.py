@@ -275,7 +275,10 @@ class TermModel:
         The one-output case of :func:`simulate_joint`, every column of the view read in its place."""
         view = np.asarray(view, dtype=np.float64).reshape(len(view), -1)
         w = self.weights if weights is None else weights
-        values, clipped, diverged_at = simulate_joint([self], [list(range(view.shape[1]))], [w], view, start, bound)
+        runs = self.__dict__.setdefault("_runs", {})  # packed once per view width: a refinement runs hundreds
+        if (packed := runs.get(view.shape[1])) is None:
+            packed = runs[view.shape[1]] = JointRun.of([self], [list(range(view.shape[1]))])
+        values, clipped, diverged_at = packed.run(view, start, [w], bound)
         return values[start:, 0], clipped, diverged_at
 
 
@@ -1217,28 +1220,54 @@ def simulate_joint(
     from ``start`` on). Every model over the same lags. (values simulated, clipped inputs, diverged_at or -1;
     an output further than ``bound`` of its scales from its offset diverges and ends the run).
     """
-    values = np.array(values, dtype=np.float64, copy=True)
-    arrays = [model.layout.arrays() for model in models]
-    source = np.concatenate([np.asarray(where)[c] for where, (c, *_rest) in zip(columns, arrays, strict=True)])
-    lag, offset, scale = (np.concatenate([a[i] for a in arrays]) for i in (1, 2, 3))
-    input_start = np.cumsum([0, *(len(a[0]) for a in arrays)])
-    term_start = np.cumsum([0, *(len(model.exponents) for model in models)])
-    n_inputs = models[0].layout.n_inputs
-    exponents = np.ascontiguousarray(np.vstack([model.exponents for model in models]), dtype=np.int64)
-    factors = [model.factors if len(model.factors) else np.zeros((len(model.exponents), n_inputs + 2))
-               for model in models]  # fmt: skip
-    factors_all = np.vstack(factors) if any(len(model.factors) for model in models) else np.zeros((0, n_inputs + 2))
-    n_y, terms = len(models), int(term_start[-1])
-    clipped = np.zeros(n_y, dtype=np.int64)
-    diverged_at = kernels.free_run(
-        values, int(start), n_y, input_start, source, lag, offset, scale, np.zeros(n_y + 1, dtype=np.int64),
-        np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros(0), term_start, exponents,
-        np.ascontiguousarray(factors_all), np.ascontiguousarray(np.concatenate(weights), dtype=np.float64),
-        np.zeros(terms, dtype=np.int64), 1, np.zeros(n_y, dtype=np.bool_), np.ones(n_y), np.zeros(n_y),
-        np.array([model.layout.y_offset for model in models]), np.array([model.layout.y_scale for model in models]),
-        kernels.BASIS_CODES[models[0].basis], bound, clipped,
-    )  # fmt: skip
-    return values, int(clipped.sum()), int(diverged_at)
+    return JointRun.of(models, columns).run(values, start, weights, bound)
+
+
+@dataclass
+class JointRun:
+    """:func:`kernels.free_run`'s arguments for some models over some columns, packed once: what
+    :func:`simulate_joint` runs, and what a model refined on simulation error reuses for the hundreds of
+    runs of one refinement (the packing cost as much as a 300-sample run)."""
+
+    head: tuple  # the kernel's arguments between ``start`` and the weights
+    tail: tuple  # ... between the weights and the bound
+    n_y: int
+
+    @classmethod
+    def of(cls, models: list[TermModel], columns: list[list[int]]) -> JointRun:
+        arrays = [model.layout.arrays() for model in models]
+        source = np.concatenate([np.asarray(where)[c] for where, (c, *_rest) in zip(columns, arrays, strict=True)])
+        lag, offset, scale = (np.concatenate([a[i] for a in arrays]) for i in (1, 2, 3))
+        input_start = np.cumsum([0, *(len(a[0]) for a in arrays)])
+        term_start = np.cumsum([0, *(len(model.exponents) for model in models)])
+        n_inputs = models[0].layout.n_inputs
+        exponents = np.ascontiguousarray(np.vstack([model.exponents for model in models]), dtype=np.int64)
+        factors = [model.factors if len(model.factors) else np.zeros((len(model.exponents), n_inputs + 2))
+                   for model in models]  # fmt: skip
+        factors_all = np.vstack(factors) if any(len(model.factors) for model in models) else np.zeros((0, n_inputs + 2))
+        n_y, terms = len(models), int(term_start[-1])
+        none = np.zeros(0, dtype=np.int64)
+        no_known = (np.zeros(n_y + 1, dtype=np.int64), none, none, np.zeros(0))  # no known linear part
+        head = (n_y, input_start, source, lag, offset, scale, *no_known, term_start, exponents,
+                np.ascontiguousarray(factors_all))  # fmt: skip
+        tail = (
+            np.zeros(terms, dtype=np.int64), 1, np.zeros(n_y, dtype=np.bool_), np.ones(n_y), np.zeros(n_y),
+            np.array([model.layout.y_offset for model in models]), np.array([model.layout.y_scale for model in models]),
+            kernels.BASIS_CODES[models[0].basis],
+        )  # fmt: skip
+        return cls(head, tail, n_y)
+
+    def run(
+        self, values: np.ndarray, start: int, weights: list[np.ndarray], bound: float = FREE_RUN_DIVERGENCE_BOUND
+    ) -> tuple[np.ndarray, int, int]:
+        """:func:`simulate_joint` with these arguments."""
+        values = np.array(values, dtype=np.float64, copy=True)
+        clipped = np.zeros(self.n_y, dtype=np.int64)
+        diverged_at = kernels.free_run(
+            values, int(start), *self.head, np.ascontiguousarray(np.concatenate(weights), dtype=np.float64),
+            *self.tail, bound, clipped,
+        )  # fmt: skip
+        return values, int(clipped.sum()), int(diverged_at)
 
 
 def joint_block_score(

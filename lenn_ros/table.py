@@ -19,6 +19,7 @@ from __future__ import annotations
 import csv
 import math
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -136,19 +137,18 @@ def read_table(path: str | Path, named: bool = False) -> Table:
         delimiter = _delimiter([line for _, line in lines[:SNIFFED_LINES]])
     if not lines:
         raise TableError(f"{path}: the file has no rows")
-    texts = [line for _, line in lines]
-    cells = csv.reader(texts, delimiter=delimiter, skipinitialspace=True) if delimiter else (t.split() for t in texts)
-    rows = [(n, row) for (n, _), row in zip(lines, cells, strict=True)]
+    rows = [(n, row) for (n, _), row in zip(lines, _cells([line for _, line in lines], delimiter), strict=True)]
     first = [cell.strip() for cell in rows[0][1]]
     if named or not all(is_number(cell) for cell in first if cell):
         return Table(path, first, rows[1:], delimiter)
     return Table(path, None, rows, delimiter)
 
 
-def _split(line: str, delimiter: str) -> list[str]:
+def _cells(lines: list[str], delimiter: str) -> Iterator[list[str]]:
+    """Each line's cells: csv's reading of ``delimiter`` (quotes, spaces after it), or runs of whitespace."""
     if not delimiter:
-        return line.split()
-    return next(csv.reader([line], delimiter=delimiter, skipinitialspace=True))
+        return (line.split() for line in lines)
+    return csv.reader(lines, delimiter=delimiter, skipinitialspace=True)
 
 
 def _delimiter(lines: list[str]) -> str:
@@ -156,7 +156,7 @@ def _delimiter(lines: list[str]) -> str:
     splits the data lines (after a header) so; else a comma (a file of one column)."""
     for candidates in (lines, lines[1:]):
         for delimiter in DELIMITERS:
-            widths = {len(_split(line, delimiter)) for line in candidates}
+            widths = {len(row) for row in _cells(candidates, delimiter)}
             if candidates and len(widths) == 1 and widths.pop() >= 2:
                 return delimiter
     return ","

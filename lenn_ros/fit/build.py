@@ -104,23 +104,24 @@ def load_data(
     """
     path = Path(path)
     u_columns, y_columns = columns(u_columns), columns(y_columns)
+    flags = dict(flags or {})
+    time_column = flags.pop("time", None)  # a CSV's; every other flag is a bag's
     if not path.exists():
         raise FitError(f"{path} does not exist (expected a CSV file or a bag directory)")
     if path.is_dir() or path.suffix == ".mcap":
-        if (flags or {}).get("time"):
+        if time_column:
             raise FitError("--time: for a CSV file; a bag's samples carry their stamps (--sample-period sets a grid)")
-        flags = {**{k: v for k, v in (flags or {}).items() if k != "time"}, "u": u_columns or None,
-                 "y": y_columns or None}  # fmt: skip
+        flags = {**flags, "u": u_columns or None, "y": y_columns or None}
         if is_vector_bag(path) and not _configured(path, flags):
             return _load_vector_bag(path, u_columns, y_columns)
         from lenn_ros.fit.bag import load_bag
 
         return load_bag(path, {key: value[0] if isinstance(value, list) and len(value) == 1 else value
                                for key, value in flags.items()})  # fmt: skip
-    bag_only = sorted(key for key, value in (flags or {}).items() if value and key != "time")
+    bag_only = sorted(key for key, value in flags.items() if value)
     if bag_only:
         raise FitError(f"{', '.join('--' + k.replace('_', '-') for k in bag_only)}: for a bag, not a CSV file")
-    return _load_csv(path, u_columns, y_columns, (flags or {}).get("time"))
+    return _load_csv(path, u_columns, y_columns, time_column)
 
 
 def _configured(path: Path, flags: dict[str, Any]) -> bool:
@@ -156,14 +157,12 @@ def _load_csv(path: Path, u_columns: list[str], y_columns: list[str], time_colum
     kept = np.isfinite(values).all(axis=1)
     if not kept.any():
         raise FitError(f"{path}: no data row holds a number in every column asked for")
-    rows = np.flatnonzero(kept)
-    breaks = [int(b) for b in np.flatnonzero(np.diff(rows) > 1) + 1]  # a kept row after a dropped one
-    period, timing = None, ""
+    period, late, timing = None, [], ""
     if timed:
         name = header[timed[0]] if header else str(timed[0])
-        lines = [table.rows[r][0] for r in rows]
+        lines = [table.rows[r][0] for r in np.flatnonzero(kept)]
         period, late, timing = _time_gaps(values[kept, -1], lines, f"{path}: time column {name!r}")
-        breaks, values = sorted({*breaks, *late}), values[:, :-1]
+        values = values[:, :-1]
     names = tuple(header[i] if header else str(i) for i in indices)
     split = len(u_columns)
     u_names, y_names = names[:split], names[split:]
@@ -175,10 +174,10 @@ def _load_csv(path: Path, u_columns: list[str], y_columns: list[str], time_colum
             f"; {len(missing)} row{'s' if len(missing) > 1 else ''} missing a sample (empty, NaN, inf or short; "
             f"line{'s' if len(missing) > 1 else ''} {shown}): gaps, never fitted or scored across"
         )
-    u, y = values[kept, :split], values[kept, split:]
-    return Data(u[:, 0] if split == 1 else u, y[:, 0] if len(y_names) == 1 else y, source + timing,
-                breaks=breaks, index=rows + 1 if missing else None, u_names=u_names, y_names=y_names,
-                sample_period=period)  # fmt: skip
+    u, y = values[:, :split], values[:, split:]
+    data = Data(u[:, 0] if split == 1 else u, y[:, 0] if len(y_names) == 1 else y, source + timing,
+                u_names=u_names, y_names=y_names, sample_period=period).kept(kept)  # fmt: skip
+    return dataclasses.replace(data, breaks=sorted({*data.breaks, *late})) if late else data
 
 
 #: lines of rows missing a sample named in the report (the count is always given)

@@ -66,3 +66,15 @@ class Data:
     def matrices(self) -> tuple[np.ndarray, np.ndarray]:
         """(u, y) with one column per channel: (N, n_u), (N, n_y)."""
         return self.u.reshape(len(self.u), -1), self.y.reshape(len(self.y), -1)
+
+    def kept(self, keep: np.ndarray) -> Data:
+        """The rows where ``keep``: a gap (a break) after each run of rows dropped, the breaks before kept, and
+        ``index`` the kept rows' sample numbers (1-based rows where there was none), so that ``--test-from`` still
+        counts every row. Itself where every row is kept."""
+        if keep.all():
+            return self
+        rows = np.flatnonzero(keep)
+        old = {int(np.searchsorted(rows, b)) for b in self.breaks if b < len(keep)}
+        dropped = {int(i) + 1 for i in np.flatnonzero(np.diff(rows) > 1)}
+        index = self.index[keep] if self.index is not None else rows + 1
+        return dataclasses.replace(self, u=self.u[keep], y=self.y[keep], breaks=sorted(old | dropped), index=index)

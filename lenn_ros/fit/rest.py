@@ -97,17 +97,8 @@ def without_rest(data: Data, test_from: int) -> tuple[Data, int, dict[str, Any]]
     keep = np.ones(len(y), dtype=bool)
     for a, b in found:
         keep[a + REST_HEAD : b - REST_TAIL] = False
-    rows = np.flatnonzero(keep)
-    old = set(data.breaks)
-    breaks = sorted({int(np.searchsorted(rows, b)) for b in old if b < len(y)} | {
-        int(i) + 1 for i in np.flatnonzero(np.diff(rows) > 1)})  # fmt: skip
-    dropped = int(len(y) - len(rows))
-    trimmed = Data(
-        u[keep] if data.u.ndim == 2 else u[keep, 0], y[keep] if data.y.ndim == 2 else y[keep, 0], data.source,
-        test_start=data.test_start, breaks=breaks, index=None if data.index is None else data.index[keep],
-        interpretation=data.interpretation, u_names=data.u_names, y_names=data.y_names,
-        sample_period=data.sample_period,
-    )  # fmt: skip
+    trimmed = data.kept(keep)
+    dropped = int(len(y) - len(trimmed.y))
     longest = max(b - a for a, b in found)
     text = (
         f"the plant rests (every signal within {REST_BAND:.0%} of its training range) in {len(found)} "
@@ -116,4 +107,4 @@ def without_rest(data: Data, test_from: int) -> tuple[Data, int, dict[str, Any]]
         f"and last {REST_TAIL}, so that every block holds motion"
     )
     info = {"stretches": [[a + 1, b] for a, b in found], "samples_left_out": dropped, "text": text}
-    return trimmed, int(np.searchsorted(rows, start)) + 1, info
+    return trimmed, int(np.count_nonzero(keep[:start])) + 1, info

@@ -78,63 +78,135 @@ def free_run_outputs(runs: Sequence[OutputRun], values: np.ndarray, start: int) 
 
 
 def _compiled(runs: Sequence[OutputRun], values: np.ndarray, start: int) -> tuple[list[int], int | None]:
-    from lenn_ros.core import kernels
-
-    inputs = [run.inputs() for run in runs]
-    known = [run.known() for run in runs]
-    terms = []
+    outputs = []
     for run in runs:
         if not run.model.is_initialised:
             run.model._initialise()
-        terms.append(run.model.term_exponents())
-    width = max(1, max(len(rows) for rows in inputs))
-    exponents = np.zeros((sum(len(t[0]) for t in terms), width), dtype=np.int64)
-    factors = np.zeros((len(exponents), width + 2))
-    row = 0
-    for (rows, _branch), run in zip(terms, runs, strict=True):
-        exponents[row : row + len(rows), : rows.shape[1]] = rows
-        own = run.model.term_factors()
-        if len(own):
-            factors[row : row + len(rows), : own.shape[1]] = own
-        row += len(rows)
-    if not factors[:, 0].any():
-        factors = factors[:0]
-    flat = [entry for rows in inputs for entry in rows]
-    flat_known = [entry for rows in known for entry in rows]
-    branches = np.concatenate([t[1] for t in terms]).astype(np.int64)
-    clipped = np.zeros(len(runs), dtype=np.int64)
+        exponents, branch = run.model.term_exponents()
+        inputs, known = run.inputs(), run.known()
+        outputs.append(
+            OutputArrays(
+                source=np.array([e[0] for e in inputs], dtype=np.int64),
+                lag=np.array([e[1] for e in inputs], dtype=np.int64),
+                offset=np.array([e[2] for e in inputs], dtype=np.float64),
+                scale=np.array([e[3] for e in inputs], dtype=np.float64),
+                exponents=exponents,
+                factors=run.model.term_factors(),
+                branch=branch,
+                known=known,
+                tanh=run.model.output == "tanh",
+                output_scale=float(run.model.output_scale),
+                constant=float(run.structure.output_offset),
+                y_offset=float(run.structure.y_offset),
+                y_scale=float(run.structure.y_scale),
+            )
+        )
     work = np.ascontiguousarray(values, dtype=np.float64)
-    diverged_at = kernels.free_run(
-        work,
-        int(start),
-        len(runs),
-        np.cumsum([0] + [len(rows) for rows in inputs]).astype(np.int64),
-        np.array([e[0] for e in flat], dtype=np.int64),
-        np.array([e[1] for e in flat], dtype=np.int64),
-        np.array([e[2] for e in flat], dtype=np.float64),
-        np.array([e[3] for e in flat], dtype=np.float64),
-        np.cumsum([0] + [len(rows) for rows in known]).astype(np.int64),
-        np.array([e[0] for e in flat_known], dtype=np.int64),
-        np.array([e[1] for e in flat_known], dtype=np.int64),
-        np.array([e[2] for e in flat_known], dtype=np.float64),
-        np.cumsum([0] + [len(t[0]) for t in terms]).astype(np.int64),
-        exponents,
-        factors,
-        np.ascontiguousarray(np.concatenate([run.model.weights_.reshape(-1) for run in runs]), dtype=np.float64),
-        branches,
-        int(branches.max(initial=0)) + 1,
-        np.array([run.model.output == "tanh" for run in runs]),
-        np.array([float(run.model.output_scale) for run in runs]),
-        np.array([float(run.structure.output_offset) for run in runs]),
-        np.array([float(run.structure.y_offset) for run in runs]),
-        np.array([float(run.structure.y_scale) for run in runs]),
-        kernels.BASIS_CODES[runs[0].model.basis],
-        FREE_RUN_DIVERGENCE_BOUND,
-        clipped,
-    )
+    weights = np.concatenate([run.model.weights_.reshape(-1) for run in runs])
+    clipped, diverged_at = CompiledRun.of(outputs, runs[0].model.basis).run(work, start, weights)
     if work is not values:
         values[:] = work
-    return clipped.tolist(), (int(diverged_at) if diverged_at >= 0 else None)
+    return clipped.tolist(), (diverged_at if diverged_at >= 0 else None)
+
+
+@dataclass(frozen=True)
+class OutputArrays:
+    """One output of a compiled free run as arrays: its network inputs (a column of the values, a lag,
+    an offset and a scale each), its terms (exponent and factor rows, each term's branch), its known
+    linear part ((column, lag, weight) each) and how its network's sum becomes the output."""
+
+    source: np.ndarray
+    lag: np.ndarray
+    offset: np.ndarray
+    scale: np.ndarray
+    exponents: np.ndarray
+    factors: np.ndarray  # (terms, inputs + 2), or no rows
+    branch: np.ndarray | None = None  # each term's branch (None: all in branch 0)
+    known: Sequence[tuple[int, int, float]] = ()
+    tanh: bool = False
+    output_scale: float = 1.0
+    constant: float = 0.0
+    y_offset: float = 0.0
+    y_scale: float = 1.0
+
+
+@dataclass(frozen=True)
+class CompiledRun:
+    """:func:`~lenn_ros.core.kernels.free_run`'s arguments for some outputs, packed once.
+
+    The one place that packs them: an identifier's free run (:func:`free_run_outputs`) and
+    ``fit``'s term models (``selection.simulate_joint``, and a refinement's hundreds of free
+    runs of one model, where the packing costs as much as a 300-sample run) both build one.
+    """
+
+    head: tuple  # the kernel's arguments between ``start`` and the weights
+    tail: tuple  # ... between the weights and the divergence bound
+    n_y: int
+
+    @classmethod
+    def of(cls, outputs: Sequence[OutputArrays], basis: str) -> CompiledRun:
+        """Every output's arrays side by side; one basis for all (the kernel's)."""
+        from lenn_ros.core import kernels
+
+        width = max(1, *(len(o.source) for o in outputs))
+        n_terms = [len(o.exponents) for o in outputs]
+        exponents = np.zeros((sum(n_terms), width), dtype=np.int64)
+        factors = np.zeros((len(exponents), width + 2))
+        row = 0
+        for o, count in zip(outputs, n_terms, strict=True):
+            exponents[row : row + count, : o.exponents.shape[1]] = o.exponents
+            if len(o.factors):
+                factors[row : row + count, : o.factors.shape[1]] = o.factors
+            row += count
+        if not factors[:, 0].any():  # no term has a factor: the kernel's polynomial-only plan
+            factors = factors[:0]
+        branches = np.zeros(len(exponents), dtype=np.int64)
+        for o, first, count in zip(outputs, np.cumsum([0, *n_terms]), n_terms, strict=False):
+            if o.branch is not None:
+                branches[first : first + count] = o.branch
+        known = [entry for o in outputs for entry in o.known]
+
+        def starts(counts: list[int]) -> np.ndarray:
+            return np.cumsum([0, *counts]).astype(np.int64)
+
+        head = (
+            len(outputs),
+            starts([len(o.source) for o in outputs]),
+            np.concatenate([o.source for o in outputs]).astype(np.int64),
+            np.concatenate([o.lag for o in outputs]).astype(np.int64),
+            np.concatenate([o.offset for o in outputs]).astype(np.float64),
+            np.concatenate([o.scale for o in outputs]).astype(np.float64),
+            starts([len(o.known) for o in outputs]),
+            np.array([e[0] for e in known], dtype=np.int64),
+            np.array([e[1] for e in known], dtype=np.int64),
+            np.array([e[2] for e in known], dtype=np.float64),
+            starts(n_terms),
+            exponents,
+            np.ascontiguousarray(factors),
+        )
+        tail = (
+            branches,
+            int(branches.max(initial=0)) + 1,
+            np.array([o.tanh for o in outputs], dtype=np.bool_),
+            np.array([o.output_scale for o in outputs], dtype=np.float64),
+            np.array([o.constant for o in outputs], dtype=np.float64),
+            np.array([o.y_offset for o in outputs], dtype=np.float64),
+            np.array([o.y_scale for o in outputs], dtype=np.float64),
+            kernels.BASIS_CODES[basis],
+        )
+        return cls(head, tail, len(outputs))
+
+    def run(
+        self, values: np.ndarray, start: int, weights: np.ndarray, bound: float = FREE_RUN_DIVERGENCE_BOUND
+    ) -> tuple[np.ndarray, int]:
+        """Simulate ``values`` (contiguous float64, [y, u] per sample) in place from ``start`` with the outputs'
+        ``weights`` end to end: (clipped inputs per output, first diverged sample or -1)."""
+        from lenn_ros.core import kernels
+
+        clipped = np.zeros(self.n_y, dtype=np.int64)
+        weights = np.ascontiguousarray(weights, dtype=np.float64)
+        diverged_at = kernels.free_run(values, int(start), *self.head, weights, *self.tail, bound, clipped)
+        return clipped, int(diverged_at)
 
 
 def _python(runs: Sequence[OutputRun], values: np.ndarray, start: int) -> tuple[list[int], int | None]:

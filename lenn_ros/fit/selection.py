@@ -46,7 +46,7 @@ import numpy as np
 
 from lenn_ros.core import kernels
 from lenn_ros.core.expansions import checked_factors, format_terms, term_features
-from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND
+from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND, CompiledRun, OutputArrays
 from lenn_ros.core.scaling import Scaling, ranges
 from lenn_ros.core.structure import ModelStructure
 from lenn_ros.core.threads import side_by_side
@@ -1225,49 +1225,34 @@ def simulate_joint(
 
 @dataclass
 class JointRun:
-    """:func:`kernels.free_run`'s arguments for some models over some columns, packed once: what
-    :func:`simulate_joint` runs, and what a model refined on simulation error reuses for the hundreds of
-    runs of one refinement (the packing cost as much as a 300-sample run)."""
+    """Term models over some columns as one :class:`~lenn_ros.core.free_run.CompiledRun` (the package's one
+    packing of the compiled free run's arguments): what :func:`simulate_joint` runs, and what a model refined
+    on simulation error reuses for the hundreds of runs of one refinement."""
 
-    head: tuple  # the kernel's arguments between ``start`` and the weights
-    tail: tuple  # ... between the weights and the bound
-    n_y: int
+    packed: CompiledRun
 
     @classmethod
     def of(cls, models: list[TermModel], columns: list[list[int]]) -> JointRun:
-        arrays = [model.layout.arrays() for model in models]
-        source = np.concatenate([np.asarray(where)[c] for where, (c, *_rest) in zip(columns, arrays, strict=True)])
-        lag, offset, scale = (np.concatenate([a[i] for a in arrays]) for i in (1, 2, 3))
-        input_start = np.cumsum([0, *(len(a[0]) for a in arrays)])
-        term_start = np.cumsum([0, *(len(model.exponents) for model in models)])
-        n_inputs = models[0].layout.n_inputs
-        exponents = np.ascontiguousarray(np.vstack([model.exponents for model in models]), dtype=np.int64)
-        factors = [model.factors if len(model.factors) else np.zeros((len(model.exponents), n_inputs + 2))
-                   for model in models]  # fmt: skip
-        factors_all = np.vstack(factors) if any(len(model.factors) for model in models) else np.zeros((0, n_inputs + 2))
-        n_y, terms = len(models), int(term_start[-1])
-        none = np.zeros(0, dtype=np.int64)
-        no_known = (np.zeros(n_y + 1, dtype=np.int64), none, none, np.zeros(0))  # no known linear part
-        head = (n_y, input_start, source, lag, offset, scale, *no_known, term_start, exponents,
-                np.ascontiguousarray(factors_all))  # fmt: skip
-        tail = (
-            np.zeros(terms, dtype=np.int64), 1, np.zeros(n_y, dtype=np.bool_), np.ones(n_y), np.zeros(n_y),
-            np.array([model.layout.y_offset for model in models]), np.array([model.layout.y_scale for model in models]),
-            kernels.BASIS_CODES[models[0].basis],
-        )  # fmt: skip
-        return cls(head, tail, n_y)
+        outputs = []
+        for model, where in zip(models, columns, strict=True):
+            c, lag, offset, scale = model.layout.arrays()
+            outputs.append(
+                OutputArrays(
+                    source=np.asarray(where, dtype=np.int64)[c], lag=lag, offset=offset, scale=scale,
+                    exponents=model.exponents, factors=model.factors,
+                    y_offset=float(model.layout.y_offset), y_scale=float(model.layout.y_scale),
+                )
+            )  # fmt: skip
+        return cls(CompiledRun.of(outputs, models[0].basis))
 
     def run(
         self, values: np.ndarray, start: int, weights: list[np.ndarray], bound: float = FREE_RUN_DIVERGENCE_BOUND
     ) -> tuple[np.ndarray, int, int]:
-        """:func:`simulate_joint` with these arguments."""
+        """:func:`simulate_joint` with these models: (a copy of ``values`` simulated, clipped inputs,
+        diverged_at or -1)."""
         values = np.array(values, dtype=np.float64, copy=True)
-        clipped = np.zeros(self.n_y, dtype=np.int64)
-        diverged_at = kernels.free_run(
-            values, int(start), *self.head, np.ascontiguousarray(np.concatenate(weights), dtype=np.float64),
-            *self.tail, bound, clipped,
-        )  # fmt: skip
-        return values, int(clipped.sum()), int(diverged_at)
+        clipped, diverged_at = self.packed.run(values, start, np.concatenate(weights), bound)
+        return values, int(clipped.sum()), diverged_at
 
 
 def joint_block_score(

@@ -291,6 +291,20 @@ def cubic_least_squares() -> tuple[TermModel, Record, Scaling]:
     return good, Record.of(siso_view(u, y)), scaling
 
 
+def test_a_term_model_given_other_terms_simulates_them_not_its_packed_old_ones() -> None:
+    """TermModel.free_run keeps its packed kernel arguments between runs (a refinement runs hundreds): a
+    model whose terms are replaced afterwards must run the new terms, as a model built with them does."""
+    good, record, scaling = cubic_least_squares()
+    view = record.values
+    first = good.free_run(view, 10)[0]
+    assert np.array_equal(first, good.free_run(view, 10)[0])  # the packed run, again: the same bits
+    linear = parse_terms(["1", "y1", "y2", "u1", "y2*u1"], siso_channels(2, 2))[0]
+    good.exponents = np.ascontiguousarray(linear, dtype=np.int64)
+    fresh = TermModel(Layout.of(2, scaling), linear, weights=good.weights)
+    assert np.array_equal(good.free_run(view, 10)[0], fresh.free_run(view, 10)[0], equal_nan=True)
+    assert not np.array_equal(good.free_run(view, 10)[0], first, equal_nan=True)
+
+
 def test_soundness_rejects_a_model_that_runs_away_on_its_own_data_or_on_its_input_shuffled() -> None:
     good, record, scaling = cubic_least_squares()
     assert soundness_problem(good, record) == ""

@@ -267,6 +267,10 @@ class TermModel:
         narrow = factors[:, np.concatenate([[0, 1], 2 + read])] if len(factors) else None
         return term_features(x, self.exponents[:, read], self.basis, narrow), targets
 
+    def _packs(self) -> tuple:
+        """What a packed free run of this model is made from."""
+        return (self.layout, self.exponents, self.factors)
+
     def free_run(
         self, view: np.ndarray, start: int, weights: np.ndarray | None = None, bound: float = FREE_RUN_DIVERGENCE_BOUND
     ) -> tuple[np.ndarray, int, int]:
@@ -275,9 +279,13 @@ class TermModel:
         The one-output case of :func:`simulate_joint`, every column of the view read in its place."""
         view = np.asarray(view, dtype=np.float64).reshape(len(view), -1)
         w = self.weights if weights is None else weights
-        runs = self.__dict__.setdefault("_runs", {})  # packed once per view width: a refinement runs hundreds
-        if (packed := runs.get(view.shape[1])) is None:
-            packed = runs[view.shape[1]] = JointRun.of([self], [list(range(view.shape[1]))])
+        # packed once per view width (a refinement runs hundreds); packed anew when the model has been given other
+        # terms or another layout since (the cache keeps the very objects it packed; arrays are never changed in place)
+        runs = self.__dict__.setdefault("_runs", {})
+        packed_from, packed = runs.get(view.shape[1], ((), None))
+        if packed is None or any(a is not b for a, b in zip(packed_from, self._packs(), strict=True)):
+            packed = JointRun.of([self], [list(range(view.shape[1]))])
+            runs[view.shape[1]] = (self._packs(), packed)
         values, clipped, diverged_at = packed.run(view, start, [w], bound)
         return values[start:, 0], clipped, diverged_at
 

@@ -46,6 +46,11 @@ its spread over seeds is wide, is a selection that does not generalise.
 - ``heater``: a plate heated by up to 300 W that cannot cool (the command in [-0.2, 1.2] is
   clipped to [0, 1]), losing heat by convection and by radiation (T^4), read in deg C at 0.1 K
   resolution every 5 s, 3 000 samples.
+- ``ph``: pH neutralisation in a stirred tank (acid, buffer and base streams; the pH solves the charge
+  balance, so the gain changes tenfold across the titration curve), the base flow in, every 15 s, 1 500
+  samples. ``cstr``: a cooled exothermic reactor (Arrhenius rate), the coolant temperature in (below
+  ignition), the reactor temperature out, every 0.05 min, 2 000 samples. Added after every family and rule
+  of ``fit`` was fixed, as plants it had never seen (not in the default run).
 - ``tanks-idle``, ``heater-idle``: the same, resting for 2 000 samples before the record (the input
   held at its first level; the heater off): a log started long before the experiment moves.
 """
@@ -329,6 +334,71 @@ def heater(seed: int) -> tuple[np.ndarray, np.ndarray]:
     return u, np.round((y + rng.normal(0.0, 0.05, len(y))) / 0.1) * 0.1
 
 
+@njit(cache=True)
+def _ph(u: np.ndarray, period: float) -> np.ndarray:
+    # a stirred tank (2 900 ml) neutralising a nitric acid stream (16.6 ml/s) and a bicarbonate buffer stream
+    # (0.55 ml/s) with a base stream of u ml/s; the states are the reaction invariants, the pH solves the
+    # charge balance (carbonic acid's two dissociation constants), found by bisection
+    volume, q1, q2 = 2900.0, 16.6, 0.55
+    wa1, wa2, wa3, wb2, wb3, pk1, pk2 = 0.003, -0.03, -3.05e-3, 0.03, 5e-5, 6.35, 10.25
+    q3 = u[0]
+    wa = (q1 * wa1 + q2 * wa2 + q3 * wa3) / (q1 + q2 + q3)
+    wb = (q2 * wb2 + q3 * wb3) / (q1 + q2 + q3)
+    out = np.empty(len(u))
+    substeps = 30
+    h = period / substeps
+    for k in range(len(u)):
+        low, high = 0.0, 14.0
+        for _ in range(60):
+            ph = 0.5 * (low + high)
+            balance = wa + 10.0 ** (ph - 14.0) - 10.0 ** (-ph)
+            balance += wb * (1.0 + 2.0 * 10.0 ** (ph - pk2)) / (1.0 + 10.0 ** (pk1 - ph) + 10.0 ** (ph - pk2))
+            if balance > 0.0:
+                high = ph
+            else:
+                low = ph
+        out[k] = 0.5 * (low + high)
+        q3 = u[k]
+        for _ in range(substeps):
+            wa += h * (q1 * (wa1 - wa) + q2 * (wa2 - wa) + q3 * (wa3 - wa)) / volume
+            wb += h * (q2 * (wb2 - wb) + q3 * (wb3 - wb)) / volume
+    return out
+
+
+def ph(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """pH neutralisation (the titration curve: a gain that changes tenfold around pH 7-9): the base flow in ml/s
+    held at random levels in [11, 20], the pH every 15 s with 0.01 noise, 1 500 samples."""
+    rng = np.random.default_rng([seed, 13])
+    u = _smooth_levels(rng, 1500, (8, 50), 11.0, 20.0)
+    return u, _ph(u, 15.0) + rng.normal(0.0, 0.01, len(u))
+
+
+@njit(cache=True)
+def _cstr(u: np.ndarray, period: float) -> np.ndarray:
+    # an exothermic first-order reaction in a cooled stirred tank (Arrhenius rate, E/R 8 750 K), the
+    # coolant's temperature u in K; one volume a minute flows through
+    ca, temp = 0.5, 350.0
+    out = np.empty(len(u))
+    substeps = 20
+    h = period / substeps
+    for k in range(len(u)):
+        out[k] = temp
+        for _ in range(substeps):
+            rate = 7.2e10 * math.exp(-8750.0 / temp) * ca
+            ca += h * (1.0 - ca - rate)
+            temp += h * (350.0 - temp + 209.2 * rate + 2.092 * (u[k] - temp))
+    return out
+
+
+def cstr(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A cooled exothermic reactor: the coolant's temperature held at random levels in [286, 302] K (below
+    ignition), the reactor's temperature every 0.05 min with 0.1 K noise, 2 000 samples (its gain and speed
+    change with the Arrhenius rate)."""
+    rng = np.random.default_rng([seed, 14])
+    u = _smooth_levels(rng, 2000, (10, 80), 286.0, 302.0)
+    return u, _cstr(u, 0.05) + rng.normal(0.0, 0.1, len(u))
+
+
 def dead_time(plant, samples: int):
     """``plant`` behind a dead time of ``samples`` (a pipe, a conveyor, a command pipeline): each input acts
     that many samples later than it did."""
@@ -381,6 +451,8 @@ PLANTS = {
     "hammerstein-dead-time": dead_time(functools.partial(wiener_hammerstein, before=False), 8),
     "wh-dead-time": dead_time(wiener_hammerstein, 8),
     "heater-dead-time": dead_time(heater, 6),
+    "ph": ph,
+    "cstr": cstr,
 }
 
 

@@ -58,6 +58,7 @@ from lenn_ros.core.threads import cores, side_by_side
 from lenn_ros.fit.data import REPORT_FILE, Data, FitError
 from lenn_ros.fit.delay import input_delays, shifted
 from lenn_ros.fit.families import INCREMENT_LAGS, INDEX_SHIFTS, candidate_specs, pass_through_weights
+from lenn_ros.fit.memory import within_memory
 from lenn_ros.fit.refinement import Refinement, blocks_choice, fold_history, refine_on_folds
 from lenn_ros.fit.rest import without_rest
 from lenn_ros.fit.selection import (
@@ -315,11 +316,14 @@ def fit(
     # contend for the cores (a 2666 x 40 Gram took 1.8 ms threaded, 0.34 ms on one thread)
     with threadpool_limits(limits=1, user_api="blas"):
         moving, moving_test_from, rest = without_rest(data, check_split(len(data.y), test_from) + 1)
-        if rest and progress:
-            progress(f"note: {rest['text']}")
-        result = _fit(moving, moving_test_from, refine, network, solver, progress, test_from - moving_test_from)
-    if rest:  # the report counts samples as the user does
-        result["report"].update(test_from=test_from, train_samples=test_from - 1, rest=rest)
+        recent, recent_test_from, memory = within_memory(moving, moving_test_from)
+        for left_out in (rest, memory):
+            if left_out and progress:
+                progress(f"note: {left_out['text']}")
+        result = _fit(recent, recent_test_from, refine, network, solver, progress, test_from - recent_test_from)
+    if rest or memory:  # the report counts samples as the user does
+        result["report"].update(test_from=test_from, train_samples=test_from - 1)
+        result["report"].update({key: part for key, part in (("rest", rest), ("memory", memory)) if part})
     return result
 
 
@@ -1045,8 +1049,9 @@ def score(
     that seed them are not scored. Several outputs run their free run together, each fed the
     model's outputs. ``models``: each output's terms as the identifier runs them, over the
     ``columns`` of [y, u] of its view (clipped inputs and the training range are counted there).
-    ``left_out``: training rows :func:`~lenn_ros.fit.rest.without_rest` left out, added to the sample
-    numbers the report names.
+    ``left_out``: training rows left out before the test part (long rest, :func:`~lenn_ros.fit.rest.without_rest`;
+    the earliest rows beyond memory, :func:`~lenn_ros.fit.memory.within_memory`), added to the sample numbers the
+    report names.
     """
     u, y = data.matrices()
     single = isinstance(identifier, Identifier)
@@ -1066,7 +1071,7 @@ def score(
         cuts = sorted([*cuts, start])
     index = np.arange(len(y)) + np.searchsorted(cuts, np.arange(len(y)), side="right")  # one lost per break
     y_free, info = free_run_segments(identifier, index, run_u, run_y, start)
-    first = start + left_out  # the test's first sample as the user counts (rows of long rest left out before it)
+    first = start + left_out  # the test's first sample as the user counts (rows left out before it)
     y_free = y_free.reshape(len(y) - start, -1)
     info = {
         **info,
@@ -1648,8 +1653,9 @@ def format_report(report: dict[str, Any], dt: float | None = None) -> str:
         f"{report['data']}: built on samples 1..{report['train_samples']}, "
         f"tested on {report['samples']} samples from {report['test_from']}",
     ]
-    if report.get("rest"):
-        lines.append(f"  note: {report['rest']['text']}")
+    for left_out in ("rest", "memory"):
+        if report.get(left_out):
+            lines.append(f"  note: {report[left_out]['text']}")
     if report["free_run"].get("test_record_of_its_own"):
         lines.append(f"  note: {report['free_run']['test_record_of_its_own']}")
     if "per_output" not in report:

@@ -152,18 +152,17 @@ class CompiledRun:
         n_terms = [len(o.exponents) for o in outputs]
         exponents = np.zeros((sum(n_terms), width), dtype=np.int64)
         factors = np.zeros((len(exponents), width + 2))
+        branches = np.zeros(len(exponents), dtype=np.int64)
         row = 0
         for o, count in zip(outputs, n_terms, strict=True):
             exponents[row : row + count, : o.exponents.shape[1]] = o.exponents
             if len(o.factors):
                 factors[row : row + count, : o.factors.shape[1]] = o.factors
+            if o.branch is not None:
+                branches[row : row + count] = o.branch
             row += count
         if not factors[:, 0].any():  # no term has a factor: the kernel's polynomial-only plan
             factors = factors[:0]
-        branches = np.zeros(len(exponents), dtype=np.int64)
-        for o, first, count in zip(outputs, np.cumsum([0, *n_terms]), n_terms, strict=False):
-            if o.branch is not None:
-                branches[first : first + count] = o.branch
         known = [entry for o in outputs for entry in o.known]
 
         def starts(counts: list[int]) -> np.ndarray:

@@ -170,10 +170,9 @@ def _load_csv(path: Path, u_columns: list[str], y_columns: list[str], time_colum
     plural = "s" if len(wanted) > 2 else ""
     source = f"CSV {path}: u = column{plural} {', '.join(u_names)}, y = column{plural} {', '.join(y_names)}"
     if missing:
-        shown = ", ".join(map(str, missing[:MISSING_SHOWN])) + (", ..." if len(missing) > MISSING_SHOWN else "")
         source += (
             f"; {len(missing)} row{'s' if len(missing) > 1 else ''} missing a sample (empty, NaN, inf or short; "
-            f"line{'s' if len(missing) > 1 else ''} {shown}): gaps, never fitted or scored across"
+            f"line{'s' if len(missing) > 1 else ''} {_lines_shown(missing)}): gaps, never fitted or scored across"
         )
     u, y = values[:, :split], values[:, split:]
     data = Data(u[:, 0] if split == 1 else u, y[:, 0] if len(y_names) == 1 else y, source + timing,
@@ -181,12 +180,17 @@ def _load_csv(path: Path, u_columns: list[str], y_columns: list[str], time_colum
     return dataclasses.replace(data, breaks=sorted({*data.breaks, *late})) if late else data
 
 
-#: lines of rows missing a sample named in the report (the count is always given)
+#: lines named in the report's data line for rows missing a sample or after a time jump (the count is always given)
 MISSING_SHOWN = 5
 #: a time step longer than this many sample periods (the median step) is a gap: samples were lost there
 GAP_STEPS = 1.5
 #: steps further than this share from the sample period are counted as irregular
 JITTER = 0.1
+
+
+def _lines_shown(lines: list[int]) -> str:
+    """The first MISSING_SHOWN file lines, and "..." when there are more."""
+    return ", ".join(map(str, lines[:MISSING_SHOWN])) + (", ..." if len(lines) > MISSING_SHOWN else "")
 
 
 def _time_gaps(times: np.ndarray, lines: list[int], where: str) -> tuple[float, list[int], str]:
@@ -208,10 +212,10 @@ def _time_gaps(times: np.ndarray, lines: list[int], where: str) -> tuple[float, 
     irregular = int(np.count_nonzero(np.abs(steps - period) > JITTER * period)) - len(late)
     text = f"; {where.split(': ', 1)[1]}: sample period {period:.6g} s (the median step)"
     if late:
-        shown = ", ".join(str(lines[i]) for i in late[:MISSING_SHOWN]) + (", ..." if len(late) > MISSING_SHOWN else "")
         text += (
             f", {len(late)} jump{'s' if len(late) > 1 else ''} longer than {GAP_STEPS:g} periods (before "
-            f"line{'s' if len(late) > 1 else ''} {shown}): gaps, never fitted or scored across"
+            f"line{'s' if len(late) > 1 else ''} {_lines_shown([lines[i] for i in late])}): gaps, never fitted or "
+            "scored across"
         )
     if irregular:
         text += f", {irregular} step{'s' if irregular > 1 else ''} off it by more than {JITTER:.0%}"
@@ -315,16 +319,21 @@ def fit(
     # the selection's linear algebra is thousands of small products: BLAS threads only
     # contend for the cores (a 2666 x 40 Gram took 1.8 ms threaded, 0.34 ms on one thread)
     with threadpool_limits(limits=1, user_api="blas"):
-        moving, moving_test_from, rest = without_rest(data, check_split(len(data.y), test_from) + 1)
-        recent, recent_test_from, memory = within_memory(moving, moving_test_from)
-        for left_out in (rest, memory):
-            if left_out and progress:
-                progress(f"note: {left_out['text']}")
-        result = _fit(recent, recent_test_from, refine, network, solver, progress, test_from - recent_test_from)
-    if rest or memory:  # the report counts samples as the user does
-        result["report"].update(test_from=test_from, train_samples=test_from - 1)
-        result["report"].update({key: part for key, part in (("rest", rest), ("memory", memory)) if part})
+        part, part_test_from, said = data, check_split(len(data.y), test_from) + 1, {}
+        for key, rule in LEFT_OUT.items():  # each rule on what the ones before left
+            part, part_test_from, done = rule(part, part_test_from)
+            if done:
+                said[key] = done
+                if progress:
+                    progress(f"note: {done['text']}")
+        result = _fit(part, part_test_from, refine, network, solver, progress, test_from - part_test_from)
+    if said:  # the report counts samples as the user does
+        result["report"].update(test_from=test_from, train_samples=test_from - 1, **said)
     return result
+
+
+#: the rules that leave training rows out before the fit, in order, by the report's key for what each did
+LEFT_OUT = {"rest": without_rest, "memory": within_memory}
 
 
 def _fit(
@@ -1653,7 +1662,7 @@ def format_report(report: dict[str, Any], dt: float | None = None) -> str:
         f"{report['data']}: built on samples 1..{report['train_samples']}, "
         f"tested on {report['samples']} samples from {report['test_from']}",
     ]
-    for left_out in ("rest", "memory"):
+    for left_out in LEFT_OUT:
         if report.get(left_out):
             lines.append(f"  note: {report[left_out]['text']}")
     if report["free_run"].get("test_record_of_its_own"):

@@ -65,7 +65,7 @@ def within_memory(
     start = test_from - 1
     if available is None:
         return data, test_from, {}
-    widest = data.n_y + data.n_u if data.n_y > 1 else 1 + data.n_u  # a coupled view reads every output
+    widest = data.n_y + data.n_u  # a several-output fit's coupled view reads every output and every input
     per_row = bytes_per_row(widest, workers or cores())
     rows = max(LEAST_ROWS, int(MEMORY_SHARE * available // per_row))
     if start <= rows:

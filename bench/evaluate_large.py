@@ -13,9 +13,9 @@ import time
 from pathlib import Path
 
 from lenn_ros.bag import BagWriter
-from lenn_ros.evaluate import evaluate_bag
 from lenn_ros.paper.evaluation import simulate
 from lenn_ros.paper.examples import get_example
+from lenn_ros.service.evaluation import evaluate_bag
 
 REPO = Path(__file__).resolve().parents[1]
 

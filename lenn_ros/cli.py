@@ -16,6 +16,7 @@ from typing import Any
 
 from lenn_ros.errors import user_error_types
 from lenn_ros.paper.examples import PARAMETER_SETS, TRAIN_SAMPLES
+from lenn_ros.service.reading import add_flags as add_reading_flags
 
 
 def _reproduce(args: argparse.Namespace) -> int:
@@ -51,9 +52,23 @@ def _import_csv(args: argparse.Namespace) -> int:
 def _bag_info(args: argparse.Namespace) -> int:
     import json
 
-    from lenn_ros.bag import bag_info
+    from lenn_ros.bag.info import bag_info, format_info
+    from lenn_ros.service.reading import flags_of, given
 
-    print(json.dumps(bag_info(args.bag), indent=1, default=str))
+    info = bag_info(args.bag)
+    flags = flags_of(args)
+    if given(flags):
+        from lenn_ros.service.recording import samples_summary
+
+        info["samples"] = samples_summary(args.bag, flags, progress=sys.stderr.isatty() and not args.json)
+    if args.json:
+        print(json.dumps(info, indent=1, default=str))
+        return 0
+    print(format_info(info))
+    if "samples" in info:
+        from lenn_ros.service.recording import format_samples
+
+        print(format_samples(info["samples"]))
     return 0
 
 
@@ -139,7 +154,7 @@ def _add_evaluate(commands: Any) -> None:
         "model on the test samples (one-step and free run). Clipped network inputs, divergence and a free run "
         "worse than the mean are printed as WARNING lines (and listed in the JSON's warnings).",
     )
-    p.add_argument("bag", help="rosbag2 directory (MCAP) with u and y_p")
+    p.add_argument("bag", help="rosbag2 bag: a directory (MCAP or sqlite3, one file or split) or its .mcap file")
     p.add_argument(
         "--params",
         metavar="FILE",
@@ -158,11 +173,14 @@ def _add_evaluate(commands: Any) -> None:
         "--test-from",
         type=int,
         metavar="K",
-        help="1-based index of the first test sample: samples before K are learnt from, K.. are scored "
-        "(the same meaning as in fit and import-csv; default: the bag's recorded test start)",
+        help="1-based index of the first test sample, in the node's numbering: samples before K are learnt from, "
+        "K.. are scored "
+        "(the same meaning as in fit and import-csv; default: the recorded frozen phase or test_start, else the "
+        "last fifth of the samples, said in the first line)",
     )
     p.add_argument("--plot", metavar="PNG", help="write plant vs model output and error")
     p.add_argument("--json", action="store_true", help="print a JSON object")
+    add_reading_flags(p)
     p.set_defaults(handler=_evaluate)
 
 
@@ -270,8 +288,16 @@ def _add_import_csv(commands: Any) -> None:
 
 
 def _add_bag_info(commands: Any) -> None:
-    p = commands.add_parser("bag-info", help="topics, types and message counts of a bag")
-    p.add_argument("bag")
+    p = commands.add_parser(
+        "bag-info",
+        help="what a bag holds: duration, topics, types, counts, rates, pauses, lost messages",
+        description="A summary as ros2 bag info prints it, for any rosbag2 bag (MCAP or sqlite3). With the topics "
+        "named (--u/--y and their fields, --sample-period...), also the samples the identifier would form from "
+        "them: how many, their numbers, their gaps.",
+    )
+    p.add_argument("bag", help="rosbag2 bag: a directory (MCAP or sqlite3, one file or split) or its .mcap file")
+    p.add_argument("--json", action="store_true", help="print a JSON object (for scripts)")
+    add_reading_flags(p)
     p.set_defaults(handler=_bag_info)
 
 

@@ -135,7 +135,7 @@ def run_demo(
 ) -> dict:
     """Run the three nodes, wait for the last sample, stop them, evaluate the bag."""
     from lenn_ros.bag import bag_info
-    from lenn_ros.evaluate import evaluate_bag
+    from lenn_ros.service.evaluation import evaluate_bag
 
     run_dir = Path(output) / datetime.now().strftime("run-%Y%m%d-%H%M%S")
     run_dir.mkdir(parents=True, exist_ok=True)

@@ -4,7 +4,7 @@ A ``ValueError`` or ``RuntimeError`` in general means a bug: catching those broa
 would print a real defect as a one-line "user error" and hide where it happened. So
 only dedicated types count as user errors: :class:`UserError` (raised by the command
 line's own modules), the error type of each layer that checks user input (bags,
-params files, weights files, plant formulas, field paths, evaluate), and ``OSError``
+params files, weights files, plant formulas, field paths, recordings), and ``OSError``
 (a path that does not exist or cannot be written, named in the message).
 """
 
@@ -40,7 +40,7 @@ def require_extra(module: str, extra: str, feature: str) -> None:
 LAYER_ERRORS = (
     ("lenn_ros.bag.errors", "BagError"),
     ("lenn_ros.config", "ConfigError"),
-    ("lenn_ros.evaluate", "EvaluateError"),
+    ("lenn_ros.service", "RecordingError"),
     ("lenn_ros.fit.build", "FitError"),
     ("lenn_ros.table", "TableError"),
     ("lenn_ros.core.networks", "ModelFileError"),

@@ -11,7 +11,7 @@ Everything runs through the one free run the identifier has
 (:meth:`~lenn_ros.core.structure.Identifier.free_run`, compiled), so the figures are
 the ones ``fit`` reported, the twin node publishes and ``evaluate`` scores: there is no
 second simulator to disagree with them. The model is built from the params file by
-:func:`lenn_ros.evaluate.identifier_from_params`, the same path ``evaluate --params``
+:func:`lenn_ros.service.building.identifier_from_params`, the same path ``evaluate --params``
 takes, so it is the model the node would start from.
 
 Indexing: a run of inputs ``u(0..N-1)`` after a history of ``history`` samples gives
@@ -241,7 +241,8 @@ def load_model(directory: str | Path, node: str = "/identifier") -> Model:
     file with several nodes. Raises :class:`ModelError` with the reason.
     """
     from lenn_ros.config import ConfigError
-    from lenn_ros.evaluate import EvaluateError, identifier_from_params
+    from lenn_ros.service import RecordingError
+    from lenn_ros.service.building import identifier_from_params
 
     path = Path(directory).expanduser()
     params = path / "params.yaml" if path.is_dir() else path
@@ -249,7 +250,7 @@ def load_model(directory: str | Path, node: str = "/identifier") -> Model:
         raise ModelError(f"{params}: no params file (lenn-ros fit -o DIR writes DIR/params.yaml)")
     try:
         identifier, values = identifier_from_params(str(params), node)
-    except (ConfigError, EvaluateError, OSError, ValueError) as error:
+    except (ConfigError, RecordingError, OSError, ValueError) as error:
         raise ModelError(f"{params}: {error}") from None
     if not values.get("weights_in"):
         raise ModelError(f"{params} names no weights_in: it describes a fresh network, not a fitted model")

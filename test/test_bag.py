@@ -610,13 +610,20 @@ def test_unchunked_file_takes_the_general_path(tmp_path: Path) -> None:
     assert run.y_p.tolist() == [-float(k) for k in range(10)] and run.u_sequence.tolist() == list(range(1, 11))
 
 
-def test_sqlite_bag_is_refused_with_the_fix(tmp_path: Path) -> None:
+def test_a_damaged_sqlite_bag_is_one_line_with_the_reason(tmp_path: Path) -> None:
+    """A sqlite3 bag is read (rosbags' reader); one that is not a database says so in one line, no traceback."""
     bag = tmp_path / "old"
     bag.mkdir()
-    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
-    (bag / "old_0.db3").write_bytes(b"SQLite format 3\x00")
-    with pytest.raises(BagError, match=r"sqlite3 storage.*ros2 bag convert"):
+    (bag / "metadata.yaml").write_text(
+        "rosbag2_bagfile_information:\n  version: 5\n  storage_identifier: sqlite3\n"
+        "  relative_file_paths: [old_0.db3]\n  duration: {nanoseconds: 0}\n"
+        "  starting_time: {nanoseconds_since_epoch: 0}\n  message_count: 0\n  topics_with_message_count: []\n"
+        "  compression_format: ''\n  compression_mode: ''\n"
+    )
+    (bag / "old_0.db3").write_bytes(b"SQLite format 3\x00 not really")
+    with pytest.raises(BagError) as raised:
         read_run(bag)
+    assert str(raised.value).startswith(f"{bag}: ") and "\n" not in str(raised.value)
 
 
 @pytest.mark.parametrize("labelled", [False, True])

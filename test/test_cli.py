@@ -84,7 +84,7 @@ def test_reproduce_plots(tmp_path: Path) -> None:
     [
         (["evaluate", "/nonexistent/bag"], "no such file or directory"),
         (["evaluate", "bags/example1", "--params", "/nonexistent.yaml"], "does not exist"),
-        (["evaluate", "bags/example1", "--test-from", "999999"], "outside the bag"),
+        (["evaluate", "bags/example1", "--test-from", "999999"], "K must be in 2..3600"),
         (["import-csv", "/nonexistent.csv", "--u", "u", "--y", "y", "--dt", "0.01", "-o", "/tmp/x"], "nonexistent"),
     ],
 )
@@ -126,8 +126,8 @@ def test_import_csv_then_evaluate(tmp_path: Path) -> None:
     params = REPO / "config" / "example4_lenn.yaml"
     result = lenn_ros("evaluate", str(bag), "--params", str(params), "--json")
     assert result.returncode == 0, result.stderr
-    from lenn_ros.evaluate import identifier_from_params
     from lenn_ros.paper.evaluation import train_and_test
+    from lenn_ros.service.building import identifier_from_params
 
     expected = train_and_test(identifier_from_params(str(params))[0], series)
     assert json.loads(result.stdout)["nmse_db"] == pytest.approx(expected.nmse_db, abs=1e-9)

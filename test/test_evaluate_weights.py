@@ -22,9 +22,10 @@ from test_fit import cubic_plant
 from lenn_ros import topics
 from lenn_ros.bag.writer import BagWriter
 from lenn_ros.config import NODE_PARAMETERS, build_identifier, read_params_file, resolve
-from lenn_ros.evaluate import EvaluateError, evaluate_bag
 from lenn_ros.fit.build import Data, fit, write_outputs
 from lenn_ros.paper.evaluation import Series, train_and_test
+from lenn_ros.service import RecordingError
+from lenn_ros.service.evaluation import evaluate_bag
 
 REPO = Path(__file__).resolve().parents[1]
 TRAIN = 2000
@@ -109,7 +110,7 @@ def test_a_missing_weights_file_stops_naming_the_path(fitted, tmp_path: Path) ->
     params = tmp_path / "params.yaml"
     params.write_text(yaml.safe_dump(document))
     bag = write_bag(tmp_path / "bag", u, y)
-    with pytest.raises(EvaluateError, match=r"gone\.npz.*does not exist"):
+    with pytest.raises(RecordingError, match=r"gone\.npz.*does not exist"):
         evaluate_bag(str(bag), str(params))
 
 

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from lenn_ros.paper.experiments import report
+from lenn_ros import progress as bars
 
 REPO = Path(__file__).resolve().parents[1]
 #: ROS packages come from apt or the ``ros`` extra's wheels; package.xml declares each
@@ -72,12 +72,12 @@ def test_without_tqdm_a_run_goes_on_without_a_bar_and_says_so(
     monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]
 ) -> None:
     monkeypatch.setitem(sys.modules, "tqdm", None)
-    bar = report.progress(3, True, "reproduce")
+    bar = bars.progress(3, True, "reproduce")
     for _ in range(3):
         bar.update(1)
     bar.close()
     assert capsys.readouterr().err.strip().splitlines() == [
         "reproduce: no progress bar (tqdm is not installed: pip install 'lenn_ros[progress]')"
     ]
-    report.progress(3, False, "reproduce --json").close()  # no bar asked for: nothing said
+    bars.progress(3, False, "reproduce --json").close()  # no bar asked for: nothing said
     assert capsys.readouterr().err == ""

@@ -23,9 +23,10 @@ from lenn_ros import topics
 from lenn_ros.bag.msgtypes import TYPESTORE
 from lenn_ros.bag.writer import BagWriter
 from lenn_ros.config import build_identifier, read_params_file, resolve
-from lenn_ros.evaluate import make_session, pair_raw
 from lenn_ros.paper.physical import FrictionJoint
 from lenn_ros.paper.signals import Excitation
+from lenn_ros.service.building import NODE_DEFAULTS, make_session
+from lenn_ros.service.recording import pair_raw
 
 PERIOD, COMMAND_EVERY, SAMPLES = 0.005, 4, 8000  # 200 Hz driver, 50 Hz controller, 40 s
 LOST = range(3000, 3040)  # driver messages never recorded (0.2 s)
@@ -119,10 +120,8 @@ def test_fit_reads_a_robot_bag_as_the_node_pairs_it_and_writes_params_that_read_
     # the params file alone makes the session pair the bag's topics into the same samples
     resolved, network = resolve(values)
     identifier = build_identifier({**values, **resolved}, network)
-    from lenn_ros.evaluate import _NODE_DEFAULTS
-
-    node_values = {**_NODE_DEFAULTS, **values, topics.RESOLVED_TOPICS: {"u": "/arm/cmd", "y_p": "/arm/joint_states"}}
-    index, *_ = pair_raw(str(bag), make_session(identifier, node_values), node_values)
+    node_values = {**NODE_DEFAULTS, **values, topics.RESOLVED_TOPICS: {"u": "/arm/cmd", "y_p": "/arm/joint_states"}}
+    index = pair_raw(str(bag), make_session(identifier, node_values), node_values).index
     assert len(index) == report["train_samples"] + report["samples"]
     gaps = np.flatnonzero(np.diff(index) != 1)
     assert len(gaps) >= 1 and index[gaps[0] + 1] - index[gaps[0]] >= len(LOST)
@@ -145,8 +144,9 @@ def test_a_bag_whose_start_weights_are_elsewhere_is_fitted_and_evaluate_says_wha
     """The identifier that was recorded started from a weights file this machine does not have: fit needs
     only the record's meaning (it builds its own model) and pairs it as without one; evaluate, which relearns
     from those weights, refuses in one line naming the file."""
-    from lenn_ros.evaluate import EvaluateError, evaluate_bag
     from lenn_ros.fit.bag import load_bag
+    from lenn_ros.service import RecordingError
+    from lenn_ros.service.evaluation import evaluate_bag
 
     elsewhere = str(tmp_path / "on_the_robot" / "weights.npz")  # never written
     with_weights, without = tmp_path / "started_from_weights", tmp_path / "fresh"
@@ -156,5 +156,5 @@ def test_a_bag_whose_start_weights_are_elsewhere_is_fitted_and_evaluate_says_wha
     assert np.array_equal(data.index, reference.index) and len(data.index) >= SAMPLES - len(LOST) - 5
     assert np.array_equal(data.u, reference.u) and np.array_equal(data.y, reference.y)
     assert data.breaks == reference.breaks and data.interpretation == reference.interpretation
-    with pytest.raises(EvaluateError, match=r"weights_in .*on_the_robot/weights\.npz.* does not exist"):
+    with pytest.raises(RecordingError, match=r"weights_in .*on_the_robot/weights\.npz.* does not exist"):
         evaluate_bag(str(with_weights))

@@ -20,7 +20,8 @@ rclpy = pytest.importorskip("rclpy")
 
 from rosutil import Listener, ParameterClient, final_status, start_node, stop  # noqa: E402
 
-from lenn_ros.evaluate import evaluate_bag, recorded_changes  # noqa: E402
+from lenn_ros.service.building import recorded_changes  # noqa: E402
+from lenn_ros.service.evaluation import evaluate_bag  # noqa: E402
 
 TRAIN, TEST = 3000, 400
 
@@ -87,7 +88,7 @@ def test_live_changes_are_recorded_and_evaluate_equals_live(
 
 def _alpha(params: Path) -> float:
     """The alpha the identifier starts with (the example's preset, as the node resolves it)."""
-    from lenn_ros.evaluate import identifier_from_params
+    from lenn_ros.service.building import identifier_from_params
 
     identifier, _ = identifier_from_params(str(params))
     return float(identifier.model.alpha)
@@ -119,9 +120,9 @@ def check_replay_sets_the_changes(tmp_path: Path, values: dict, bag: Path, live:
 
 def check_the_changes_matter(monkeypatch: pytest.MonkeyPatch, bag: Path, live: dict, solver: str) -> None:
     """Evaluate without the recorded changes (as before they were recorded) misses the live figure."""
-    import lenn_ros.evaluate
+    import lenn_ros.service.evaluation
 
-    monkeypatch.setattr(lenn_ros.evaluate, "recorded_changes", lambda path: [])
+    monkeypatch.setattr(lenn_ros.service.evaluation, "recorded_changes", lambda path: [])
     unchanged = evaluate_bag(str(bag)).evaluation.nmse_db
     print(f"{solver}: evaluate without the changes {unchanged:.6f} dB")
     assert abs(unchanged - live["phase_nmse_db"]) > 1e-3

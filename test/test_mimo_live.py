@@ -103,7 +103,7 @@ def test_a_recorded_mimo_run_evaluates_offline_to_the_live_figures(tmp_path: Pat
     from rosutil import final_status, start_node, stop
     from test_bag import independent_read
 
-    from lenn_ros.evaluate import evaluate_bag
+    from lenn_ros.service.evaluation import evaluate_bag
 
     values = {**MIMO_VALUES, "seed": 5, "wait_for_y_hat_subscribers": 2, "wait_for_error_subscribers": 1}
     params = tmp_path / "mimo.json"
@@ -251,9 +251,9 @@ def test_replay_of_a_vector_bag_feeds_a_mimo_identifier_the_recorded_samples(tmp
     from test_replay_pairs import run_replay
 
     from lenn_ros.bag.csv_import import import_csv
-    from lenn_ros.evaluate import evaluate_bag
     from lenn_ros.paper.evaluation import simulate_mimo
     from lenn_ros.paper.plants import narendra_mimo_plant
+    from lenn_ros.service.evaluation import evaluate_bag
 
     series = simulate_mimo(narendra_mimo_plant(), -20.0, 6, 1500, 300)
     csv = tmp_path / "log.csv"

@@ -19,8 +19,8 @@ from rosutil import Listener, final_status, start_node, stop  # noqa: E402
 from test_bag import independent_read  # noqa: E402
 
 from lenn_ros.bag import read_run  # noqa: E402
-from lenn_ros.evaluate import evaluate_bag  # noqa: E402
 from lenn_ros.paper.examples import EXAMPLES  # noqa: E402
+from lenn_ros.service.evaluation import evaluate_bag  # noqa: E402
 
 
 def write_params(path: Path, **values) -> Path:

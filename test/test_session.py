@@ -650,7 +650,7 @@ def test_evaluate_of_raw_u_y_p_applies_the_recorded_changes_and_says_what_it_can
 
     from lenn_ros import topics
     from lenn_ros.bag import BagWriter
-    from lenn_ros.evaluate import evaluate_bag
+    from lenn_ros.service.evaluation import evaluate_bag
 
     live = session()
     live.set_test_start(3001)

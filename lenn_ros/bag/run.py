@@ -17,8 +17,9 @@ import numpy as np
 
 from lenn_ros import topics
 from lenn_ros.bag.errors import BagError
-from lenn_ros.bag.reader import _types, find_topic, read_summary
-from lenn_ros.bag.scalars import Series, read_series
+from lenn_ros.bag.reader import find_topic, topic_types
+from lenn_ros.bag.scalars import Series, topic_series
+from lenn_ros.core.pairing import sequence_streams
 
 __all__ = ["RawPairs", "RunData", "SampleSeries", "pair_raw", "read_run", "read_samples"]
 
@@ -62,8 +63,7 @@ def _check_type(path: Path, topic: str, name: str, available: dict[str, str]) ->
 
 
 def _read(path: Path, require: Sequence[str], namespace: str | None) -> tuple[dict[str, Series], dict[str, str]]:
-    file, summary = read_summary(path)
-    available = _types(summary)
+    available = topic_types(path)
     series: dict[str, Series] = {}
     found: dict[str, str] = {}
     for name in dict.fromkeys((*_RUN_SERIES, *require)):
@@ -75,7 +75,7 @@ def _read(path: Path, require: Sequence[str], namespace: str | None) -> tuple[di
             continue
         _check_type(path, topic, name, available)
         found[name] = topic
-        series[name] = read_series(path, file, summary, topic)
+        series[name] = topic_series(path, topic)
         if name in require and not len(series[name].log_time_ns):
             raise BagError(f"{path}: topic {topic!r} has no messages; record a run that publishes it")
     return series, found
@@ -145,13 +145,12 @@ def read_samples(path: str | Path, namespace: str | None = None, n_u: int = 1, n
     ``n_y`` outputs; None if the bag has none. A width that does not fit is a BagError (another configuration
     recorded it); one channel each also reads rows without the learn flag (older bags)."""
     path = Path(path)
-    file, summary = read_summary(path)
-    available = _types(summary)
+    available = topic_types(path)
     topic = find_topic(available, topics.SAMPLES, namespace)
     if topic is None:
         return None
     _check_type(path, topic, topics.SAMPLES, available)
-    series = read_series(path, file, summary, topic)
+    series = topic_series(path, topic)
     width = 3 + n_u + n_y
     values = series.values if series.values is not None and series.values.size else np.empty((0, width))
     values = np.asarray(values, dtype=np.float64)
@@ -199,28 +198,6 @@ class RawPairs:
         return int(np.count_nonzero(~(self.has_u & self.has_y_p)))
 
 
-def _streams(sequence: np.ndarray) -> np.ndarray:
-    """Stream number per message (arrival order): index 1 after a higher one is a restarted publisher.
-
-    The rule of lenn_ros.evaluate: a repeated 1 with nothing higher before it is a
-    duplicate, not a restart. Only the (few) 1s are visited, so a long bag stays numpy-fast.
-    """
-    ones = np.flatnonzero(sequence == 1)
-    restarts = np.zeros(sequence.size, dtype=np.int64)
-    if not ones.size:
-        return restarts
-    # before[j]: the highest index between the previous 1 (or the start) and ones[j]
-    # (reduceat of an empty span gives the element itself: a 1 at position 0 compares as 1).
-    before = np.maximum.reduceat(sequence, np.r_[0, ones])[: ones.size]
-    running = 0
-    for position, highest in zip(ones, before, strict=True):
-        running = max(running, int(highest))
-        if running > 1:
-            restarts[position] = 1
-            running = 0
-    return np.cumsum(restarts)
-
-
 def pair_raw(
     u: np.ndarray,
     y_p: np.ndarray,
@@ -263,7 +240,7 @@ def pair_raw(
         known = sequence > 0
         unindexed += int(np.count_nonzero(~known))
         values, times, sequence = values[known], times[known], sequence[known]
-        key = (_streams(sequence) << 32) | sequence  # sequence numbers are stored mod 2**32
+        key = (sequence_streams(sequence) << 32) | sequence  # sequence numbers are stored mod 2**32
         unique, first = np.unique(key, return_index=True)  # first occurrence: the pairer keeps the first
         keyed.append((unique, values[first], times[first], key.size - unique.size))
     keys = np.sort(np.concatenate([keyed[0][0], keyed[1][0]]))  # np.union1d hashes: 10x slower on 10^6

@@ -26,7 +26,7 @@ from mcap.summary import Summary
 
 from lenn_ros.bag.errors import BagError
 
-__all__ = ["SCALAR_TYPES", "Series", "read_series"]
+__all__ = ["SCALAR_TYPES", "Series", "read_series", "topic_series"]
 
 #: std_msgs type -> numpy dtype of its one ``data`` field.
 SCALAR_TYPES = {
@@ -192,7 +192,7 @@ def _slow(path: Path, topic: str, with_values: bool) -> Series:
     from lenn_ros.bag.reader import iter_messages
 
     values, log_time, publish, sequence = [], [], [], []
-    for item in iter_messages(path, [topic]):
+    for item in iter_messages(path, [topic], raw=not with_values):
         log_time.append(item.log_time_ns)
         publish.append(item.publish_time_ns)
         sequence.append(item.sequence)
@@ -201,6 +201,18 @@ def _slow(path: Path, topic: str, with_values: bool) -> Series:
     as_int = [np.asarray(a, dtype=np.int64) for a in (log_time, publish, sequence)]
     stacked = (np.stack(values) if values else np.empty(0)) if with_values else None
     return Series(stacked, *as_int)
+
+
+def topic_series(path: str | Path, topic: str, with_values: bool = True) -> Series:
+    """One topic's series from any recording: the MCAP fast path where it applies (one MCAP file), else the
+    general reader message by message (a split or sqlite3 bag: same result, slower)."""
+    from lenn_ros.bag.reader import open_bag, read_summary
+
+    path = Path(path)
+    if open_bag(path).single_mcap is not None:
+        file, summary = read_summary(path)
+        return read_series(path, file, summary, topic, with_values)
+    return _slow(path, topic, with_values)
 
 
 def read_series(path: Path, file: Path, summary: Summary, topic: str, with_values: bool = True) -> Series:

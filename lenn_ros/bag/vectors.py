@@ -12,16 +12,15 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
 from lenn_ros import topics
 from lenn_ros.bag.errors import BagError
 from lenn_ros.bag.msgtypes import TYPESTORE
-from lenn_ros.bag.reader import _types, find_topic, iter_messages, read_summary
+from lenn_ros.bag.reader import find_topic, iter_messages, topic_types
 from lenn_ros.bag.run import RawPairs, pair_raw, read_samples
-from lenn_ros.bag.scalars import Series, read_series
+from lenn_ros.bag.scalars import Series, topic_series
 from lenn_ros.bag.writer import BagWriter
 
 __all__ = [
@@ -81,7 +80,7 @@ def write_vector_run(
 
 def is_vector_run(path: str | Path) -> bool:
     """Whether the bag's ``u`` topic holds Float64MultiArray samples (a MIMO run)."""
-    available = _types(read_summary(path)[1])
+    available = topic_types(path)
     topic = find_topic(available, topics.U)
     return topic is not None and available[topic] == topics.FLOAT64_ARRAY
 
@@ -96,33 +95,31 @@ def read_vector_run(path: str | Path) -> VectorRun:
 
 def _read_channels(path: Path) -> tuple[tuple[Series, np.ndarray], tuple[Series, np.ndarray], list, int | None]:
     """u and y_p as recorded ((series, rows) each), their channel names and the last test_start (None: none)."""
-    file, summary = read_summary(path)
-    available = _types(summary)
+    available = topic_types(path)
     series, names = [], []
     for name, kind in ((topics.U, "u"), (topics.Y_P, "y")):
         topic = find_topic(available, name)
         if topic is None or available[topic] != topics.FLOAT64_ARRAY:
             found = f"type {available[topic]}" if topic else "missing"
             raise BagError(f"{path}: topic {name!r} is {found}; a vector run needs {topics.FLOAT64_ARRAY} on u and y_p")
-        read = read_series(path, file, summary, topic)
+        read = topic_series(path, topic)
         if read.values is None or not len(read.values):
             raise BagError(f"{path}: topic {topic!r} has no messages; record a run that publishes it")
         values = np.asarray(read.values, dtype=np.float64).reshape(len(read.values), -1)
         series.append((read, values))
         names.append(_labels(path, topic, values.shape[1], kind))
-    return series[0], series[1], names, _test_start(path, file, summary, available)
+    return series[0], series[1], names, _test_start(path, available)
 
 
 def read_test_start(path: str | Path) -> int | None:
     """The last ``test_start`` in a bag, whatever its u / y_p are (None: none recorded)."""
     path = Path(path)
-    file, summary = read_summary(path)
-    return _test_start(path, file, summary, _types(summary))
+    return _test_start(path, topic_types(path))
 
 
-def _test_start(path: Path, file: Path, summary: Any, available: dict[str, str]) -> int | None:
+def _test_start(path: Path, available: dict[str, str]) -> int | None:
     start = find_topic(available, topics.TEST_START)
-    starts = read_series(path, file, summary, start).values if start else None
+    starts = topic_series(path, start).values if start else None
     return int(starts[-1]) if starts is not None and len(starts) else None
 
 

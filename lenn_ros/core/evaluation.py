@@ -2,7 +2,8 @@
 
 :class:`Evaluation` holds the scores and series behind them; :func:`free_run_segments` runs
 the free run across breaks, :func:`free_run_problems` says what is wrong with one, and
-:func:`finite_rows` (the session's too) which samples are numbers. The paper's protocol over
+:func:`~lenn_ros.core.runs.finite_rows` which samples are numbers (the gap rule:
+:mod:`lenn_ros.core.runs`). The paper's protocol over
 simulated data (``lenn-ros reproduce``) is :mod:`lenn_ros.paper.evaluation`.
 """
 
@@ -14,6 +15,7 @@ from typing import Any
 import numpy as np
 
 from lenn_ros.core.metrics import nmse_db
+from lenn_ros.core.runs import finite_rows, runs
 
 
 @dataclass
@@ -94,12 +96,11 @@ def free_run_segments(
     """
     window = identifier.structure.warm_up
     valid = finite_rows(u) & finite_rows(y)
-    continues = np.r_[False, (np.diff(index) == 1) & valid[1:] & valid[:-1]]
-    starts = np.flatnonzero(~continues)
+    starts, stops = runs(index, valid)
     y_free = np.full((len(y) - first, *np.shape(y)[1:]), np.nan)
     info: dict[str, Any] = {"samples": 0, "clipped_inputs": 0, "diverged": False, "diverged_at": None}
     info["segments"] = 0
-    for begin, end in zip(starts, np.r_[starts[1:], len(y)], strict=True):
+    for begin, end in zip(starts, stops, strict=True):
         simulate_from = max(first, begin + window)
         if end <= first or simulate_from >= end or not valid[begin]:
             continue
@@ -114,8 +115,3 @@ def free_run_segments(
             info["diverged"], info["diverged_at"] = True, int(begin + part["diverged_at"])
     info["not_simulated"] = int(len(y_free) - info["samples"])
     return y_free, info
-
-
-def finite_rows(values: np.ndarray) -> np.ndarray:
-    """Per sample (row): every channel a number. A 1-D series is one channel."""
-    return np.isfinite(np.asarray(values, dtype=np.float64)).reshape(len(values), -1).all(axis=1)

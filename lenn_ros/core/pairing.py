@@ -105,6 +105,30 @@ class Pairer:
         self._last_released = 0
 
 
+def sequence_streams(sequence: np.ndarray) -> np.ndarray:
+    """Publisher run per message of one topic (arrival order): index 1 after a higher one is a restart.
+
+    The :class:`Pairer`'s restart rule over a whole recording: a repeated 1 with nothing higher
+    before it is a duplicate, not a restart. Only the (few) 1s are visited, so a long recording
+    stays numpy-fast. Used offline to put a recording's halves in each run's index order
+    (:func:`lenn_ros.service.recording.pair_raw`) and to count a topic's restarts (``bag-info``).
+    """
+    ones = np.flatnonzero(sequence == 1)
+    restarts = np.zeros(sequence.size, dtype=np.int64)
+    if not ones.size:
+        return restarts
+    # before[j]: the highest index between the previous 1 (or the start) and ones[j]
+    # (reduceat of an empty span gives the element itself: a 1 at position 0 compares as 1).
+    before = np.maximum.reduceat(sequence, np.r_[0, ones])[: ones.size]
+    running = 0
+    for position, highest in zip(ones, before, strict=True):
+        running = max(running, int(highest))
+        if running > 1:
+            restarts[position] = 1
+            running = 0
+    return np.cumsum(restarts)
+
+
 def screen(value: float, limit: float, policy: str = "reject") -> tuple[float, str]:
     """Vet one sample before it can reach a model: (value to use, verdict).
 

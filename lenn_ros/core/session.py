@@ -49,13 +49,13 @@ import numpy as np
 
 from lenn_ros.core.alignment import GridSampler, Pair, StampAligner
 from lenn_ros.core.change import ACCEPTED, DEFAULT_THRESHOLD, RAISED, ChangeDetector
-from lenn_ros.core.evaluation import finite_rows
 from lenn_ros.core.holding import START_GRACE, HoldGate
 from lenn_ros.core.merging import TopicMerger, default_max_age
 from lenn_ros.core.metrics import ChannelsNMSE, RunningNMSE
 from lenn_ros.core.mimo import MimoIdentifier, MimoStepResult
 from lenn_ros.core.overload import Shedder
 from lenn_ros.core.pairing import Pairer, U, Y, screen, screen_values
+from lenn_ros.core.runs import finite_rows, missing, runs
 from lenn_ros.core.spread import OneStepSpread
 from lenn_ros.core.structure import Identifier, StepResult
 from lenn_ros.core.warmup import MAX_WARM_UP, ScaleWarmUp, warm_up_samples
@@ -243,6 +243,9 @@ class Session:
         self.phase_nmse = ChannelsNMSE(self.identifier.names) if self.mimo else RunningNMSE()
         self.refusal: str | None = None  # set by the caller when it knows pairing cannot work
         self.holding = False  # hold formed samples (unprocessed) until release()
+        #: offline: every formed pair goes here, unprocessed and unbounded (no reader to wait for, nothing
+        #: shed; the caller learns them in one batch): what a recording's pairing collects them with
+        self.collect: Callable[[list[Pair]], None] | None = None
         self.gate: HoldGate | None = None  # live: what the hold waits for (hold_for)
         self._held: list[Pair] = []
         self._notices: list[Notice] = []
@@ -766,6 +769,9 @@ class Session:
 
     # -- learning ------------------------------------------------------------------------------
     def _process(self, pairs: list[Pair]) -> list[Sample]:
+        if self.collect is not None:
+            self.collect(pairs)
+            return []
         if self.holding:
             self._held.extend(pairs)
             excess = len(self._held) - MAX_HELD
@@ -1088,15 +1094,15 @@ class Session:
             return y_hat
         y_hat = np.full(y.shape, np.nan)
         valid = finite_rows(u) & finite_rows(y)
-        breaks = np.flatnonzero((np.diff(index) != 1) | ~valid[1:] | ~valid[:-1]) + 1
         # a MIMO identifier's index counters are its outputs' (they count alike): output 0's hold them
         counters = self.identifier.outputs[0].counters if self.mimo else self.identifier.counters
-        counters["gaps"] += int(np.count_nonzero(np.diff(index) > 1))
-        counters["lost"] += int(np.sum(np.clip(np.diff(index) - 1, 0, None)))
+        gaps, lost = missing(index)
+        counters["gaps"] += gaps
+        counters["lost"] += lost
         counters["rejected"] += int(np.count_nonzero(~valid))
         before = (self.config.change_alarm, self.config.change_threshold)
         leverage = np.zeros(len(y))
-        self._run_segments(index, u, y, learn, np.r_[0, breaks], np.r_[breaks, len(y)], valid, changes, y_hat, leverage)
+        self._run_segments(index, u, y, learn, *runs(index, valid), valid, changes, y_hat, leverage)
         if not self.mimo:
             self.last_y_hat_std = self._spread_offline(y, y_hat, leverage)
             self._watch_change(index, y, y_hat, before, changes)

@@ -206,7 +206,7 @@ class Replay(Node):
 
     def _schedule_changes(self) -> None:
         """The recorded live changes by the row before which each is set (the first whose index reaches it)."""
-        from lenn_ros.evaluate import recorded_changes
+        from lenn_ros.service.building import recorded_changes
 
         self._changes: dict[int, list[Any]] = {}
         changes = recorded_changes(self.bag)

@@ -4,7 +4,7 @@ One function, :func:`train_and_test`, is the whole protocol of the paper's Secti
 applied to paired series (u(k), y_p(k)): learn while k < test_start, freeze, then
 score one-step (series-parallel) and free-run (parallel) over the test samples.
 ``lenn-ros reproduce`` and ``reproduce --beyond`` feed it simulated data (``lenn-ros
-evaluate`` scores a bag through the node's session instead: :mod:`lenn_ros.evaluate`).
+evaluate`` scores a bag through the node's session instead: :mod:`lenn_ros.service.evaluation`).
 """
 
 from __future__ import annotations

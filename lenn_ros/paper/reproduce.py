@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from lenn_ros import progress as bars
 from lenn_ros.core.evaluation import Evaluation
 from lenn_ros.core.structure import Identifier
 from lenn_ros.paper.evaluation import least_squares_floor, simulate, train_and_test
@@ -68,7 +69,7 @@ def run(
     """All requested runs; the data of one seed is shared by both networks."""
     rows = {(e, n): Row(e, n, parameters, list(range(seeds))) for e in examples for n in networks}
     jobs = [(e, s) for e in examples for s in range(seeds)]
-    bar = report.progress(len(jobs) * len(networks), progress, "reproduce")
+    bar = bars.progress(len(jobs) * len(networks), progress, "reproduce")
     for number, seed in jobs:
         example = EXAMPLES[number]
         series = simulate(example.plant(), example.noise_db, seed, iterations, test_samples)

@@ -11,6 +11,7 @@ from typing import Any
 
 import numpy as np
 
+from lenn_ros import progress as bars
 from lenn_ros.core.networks import OnlineRegressor
 from lenn_ros.core.structure import Identifier
 from lenn_ros.paper.evaluation import least_squares_floor, simulate, train_and_test
@@ -133,7 +134,7 @@ def identification(
     at = checkpoints(train_samples)
     rows: dict[tuple[int, str], Row] = {}
     specs = {number: row_specs(EXAMPLES[number], networks) for number in examples}
-    bar = report.progress(sum(len(s) for s in specs.values()) * seeds, progress, "beyond: identification")
+    bar = bars.progress(sum(len(s) for s in specs.values()) * seeds, progress, "beyond: identification")
     for number in examples:
         example = EXAMPLES[number]
         for seed in range(seeds):

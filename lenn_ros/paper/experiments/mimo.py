@@ -28,6 +28,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from lenn_ros import progress as bars
 from lenn_ros.core.metrics import nmse_db
 from lenn_ros.core.mimo import MimoIdentifier, MimoStructure, build_mimo_identifier, parse_couplings
 from lenn_ros.core.networks import MLP, FunctionalLinkNetwork, OnlineRegressor
@@ -220,7 +221,7 @@ def run(
     seed_list = list(range(seeds)) if isinstance(seeds, int) else [int(seed) for seed in seeds]
     rows: dict[tuple[str, str], Row] = {}
     last: dict[str, SeedRun] = {}
-    bar = report.progress(len(seed_list) * len(models), progress, "reproduce-mimo")
+    bar = bars.progress(len(seed_list) * len(models), progress, "reproduce-mimo")
     for seed in seed_list:
         series = simulate_mimo(MIMO_PLANTS[PLANT](), noise_db, seed, train_samples, test_samples)
         for spec in models:

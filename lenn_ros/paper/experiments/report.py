@@ -7,9 +7,7 @@ never an average over the seeds that happened to work.
 
 from __future__ import annotations
 
-import sys
 from collections.abc import Iterable, Sequence
-from typing import Any
 
 import numpy as np
 
@@ -48,31 +46,3 @@ def spread(values: Sequence[int | None]) -> str:
     if len(known) < len(values):
         return f"never on {len(values) - len(known)} of {len(values)}" + (f", {spread(known)}" if known else "")
     return f"{np.median(known):g} [{min(known)}–{max(known)}]"
-
-
-class _NoBar:
-    """What :func:`progress` returns without tqdm: the same two calls, doing nothing."""
-
-    def update(self, count: int = 1) -> None:
-        """Nothing to draw."""
-
-    def close(self) -> None:
-        """Nothing to close."""
-
-
-def progress(total: int, enabled: bool, description: str) -> Any:
-    """A tqdm bar on stderr (off when not a terminal or when printing JSON).
-
-    tqdm is the ``progress`` extra: without it the run goes on without a bar (a bar is no
-    reason to stop a reproduction), said in one line when a bar was wanted.
-    """
-    try:
-        from tqdm import tqdm
-    except ModuleNotFoundError:
-        if enabled:
-            print(
-                f"{description}: no progress bar (tqdm is not installed: pip install 'lenn_ros[progress]')",
-                file=sys.stderr,
-            )
-        return _NoBar()
-    return tqdm(total=total, disable=not enabled, unit="run", desc=description, file=sys.stderr)

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from lenn_ros import progress as bars
 from lenn_ros.core.networks import OnlineRegressor
 from lenn_ros.core.structure import Identifier
 from lenn_ros.paper.examples import EXAMPLES, TRAIN_SAMPLES
@@ -199,7 +200,7 @@ def tracking(
         )
     )
     rows = [TrackingRow(name, config) for name, config, _ in configs]
-    bar = report.progress(seeds * len(configs), progress, "beyond: tracking")
+    bar = bars.progress(seeds * len(configs), progress, "beyond: tracking")
     for seed in range(seeds):
         u, y = simulate_change(seed, samples, change_at)
         for row, (_, _, factory) in zip(rows, configs, strict=True):

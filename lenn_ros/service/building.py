@@ -1,0 +1,144 @@
+"""Parameters to an identifier, as the node builds one: from a params file, from the configuration a
+recording holds, with the weights learning starts from (``weights_in``).
+
+One place for it: the node, ``evaluate``, ``fit`` (a bag's samples), ``replay`` and ``load_model`` all
+build here, so a params file means the same model everywhere. The node's values come from
+:mod:`lenn_ros.config` (the one table of parameters); a params file is matched to a node by rcl's
+own rules (:func:`lenn_ros.config.read_params_file`); ``weights_in`` is opened as the node opens it
+(``~`` expanded, a relative path from the current directory).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any
+
+from lenn_ros import topics
+from lenn_ros.bag.reader import iter_messages
+from lenn_ros.config import NODE_PARAMETERS, build_identifier, read_params_file, resolve
+from lenn_ros.core.mimo import MimoIdentifier
+from lenn_ros.core.session import ParameterChange, Session, SessionConfig
+from lenn_ros.core.structure import Identifier
+from lenn_ros.service import RecordingError
+
+#: Every node parameter's default: what a value a params file or a recording leaves out means.
+NODE_DEFAULTS = {parameter.name: parameter.default for parameter in NODE_PARAMETERS}
+
+
+def identifier_from_params(path: str | None, node: str = "/identifier") -> tuple[Identifier | MimoIdentifier, dict]:
+    """The identifier a params file describes for the node ``node`` (fully qualified, rcl's matching rules,
+    as the node itself is given its parameters), and every node value (defaults filled in)."""
+    values = read_params_file(path, node) if path else {}
+    return build(values, f"params file {path}")
+
+
+def build(given: dict[str, Any], source: str, adjust: Any = None) -> tuple[Identifier | MimoIdentifier, dict[str, Any]]:
+    """The identifier and every node value (defaults filled in) that ``given`` parameter values describe, built as
+    the node builds it (weights_in loaded, named after ``source`` when it is missing). ``adjust(values)`` may change
+    the node values first (what is read: topics, fields, pairing), which can change the model's channels."""
+    model, network = resolve(given)
+    values = {**NODE_DEFAULTS, **given}
+    if adjust is not None:
+        values = adjust(values)
+    # the fields say how many channels (MIMO): node-level values, which resolve() leaves out
+    identifier = build_identifier({**values, **model}, network)
+    return as_node_builds_it(identifier, values, source), values
+
+
+def weights_path(value: str) -> Path:
+    """``weights_in`` as the identifier node opens it: ``~`` expanded, a relative path from the cwd.
+
+    The node cannot know which params file a value came from (ROS merges them), so it
+    opens the path from its working directory; evaluate does the same, so one params
+    file means the same model in both. ``lenn-ros fit -o DIR`` writes an absolute path.
+    """
+    return Path(os.path.expanduser(value))
+
+
+def as_node_builds_it(
+    identifier: Identifier | MimoIdentifier, values: dict[str, Any], source: str
+) -> Identifier | MimoIdentifier:
+    """What the node adds to the bare identifier: the divergence guard and the weights learning starts from."""
+    identifier.health_interval = int(values["health_interval"])
+    identifier.divergence_ratio = float(values["divergence_ratio"])
+    identifier.resume_after = int(values["resume_after"])
+    if values.get("weights_in"):
+        path = weights_path(values["weights_in"])
+        if not path.is_file():
+            raise RecordingError(
+                f"weights_in {path} (from the {source}) does not exist (a relative path is taken from the current "
+                f"directory {Path.cwd()}, as the identifier node does): run from there, give an absolute path, "
+                "or set weights_in to '' for fresh weights"
+            )
+        (identifier if isinstance(identifier, MimoIdentifier) else identifier.model).load_state(path)
+        identifier.mark_healthy()
+    return identifier
+
+
+def recorded_values(path: str | Path) -> dict[str, Any] | None:
+    """The parameter values the identifier recorded in the bag (``identifier_config``: its starting values, with
+    ``network`` and the topics its inputs resolved to); None where it recorded none."""
+    recorded = list(iter_messages(path, [topics.IDENTIFIER_CONFIG]))
+    if not recorded:
+        return None
+    values = json.loads(recorded[-1].message.data)
+    values.pop(topics.PARAMETER_CHANGES, None)  # (recorded_changes reads them: the values are the starting ones)
+    values.setdefault("resume_after", 0)  # recorded before learning resumed by itself: it never did live
+    return values
+
+
+def configuration(
+    path: str | Path,
+    params: str | None,
+    node: str = "/identifier",
+    model: bool = True,
+    adjust: Any = None,
+    defaults: bool = False,
+) -> tuple[Identifier | MimoIdentifier, dict[str, Any]]:
+    """The identifier and node values a recording is read with: the params file given (``node``'s sections of
+    it, by rcl's rules), else its identifier_config, else (``defaults``) the node's defaults. ``model=False``: only
+    how the topics become samples, with the node's default model of as many channels, no weights (what pairing a
+    record needs: fit builds its own model, and the weights file may have stayed on the robot). ``adjust``: see
+    :func:`build` (the flags)."""
+    if params:
+        given, source = read_params_file(params, node), f"params file {params}"
+    else:
+        given, source = recorded_values(path), f"identifier configuration recorded in {path}"
+        if given is None and not defaults:
+            raise RecordingError(
+                f"{path}: the bag holds no identifier configuration (identifier_config); pass --params FILE, the "
+                "params file the identifier ran with (e.g. config/example1_lenn.yaml, or fit -o's params.yaml)"
+            )
+        if given is None:
+            given, source = {}, "node's defaults"
+    given = dict(given)
+    if not model:
+        given = {key: value for key, value in given.items() if key in NODE_DEFAULTS or key == topics.RESOLVED_TOPICS}
+        given["weights_in"] = ""
+    resolved_topics = given.pop(topics.RESOLVED_TOPICS, {})
+
+    def reading(values: dict[str, Any]) -> dict[str, Any]:
+        values = {**values, topics.RESOLVED_TOPICS: resolved_topics}
+        values.pop("network", None)
+        return adjust(values) if adjust is not None else values
+
+    return build(given, source, reading)
+
+
+def recorded_changes(path: str | Path) -> list[ParameterChange]:
+    """The live parameter changes the identifier recorded (``identifier_config``'s change log), in order.
+
+    Each republished config carries the whole log: the last one read has them all (a
+    recorder that joined late still got it, the topic being latched).
+    """
+    recorded = iter_messages(path, [topics.IDENTIFIER_CONFIG])
+    logs = [json.loads(message.message.data).get(topics.PARAMETER_CHANGES) for message in recorded]
+    logs = [log for log in logs if log]
+    return [ParameterChange.from_dict(entry) for entry in logs[-1]] if logs else []
+
+
+def make_session(identifier: Identifier | MimoIdentifier, values: dict[str, Any]) -> Session:
+    """The node's session over a recording: its pairing, learning on (the phases are the recording's)."""
+    return Session(identifier, SessionConfig.from_values(values, follow_test_start=False, learning=True))

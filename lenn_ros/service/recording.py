@@ -1,0 +1,388 @@
+"""A recording to samples: every message of any rosbag2 bag, paired by the node's own session.
+
+What the identifier node does live (a message's field read, its header stamp or arrival time taken,
+the half screened, merged and paired by the session's pairing), :func:`pair_raw` does over a
+recording, so a bag yields the samples the node would have formed, numbered as the node numbers
+them (a publication sequence number, a grid point of the sample period, a pair of stamps). It is
+the one pairing of raw topics: ``evaluate``, ``fit`` (a bag), ``replay`` and ``bag-info`` use it.
+
+Offline is not live in three ways, and only these:
+
+- nothing is held for readers and nothing is shed: there are no readers to wait for and all the
+  time that is needed, so every pair the session forms is kept (:class:`PairSink`, numpy blocks,
+  memory ~40 bytes a sample and channel);
+- a message is read once, from any storage (MCAP through ``mcap``, with the MCAP fast path of
+  :mod:`lenn_ros.bag.scalars` for numbers; sqlite3 through rosbags), the topics one after another
+  into columns (:class:`Halves`, memory ~50 bytes a message), then offered in the order of
+  arrival (log time) to the session, as live; pairing by sequence number, in each publisher run's
+  index order (a message the recorder logged late still meets its partner);
+- a recording without sequence numbers (an import, a sqlite3 bag) paired by ``sequence`` is paired
+  by order, and only when both topics hold as many messages (else the error says why).
+
+Whatever the session drops (a lone half, a grid point without a new measurement, an unreadable
+field) it counts and says, as live.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lenn_ros import topics
+from lenn_ros.bag.reader import iter_messages, open_bag, read_summary, topic_counts, topic_types
+from lenn_ros.bag.scalars import FLOAT64_ARRAY, SCALAR_TYPES, read_series
+from lenn_ros.config import field_extractor, is_mimo
+from lenn_ros.core.alignment import Pair
+from lenn_ros.core.fields import FieldError, parse_path, split_paths, stamp_seconds
+from lenn_ros.core.pairing import U, sequence_streams
+from lenn_ros.core.session import Session
+from lenn_ros.progress import progress as progress_bar
+from lenn_ros.service import RecordingError
+from lenn_ros.service.reading import input_bag_topics
+
+#: Messages read before a progress bar is worth drawing.
+LONG_READ = 200_000
+
+
+@dataclass(frozen=True)
+class Halves:
+    """One input topic's messages as the session is offered them: columns in log-time order.
+
+    ``values`` is (n,) for one channel, (n, channels) for several; a message whose field could not be
+    read is NaN with ``readable`` False (counted, never paired). ``stamp`` is the header stamp (s) where
+    the message has one and the node would use it, else NaN (then the arrival time times it).
+    """
+
+    topic: str
+    side: str  # "u" or "y"
+    part: int  # which of the side's topics (0 for one)
+    values: np.ndarray
+    readable: np.ndarray
+    stamp: np.ndarray
+    received: np.ndarray  # log (receive) time, s
+    sequence: np.ndarray  # DDS publication sequence number, 0 where unknown
+    source: np.ndarray  # DDS publish time, s, NaN where unknown
+    error: str = ""  # why the first unreadable message was
+
+    @property
+    def times(self) -> np.ndarray:
+        """What times each half in the session: its stamp, else its arrival."""
+        return np.where(np.isnan(self.stamp), self.received, self.stamp)
+
+
+@dataclass(frozen=True)
+class Samples:
+    """A recording's samples: ``index`` (the node's numbering), ``time`` (s), ``u`` / ``y`` ((N,) or (N, channels)).
+
+    ``source`` says what was paired and how; ``by_order``: paired by position (no sequence numbers).
+    """
+
+    index: np.ndarray
+    time: np.ndarray
+    u: np.ndarray
+    y: np.ndarray
+    source: str
+    by_order: bool = False
+
+
+class PairSink:
+    """Every pair a session forms offline, in numpy blocks (a pair object per sample would take ~10x the memory)."""
+
+    BLOCK = 65_536
+
+    def __init__(self) -> None:
+        self._pending: list[Pair] = []
+        self._blocks: list[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
+
+    def __call__(self, pairs: list[Pair]) -> None:
+        self._pending.extend(pairs)
+        if len(self._pending) >= self.BLOCK:
+            self._flush()
+
+    def _flush(self) -> None:
+        pairs, self._pending = self._pending, []
+        if pairs:
+            self._blocks.append(
+                (
+                    np.fromiter((p.index for p in pairs), np.int64, len(pairs)),
+                    np.fromiter((p.time for p in pairs), np.float64, len(pairs)),
+                    np.asarray([p.u for p in pairs], dtype=np.float64),
+                    np.asarray([p.y for p in pairs], dtype=np.float64),
+                )
+            )
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(index, time, u, y) of every pair so far, in the order formed."""
+        self._flush()
+        if not self._blocks:
+            return np.empty(0, np.int64), np.empty(0), np.empty(0), np.empty(0)
+        return tuple(np.concatenate(column) for column in zip(*self._blocks, strict=True))  # type: ignore[return-value]
+
+
+def _bulk_columns(field: str, type_name: str, mimo: bool) -> list[int] | None:
+    """The Float64MultiArray columns (or [0] for a number's ``data``) a field reads, where the MCAP fast path
+    reads them exactly as the field path would; None where only the general reader can."""
+    if type_name in SCALAR_TYPES:
+        return [0] if field == "data" and not mimo else None
+    if type_name != FLOAT64_ARRAY or "[*]" in field:
+        return None
+    columns = []
+    for path in split_paths(field) if mimo else [field]:
+        steps = parse_path(path)
+        if len(steps) != 1 or steps[0].attribute != "data" or not isinstance(steps[0].index, int):
+            return None
+        columns.append(steps[0].index)
+    return columns
+
+
+def _fast_halves(path: Path, topic: str, side: str, part: int, columns: list[int], mimo: bool) -> Halves | None:
+    """A number topic's halves straight from the MCAP chunks (no message is deserialised); None: not possible."""
+    found = open_bag(path)
+    if found.single_mcap is None:
+        return None
+    file, summary = read_summary(path)
+    series = read_series(path, file, summary, topic)
+    values = series.values
+    if values is None:
+        return None
+    if values.ndim == 2:
+        if values.shape[1] <= max(columns):
+            return None  # (the general reader says which messages lack the element)
+        values = values[:, columns] if mimo else values[:, columns[0]]
+    n = len(series.log_time_ns)
+    source = series.publish_time_ns * 1e-9
+    return Halves(
+        topic, side, part, np.asarray(values, dtype=np.float64), np.ones(n, bool), np.full(n, np.nan),
+        series.log_time_ns * 1e-9, series.sequence, np.where(series.publish_time_ns > 0, source, np.nan),
+    )  # fmt: skip
+
+
+class _Columns:
+    """One topic's halves as the general reader delivers its messages, read as the node reads them."""
+
+    def __init__(self, extract: Callable[[Any], Any], stamped: bool) -> None:
+        self.extract, self.stamped = extract, stamped
+        self.values: list[Any] = []
+        self.readable: list[bool] = []
+        self.stamp: list[float] = []
+        self.received: list[int] = []
+        self.sequence: list[int] = []
+        self.source: list[int] = []
+        self.error = ""
+        self.nan: Any = np.nan
+
+    def add(self, message: Any) -> None:
+        try:
+            value = self.extract(message.message)
+            readable = True
+        except FieldError as error:
+            value, readable = self.nan, False
+            self.error = self.error or str(error)
+        stamp = stamp_seconds(message.message) if self.stamped else None
+        self.values.append(value)
+        self.readable.append(readable)
+        self.stamp.append(np.nan if stamp is None else stamp)
+        self.received.append(message.log_time_ns)
+        self.sequence.append(message.sequence)
+        self.source.append(message.publish_time_ns)
+
+    def halves(self, topic: str, side: str, part: int, width: int) -> Halves:
+        if width > 1:
+            nan = np.full(width, np.nan)
+            values = np.asarray([v if ok else nan for v, ok in zip(self.values, self.readable, strict=True)])
+            values = values.reshape(len(self.values), width)
+        else:
+            values = np.asarray(self.values, dtype=np.float64)
+        received = np.asarray(self.received, dtype=np.int64)
+        order = np.argsort(received, kind="stable")  # (the general reader gives file order)
+        source = np.asarray(self.source, dtype=np.int64)
+        return Halves(
+            topic, side, part, values[order], np.asarray(self.readable, bool)[order],
+            np.asarray(self.stamp, dtype=np.float64)[order], received[order] * 1e-9,
+            np.asarray(self.sequence, dtype=np.int64)[order], np.where(source > 0, source * 1e-9, np.nan)[order],
+            self.error,
+        )  # fmt: skip
+
+
+def read_halves(path: str | Path, values: dict[str, Any], progress: bool = False) -> list[Halves]:
+    """Every message of the inputs ``values`` name (topics, fields, stamps as the node uses them), as columns.
+
+    Number topics of a one-file MCAP bag are read in bulk; the others are read message by message in
+    one pass over the recording (a bar on stderr when ``progress`` and the read is long).
+    """
+    path = Path(path)
+    types = topic_types(path)
+    mimo = is_mimo(values)
+    inputs = input_bag_topics(path, types, values)
+    width = {side: _width(values, side) for side in (U, "y")}
+    found: dict[str, Halves] = {}
+    slow: dict[str, tuple[str, int, _Columns]] = {}
+    for side, part, topic in inputs:
+        field = str(values[f"{side}_field"])
+        columns = _bulk_columns(field, types[topic], mimo)
+        halves = _fast_halves(path, topic, side, part, columns, mimo) if columns is not None else None
+        if halves is not None:
+            found[topic] = halves
+            continue
+        stamped = bool(values.get("use_header_stamp", True))
+        slow[topic] = (side, part, _Columns(field_extractor(values, side), stamped))
+    if slow:
+        counts = topic_counts(path)
+        total = sum(counts.get(topic, 0) for topic in slow)
+        bar = progress_bar(total, progress and total >= LONG_READ, f"reading {path.name}", unit="msg")
+        try:
+            for message in iter_messages(path, list(slow), ordered=False, progress=bar.update):
+                slow[message.topic][2].add(message)
+        finally:
+            bar.close()
+        for topic, (side, part, columns) in slow.items():
+            found[topic] = columns.halves(topic, side, part, width[side] // max(1, _parts(values, side)))
+    return [found[topic] for _, _, topic in inputs]
+
+
+def _parts(values: dict[str, Any], side: str) -> int:
+    return max(1, len([t for t in values.get(f"{side}_topics", [""]) if str(t).strip()]))
+
+
+def _width(values: dict[str, Any], side: str) -> int:
+    """Channels of a side's sample (1 for one channel)."""
+    if not is_mimo(values):
+        return 1
+    from lenn_ros.config import side_channels
+
+    return len(side_channels(values, side)[0])
+
+
+def pair_raw(path: str | Path, session: Session, values: dict[str, Any], progress: bool = False) -> Samples:
+    """The recording's inputs paired by ``session`` as the node would pair them; see the module docstring."""
+    path = Path(path)
+    halves = read_halves(path, values, progress)
+    sequence = values["pairing"] == "sequence"
+    by_order = sequence and not any(h.sequence.any() for h in halves)
+    if by_order:
+        counts = {side: sum(len(h.received) for h in halves if h.side == side) for side in (U, "y")}
+        if counts[U] != counts["y"]:
+            raise RecordingError(
+                f"{path}: no sequence numbers recorded and u has {counts[U]} messages, y_p {counts['y']}: pairing "
+                "by order would shift every later pair; record with lenn_ros's recorder (it stores indices), or "
+                "pair by time: --pairing sample --sample-period T (or --pairing stamp)"
+            )
+    for h in halves:
+        for received in h.received[~h.readable].tolist():
+            session.unreadable(h.side, received, f"{h.side}_field {values[f'{h.side}_field']}", h.error)
+    sink = PairSink()
+    session.collect = sink
+    _offer_all(session, halves, by_order, sequence and not by_order)
+    session.flush()
+    session.collect = None
+    index, time, u, y = sink.arrays()
+    how = "order (no sequence numbers recorded)" if by_order else values["pairing"]
+    names = ", ".join(h.topic for h in halves)
+    return Samples(index, time, u, y, f"{names} by {how}", by_order)
+
+
+def _offer_all(session: Session, halves: list[Halves], by_order: bool, in_index_order: bool) -> None:
+    """Every readable half to the session: in arrival order, or (sequence pairing) each publisher run's index order."""
+    keep = [h.readable for h in halves]
+    received = np.concatenate([h.received[k] for h, k in zip(halves, keep, strict=True)])
+    which = np.concatenate([np.full(int(k.sum()), i) for i, k in enumerate(keep)])
+    row = np.concatenate([np.flatnonzero(k) for k in keep])
+    order = np.argsort(received, kind="stable")
+    if by_order:
+        sequence = np.zeros(received.size, np.int64)
+        for side in (U, "y"):  # position among the side's messages in arrival order
+            mine = order[np.isin(which[order], [i for i, h in enumerate(halves) if h.side == side])]
+            sequence[mine] = np.arange(1, mine.size + 1)
+    else:
+        sequence = np.concatenate([h.sequence[k] for h, k in zip(halves, keep, strict=True)])
+    if in_index_order:
+        epoch = np.zeros(received.size, np.int64)
+        for i in range(len(halves)):  # a publisher's restart (its numbers again from 1) begins a new run
+            mine = order[which[order] == i]
+            epoch[mine] = sequence_streams(sequence[mine])
+        position = np.empty(received.size, np.int64)
+        position[order] = np.arange(received.size)
+        order = np.lexsort((position, sequence, epoch))
+    offer = session.offer
+    unknown = np.full(1, np.nan)  # by order: the publish times say nothing of pairs either
+    columns = [(h.side, h.part, h.values, h.times, h.received, h.source) for h in halves]
+    for i, r, s in zip(which[order].tolist(), row[order].tolist(), sequence[order].tolist(), strict=True):
+        side, part, values, times, arrived, source = columns[i]
+        published = source[r] if not by_order else unknown[0]
+        offer(
+            side,
+            values[r],
+            float(times[r]),
+            received=float(arrived[r]),
+            sequence=s or None,
+            source_time=None if published != published else float(published),
+            part=part,
+        )
+
+
+def recorded_samples(path: str | Path, n_u: int = 1, n_y: int = 1) -> tuple[np.ndarray, ...] | None:
+    """The identifier's own ``samples`` (the pairs it formed live), sorted by index, a repeated index the first
+    (as live): (index, u, y, learn); None where the bag holds none."""
+    from lenn_ros.bag.run import read_samples
+
+    samples = read_samples(path, None, n_u, n_y)
+    if samples is None or samples.index.size == 0:
+        return None
+    index, _time, u, y, learn = samples.ordered()
+    return index, u, y, learn
+
+
+def raw_losses(path: str | Path) -> dict[str, int]:
+    """Messages of u / y_p missing from the recording, from gaps in their sequence numbers."""
+    from lenn_ros.bag.info import bag_info
+
+    losses = {}
+    for topic, entry in bag_info(path)["topics"].items():
+        name = topic.rstrip("/").rsplit("/", 1)[-1]
+        if name in (topics.U, topics.Y_P) and entry.get("missing"):
+            losses[topic] = int(entry["missing"])
+    return losses
+
+
+def samples_summary(path: str | Path, flags: dict[str, Any], progress: bool = False) -> dict[str, Any]:
+    """The samples the identifier would form from the topics ``flags`` name (``bag-info`` with topics named)."""
+    from lenn_ros.bag.reader import topic_types as types_of
+    from lenn_ros.core.runs import missing
+    from lenn_ros.core.session import describe_gaps
+    from lenn_ros.service.building import configuration, make_session
+    from lenn_ros.service.reading import with_flags
+
+    path = Path(path)
+    types = types_of(path)
+    identifier, values = configuration(
+        path, None, model=False, adjust=lambda v: with_flags(v, flags, types, path), defaults=True
+    )
+    session = make_session(identifier, values)
+    samples = pair_raw(path, session, values, progress)
+    index = samples.index
+    dropped = {key: value for key, value in session.all_counters().items() if value and key not in ("paired",)}
+    return {
+        "source": samples.source,
+        "count": int(index.size),
+        "first": int(index[0]) if index.size else None,
+        "last": int(index[-1]) if index.size else None,
+        "missing": missing(index)[1] if index.size else 0,
+        "gaps": describe_gaps(index, values["pairing"], float(values.get("sample_period") or 0.0)),
+        "counters": dropped,
+    }
+
+
+def format_samples(summary: dict[str, Any]) -> str:
+    """``samples_summary`` as lines under the topics."""
+    lines = [f"Samples:      {summary['count']} from {summary['source']}"]
+    if summary["count"]:
+        lines.append(f"  numbered {summary['first']}..{summary['last']} (the node's numbering: --test-from K is one)")
+    lines += [f"  {line}" for line in summary["gaps"]]
+    counted = ", ".join(f"{key} {value}" for key, value in summary["counters"].items())
+    if counted:
+        lines.append(f"  counted: {counted}")
+    return "\n".join(lines)

@@ -1,0 +1,123 @@
+"""A test part scored: one-step and free run (restarted from the measured outputs after every break), and the
+95 % bands with what they cover. Used by ``evaluate`` (a recording) and by ``fit``'s reading of a bag's fit.
+
+The free run's restarts are :func:`lenn_ros.core.evaluation.free_run_segments` (the gap rule of
+:mod:`lenn_ros.core.runs`); a model of several outputs is run with all its outputs together and scored
+output by output with the same code as one output.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from lenn_ros.core.evaluation import Evaluation, free_run_problems, free_run_segments
+from lenn_ros.core.metrics import coverage, nmse_db, rmse
+from lenn_ros.core.mimo import MimoIdentifier
+from lenn_ros.core.session import Session
+from lenn_ros.core.spread import Z95
+from lenn_ros.core.structure import Identifier
+from lenn_ros.fit.data import REPORT_FILE
+
+
+def score(
+    identifier: Identifier | MimoIdentifier,
+    index: np.ndarray,
+    u: np.ndarray,
+    y: np.ndarray,
+    y_hat: np.ndarray,
+    start: int,
+) -> list[Evaluation]:
+    """Each output's scores over the samples from ``start`` on: one-step (``y_hat``), and the free run of all
+    outputs together (restarted from the measured outputs after every break)."""
+    test = index >= start
+    first = int(np.argmax(test))
+    y_free, free_run = free_run_segments(identifier, index, u, y, first)
+    columns = y.reshape(len(y), -1)
+    predicted = y_hat.reshape(len(y), -1)
+    simulated_all = y_free.reshape(len(y_free), -1)
+    return [_score_output(columns[:, j], predicted[:, j], simulated_all[:, j], free_run, test)
+            for j in range(columns.shape[1])]  # fmt: skip
+
+
+def _score_output(
+    y: np.ndarray, y_hat: np.ndarray, y_free: np.ndarray, free_run: dict[str, Any], test: np.ndarray
+) -> Evaluation:
+    scored = test & np.isfinite(y_hat)
+    y_test = y[test]
+    simulated = np.isfinite(y_test) & (np.isfinite(y_free) | free_run["diverged"])
+    if not simulated.any():
+        simulated[:] = True  # nothing could be simulated: the figures are NaN, and said so
+    train = ~test & np.isfinite(y_hat)
+    free_ok = not free_run["diverged"] and simulated.any() and np.all(np.isfinite(y_free[simulated]))
+    return Evaluation(
+        free_run=free_run,
+        free_run_warnings=free_run_problems(y_test[simulated], y_free[simulated], free_run),
+        nmse_db=nmse_db(y[scored], y_hat[scored]) if scored.any() else math.nan,
+        nmse_free_run_db=nmse_db(y_test[simulated], y_free[simulated]) if free_ok else math.nan,
+        rmse=rmse(y[scored], y_hat[scored]) if scored.any() else math.nan,
+        rmse_free_run=rmse(y_test[simulated], y_free[simulated]) if free_ok else math.nan,
+        samples=int(scored.sum()),
+        trained=int(train.sum()),
+        skipped=int((~np.isfinite(y_hat[~test])).sum()),
+        y_test=y_test,
+        y_hat_test=y_hat[test],
+        y_free_test=y_free,
+        train_errors=(y - y_hat)[train],
+    )
+
+
+def one_step_band(test: np.ndarray, y: np.ndarray, y_hat: np.ndarray, session: Session) -> dict[str, Any]:
+    """The node's nominal 95 % one-step band (``y_hat_std``, as published live) and what it covers of the test part.
+
+    ``run_samples`` gives every prediction the std the node published with it (RLS
+    covariance and innovation variance, ``core.spread``), so this is the band live users saw.
+    """
+    std = session.last_y_hat_std
+    if len(std) != len(y):
+        return {}
+    scored = test & np.isfinite(y_hat) & np.isfinite(std)
+    if not scored.any():
+        return {}
+    half = Z95 * std[scored]
+    return {
+        "level": 0.95,
+        "one_step": {
+            "median_half_width": float(np.median(half)),
+            "from": "the node's y_hat_std (RLS covariance and innovation variance), as published live",
+            "coverage_test": float(np.mean(np.abs(y[scored] - y_hat[scored]) <= half)),
+        },
+    }
+
+
+def fit_band_coverage(weights_in: str, evaluations: dict[str, Evaluation]) -> dict[str, Any]:
+    """The nominal 95 % free-run band of the fit the weights came from (its ``fit.json``), and what it covers here.
+
+    The band is the fit's estimate (errors on its held-out blocks); the model scored here
+    went on learning from the bag's training phase, so the coverage says how well the
+    fit's uncertainty carries over to this recording. Several outputs: one band each,
+    under ``free_run`` by output name. Empty without a fit report.
+    """
+    report = Path(weights_in).parent / REPORT_FILE if weights_in else None
+    if report is None or not report.is_file():
+        return {}
+    try:
+        fitted = json.loads(report.read_text())
+    except (OSError, ValueError):
+        return {}
+    parts = fitted.get("per_output") or [fitted]
+    covered = {}
+    for (name, evaluation), part in zip(evaluations.items(), parts, strict=False):
+        width = part.get("intervals", {}).get("free_run", {}).get("half_width")
+        if not width:
+            continue
+        simulated = np.isfinite(evaluation.y_free_test)
+        share = coverage(evaluation.y_test[simulated], evaluation.y_free_test[simulated], float(width))
+        covered[name] = {"half_width": float(width), "from": str(report), "coverage_test": share}
+    if not covered:
+        return {}
+    return {"level": 0.95, "free_run": covered["y"] if list(covered) == ["y"] else covered}

@@ -15,7 +15,7 @@ run, and where the identifier's time per message goes.
 
 Figures are medians over repeated runs; ratios are formed within one run. The
 benchmark prints what it measures next to the project's targets; it asserts nothing.
-bench/RESULTS.md holds the latest full run.
+bench/RESULTS.md holds the latest tables (offline and online).
 """
 
 from __future__ import annotations

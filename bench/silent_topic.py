@@ -1,7 +1,9 @@
-"""A driver at 1 kHz with the controller not yet started: the identifier's memory over time.
+"""A driver at 1 kHz with the controller not yet started: what the identifier takes, and its memory, over time.
 
     python bench/silent_topic.py --seconds 3600                 # sample pairing, one hour
     python bench/silent_topic.py --seconds 300 --pairing stamp  # stamp pairing, five minutes
+    python bench/silent_topic.py --seconds 2400 --load 2        # both cores kept busy (two loops at nice 5)
+    python bench/silent_topic.py --seconds 2400 --load 2 --no-guard   # without the console guard (issue 45)
 
 Starts the real ``identifier`` (a subprocess, its own domain, discovery on this machine)
 reading ``/joint_states`` (``sensor_msgs/JointState``, stamped, BEST_EFFORT, published
@@ -12,8 +14,15 @@ pairing queue (``overflow``) and what is queued. Issue 18 measured +4.4 MB in 50
 still rising before the queues had a cap; with the cap the queue fills in its first
 10 s (MAX_QUEUE = 10 000 at 1 kHz) and memory must stay flat after that.
 
-Printed: a table of the samples and one JSON line (``--json`` for only that) with the
-growth over the run's second half, in kB and kB per minute.
+The node's stderr is a pipe this script reads only at the end, as a harness often does: its
+warnings (a lone-input line every ``warn_period``) fill that pipe after about 25 minutes. Before
+the console guard (``lenn_ros.nodes.console``) the node then blocked in ``write()`` and took
+nothing more (issue 45); ``--no-guard`` runs it that way again. ``--participant shared`` puts the
+inputs on the node's own DDS participant (``LENN_ROS_INPUTS_PARTICIPANT=0``).
+
+Printed: the samples as they come (``--json``: only the result), then one JSON line with what was
+taken against what was sent, the watchdog's and the console's counters, and the memory growth over
+the run's second half, in kB and kB per minute.
 """
 
 from __future__ import annotations
@@ -124,9 +133,19 @@ def sample_row(elapsed: float, pid: int, driver: Driver) -> dict:
     }
 
 
-def run(seconds: float, pairing: str, rate: float, every: float, domain: int) -> dict:
+def run(
+    seconds: float, pairing: str, rate: float, every: float, domain: int, options: argparse.Namespace | None = None
+) -> dict:
     env = {**os.environ, "ROS_DOMAIN_ID": str(domain), "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"}
     env["PYTHONPATH"] = os.pathsep.join([str(REPO), env.get("PYTHONPATH", "")])
+    if options is not None and options.no_guard:
+        env["LENN_ROS_CONSOLE_GUARD"] = "0"
+    if options is not None and options.participant == "shared":
+        env["LENN_ROS_INPUTS_PARTICIPANT"] = "0"
+    hogs = [
+        subprocess.Popen([sys.executable, "-c", "while True: pass"], preexec_fn=lambda: os.nice(5))
+        for _ in range(options.load if options is not None else 0)
+    ]
     node = subprocess.Popen(
         identifier_command(pairing, rate), env=env, cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
         text=True,
@@ -141,15 +160,24 @@ def run(seconds: float, pairing: str, rate: float, every: float, domain: int) ->
         publisher.start()
         while (elapsed := time.monotonic() - start) < seconds and node.poll() is None:
             rows.append(sample_row(elapsed, node.pid, driver))
+            if options is not None and not options.json:
+                print_row(rows[-1])
             driver.stop.wait(min(every, max(seconds - elapsed, 0.0)))
         rows.append(sample_row(time.monotonic() - start, node.pid, driver))
         driver.stop.set()
         publisher.join(timeout=5)
     finally:
+        for hog in hogs:
+            hog.kill()
         driver.close()
         node.send_signal(signal.SIGINT)
         _, stderr = node.communicate(timeout=30)
     return summary(rows, pairing, rate, seconds, driver.late, stderr)
+
+
+def print_row(row: dict) -> None:
+    print(f"| {row['t_s']:.0f} | {row['rss_kb']} | {row['sent']} | {row['y_messages']} | {row['overflow']} | "
+          f"{row['queued']} |", flush=True)  # fmt: skip
 
 
 def summary(rows: list[dict], pairing: str, rate: float, seconds: float, late: int, stderr: str) -> dict:
@@ -158,7 +186,11 @@ def summary(rows: list[dict], pairing: str, rate: float, seconds: float, late: i
     growth = half[-1]["rss_kb"] - half[0]["rss_kb"]
     minutes = max((half[-1]["t_s"] - half[0]["t_s"]) / 60.0, 1e-9)
     final = next((line for line in reversed(stderr.splitlines()) if line.startswith("identifier: {")), "")
+    counters = json.loads(final.split(": ", 1)[1])["counters"] if final else {}
     return {
+        "taken_share": round(counters.get("y_messages", 0) / max(rows[-1]["sent"], 1), 5),
+        "log_lines_dropped": counters.get("log_lines_dropped"),
+        "input_stalls": counters.get("input_stalls"),
         "pairing": pairing,
         "rate_hz": rate,
         "seconds": seconds,
@@ -169,18 +201,13 @@ def summary(rows: list[dict], pairing: str, rate: float, seconds: float, late: i
         "rss_kb_end": rows[-1]["rss_kb"],
         "growth_kb_second_half": growth,
         "growth_kb_per_min_second_half": round(growth / minutes, 1),
-        "final_counters": json.loads(final.split(": ", 1)[1])["counters"] if final else None,
+        "final_counters": counters or None,
         "rows": rows,
     }
 
 
 def print_table(result: dict) -> None:
-    print(f"pairing {result['pairing']}, {result['rate_hz']:.0f} Hz JointState, /cmd silent, {result['seconds']:.0f} s")
-    print("| t (s) | RSS (kB) | sent | taken (y_messages) | overflow | queued |")
-    print("|---:|---:|---:|---:|---:|---:|")
-    for row in result["rows"]:
-        print(f"| {row['t_s']:.0f} | {row['rss_kb']} | {row['sent']} | {row['y_messages']} | {row['overflow']} | "
-              f"{row['queued']} |")  # fmt: skip
+    """The closing lines (the rows were printed as they came)."""
     print(
         f"RSS first {result['rss_kb_first']} kB, max {result['rss_kb_max']} kB, end {result['rss_kb_end']} kB; "
         f"second half: {result['growth_kb_second_half']:+d} kB ({result['growth_kb_per_min_second_half']:+.1f} "
@@ -196,15 +223,24 @@ def main() -> int:
     parser.add_argument("--every", type=float, default=0.0, help="seconds between samples (0: seconds / 12)")
     parser.add_argument("--domain", type=int, default=0, help="ROS domain (0: one no concurrent run uses)")
     parser.add_argument("--json", action="store_true", help="print only the JSON result")
+    parser.add_argument("--load", type=int, default=0, help="busy processes at nice 5 beside the run (2: both cores)")
+    parser.add_argument("--no-guard", action="store_true", help="without the console guard (LENN_ROS_CONSOLE_GUARD=0)")
+    parser.add_argument("--participant", choices=("separate", "shared"), default="separate",
+                        help="the inputs on a DDS participant of their own (default) or on the node's")  # fmt: skip
     args = parser.parse_args()
     every = args.every or args.seconds / 12
+    if not args.json:
+        print(f"pairing {args.pairing}, {args.rate:.0f} Hz JointState, /cmd silent, {args.seconds:.0f} s, load "
+              f"{args.load}, inputs {args.participant}{', no console guard' if args.no_guard else ''}")  # fmt: skip
+        print("| t (s) | RSS (kB) | sent | taken (y_messages) | overflow | queued |")
+        print("|---:|---:|---:|---:|---:|---:|")
     if args.domain:
-        result = run(args.seconds, args.pairing, args.rate, every, args.domain)
+        result = run(args.seconds, args.pairing, args.rate, every, args.domain, args)
     else:
         import domain_coordinator
 
         with domain_coordinator.domain_id() as domain:
-            result = run(args.seconds, args.pairing, args.rate, every, domain)
+            result = run(args.seconds, args.pairing, args.rate, every, domain, args)
     if not args.json:
         print_table(result)
     print(json.dumps({key: value for key, value in result.items() if key != "rows"}))

@@ -141,6 +141,15 @@ NODE_PARAMETERS = [
         live=True,
     ),
     Parameter(
+        "input_timeout",
+        5.0,
+        "an input topic whose rate is known (>= 5 Hz) and whose publisher is still matched delivers nothing for "
+        "this many seconds (at least 20 of its periods): said with the publisher, counted (input_stalls), WARN on "
+        "/diagnostics, and the input resubscribed; again after twice as long (0 = no watchdog; core.watchdog)",
+        0.0,
+        3600.0,
+    ),
+    Parameter(
         "max_lag",
         0.5,
         "stamp/sample overload: a message that waited longer than this many seconds in its queue is shed "

@@ -18,7 +18,7 @@ from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
-from lenn_ros.nodes import rclpy_internals
+from lenn_ros.nodes import console, rclpy_internals
 
 #: The loops :func:`run_node` can spin a node with (see its docstring).
 EXECUTORS = ("single", "events", "waitset")
@@ -120,6 +120,7 @@ def run_node(
     second for the middleware's receiving threads, and the exit must come within 2 s of
     SIGINT (issue 18: 1.0-1.3 s with it, 2.2-3.4 s without, on 2 loaded cores).
     """
+    console.guard_console()  # before anything logs: a stderr nobody reads must not stall the node
     executor = _loop_to_run(name, executor)
     if not executor:
         return 2
@@ -193,6 +194,7 @@ def _end(code: int, exit_process: bool) -> int:
     if exit_process:
         sys.stdout.flush()
         sys.stderr.flush()
+        console.flush()
         os._exit(code)
     return code
 

@@ -70,7 +70,8 @@ from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.networks import ModelFileError
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.session import Notice, Sample, Session, SessionConfig, json_safe
-from lenn_ros.nodes import DRAIN_SECONDS, InputsNode, executor_choice, rclpy_internals, run_node
+from lenn_ros.core.watchdog import InputWatchdog
+from lenn_ros.nodes import DRAIN_SECONDS, InputsNode, console, executor_choice, rclpy_internals, run_node
 from lenn_ros.nodes.identifier_outputs import OUTPUTS, IdentifierOutputs
 
 #: Parameters set by rclpy itself or by the QoS override mechanism: not unknown.
@@ -80,7 +81,7 @@ _QOS_OVERRIDES = QoSOverridingOptions(
     policy_kinds=(QoSPolicyKind.HISTORY, QoSPolicyKind.DEPTH, QoSPolicyKind.RELIABILITY, QoSPolicyKind.DURABILITY)
 )
 #: Notice kinds that are news, not trouble.
-_INFO_KINDS = ("phase", "resumed", "scales", "parameters", "change_cleared", "inputs_resumed", "sign")
+_INFO_KINDS = ("phase", "resumed", "scales", "parameters", "change_cleared", "inputs_resumed", "sign", "input_resumed")
 
 
 def _descriptor(parameter: Parameter) -> ParameterDescriptor:
@@ -189,6 +190,8 @@ class IdentifierNode(Node):
         self._message_types = message_types
         self._alias_qos_overrides()
         self._subscribe(message_types)
+        self.watchdog = InputWatchdog(timeout=self.values["input_timeout"]) if self.values["input_timeout"] else None
+        self._input_names = {key: s.topic_name for key, s in self._data_subscriptions.items()}
         self._warn_unknown_qos_overrides()
         self.create_timer(self.values["status_period"], self._on_status_timer)
         if self.values["pairing"] != "sequence":
@@ -412,29 +415,9 @@ class IdentifierNode(Node):
         self._test_start_subscription = (inputs or self).create_subscription(
             Int64, self.resolve_topic_name(topics.TEST_START), self._on_test_start, topics.latched_qos()
         )
+        self._profile, self._inputs_node = profile, inputs
         for channel, part, name in self.inputs:
-            events = SubscriptionEventCallbacks(incompatible_qos=lambda event, c=channel: self._on_incompatible_qos(c))
-            callback = lambda message, info, c=channel, p=part: self._on_message(c, message, info, p)  # noqa: E731
-            if inputs is None:
-                subscription = self.create_subscription(
-                    message_types[channel],
-                    name,
-                    callback,
-                    profile,
-                    event_callbacks=events,
-                    qos_overriding_options=_QOS_OVERRIDES,
-                    raw=True,  # read once admitted (_offer)
-                )
-            else:  # its QoS overrides are our parameters; the subscription is the inputs' node's only
-                subscription = inputs.create_subscription(
-                    message_types[channel],
-                    self.resolve_topic_name(name),
-                    callback,
-                    self._overridden_qos(name, profile),
-                    event_callbacks=events,
-                    raw=True,
-                )
-            self._data_subscriptions[channel, part] = subscription
+            self._data_subscriptions[channel, part] = self._subscribe_input(channel, part, name)
         if inputs is not None:
             self.companions = (inputs,)
         self._inputs_node_name = (inputs or self).get_fully_qualified_name()
@@ -442,6 +425,32 @@ class IdentifierNode(Node):
         kept = [s.qos_profile for s in self._data_subscriptions.values()]
         keep_last = all(qos.history != HistoryPolicy.KEEP_ALL for qos in kept)
         self.session.config.queue_depth = min(qos.depth for qos in kept) if keep_last else 0
+
+    def _subscribe_input(self, channel: str, part: int, name: str) -> Any:
+        """One input's subscription (raw: read once admitted, :meth:`_offer`), on the inputs' node when it has one
+        (its QoS overrides are this node's parameters), with the QoS-mismatch event said in one line."""
+        events = SubscriptionEventCallbacks(incompatible_qos=lambda event, c=channel: self._on_incompatible_qos(c))
+        callback = lambda message, info, c=channel, p=part: self._on_message(c, message, info, p)  # noqa: E731
+        message_type = self._message_types[channel]
+        if self._inputs_node is None:
+            return self.create_subscription(
+                message_type, name, callback, self._profile, event_callbacks=events,
+                qos_overriding_options=_QOS_OVERRIDES, raw=True,
+            )  # fmt: skip
+        return self._inputs_node.create_subscription(
+            message_type, self.resolve_topic_name(name), callback, self._overridden_qos(name, self._profile),
+            event_callbacks=events, raw=True,
+        )  # fmt: skip
+
+    def _resubscribe(self, topic: str) -> None:
+        """The watchdog's remedy for an input that matched publishers no longer deliver: a new subscription (a new
+        reader in the middleware), the old one destroyed (the wait-set loop picks the new one up at its next turn)."""
+        for (channel, part, name), key in zip(self.inputs, self._data_subscriptions, strict=True):
+            old = self._data_subscriptions[key]
+            if old.topic_name != topic:
+                continue
+            (self._inputs_node or self).destroy_subscription(old)
+            self._data_subscriptions[key] = self._subscribe_input(channel, part, name)
 
     def _overridden_qos(self, topic: str, profile: QoSProfile) -> QoSProfile:
         """``profile`` with the user's ``qos_overrides.<topic>.subscription.*``, declared on this node as
@@ -592,6 +601,8 @@ class IdentifierNode(Node):
         than messages arrive to reach the newest again.
         """
         arrived = info.get("received_timestamp")
+        if self.watchdog is not None:
+            self.watchdog.arrived(self._input_names[channel, part], time.monotonic())
         if arrived and not self.session.admit((channel, part), arrived * 1e-9, time.time()):
             return  # shed: the node is behind (counted, said by the session)
         message = deserialize_message(serialized, self._message_types[channel])
@@ -709,6 +720,10 @@ class IdentifierNode(Node):
         status = self.session.status()
         status["network"] = self.network
         status["counters"].update(self.node_counters)
+        if self.watchdog is not None:
+            status["counters"].update(self.watchdog.counters)
+            status["inputs_stalled"] = self.watchdog.stalled
+        status["counters"]["log_lines_dropped"] = console.dropped_lines()
         status["topics"] = {"u": self.u_name, "y_p": self.y_name}
         status["inputs_node"] = self._inputs_node_name  # whom `ros2 topic info -v` names as u's and y_p's subscriber
         status["readers"] = self._readers()
@@ -736,7 +751,24 @@ class IdentifierNode(Node):
             if publisher.topic_name.rsplit("/", 1)[-1] not in quiet
         )
 
+    def _watch_inputs(self) -> None:
+        """The input watchdog's turn (core.watchdog): each stall or slow topic said with its matched publishers,
+        a stalled one resubscribed."""
+        if self.watchdog is None:
+            return
+        publishers = {}
+        for subscription in self._data_subscriptions.values():
+            topic = subscription.topic_name
+            if subscription.get_publisher_count() and self.watchdog.watched(topic):
+                infos = self.get_publishers_info_by_topic(topic)
+                publishers[topic] = sorted({f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in infos}) or ["?"]
+        for event in self.watchdog.check(time.monotonic(), publishers):
+            self._log(Notice(f"input_{event.kind}", event.text, event.topic))
+            if event.resubscribe:
+                self._resubscribe(event.topic)
+
     def _on_status_timer(self) -> None:
+        self._watch_inputs()
         self._check_graph()
         self._publish(self.session.poll(self._paired_until()))
         self._emit_notices()
@@ -753,6 +785,8 @@ class IdentifierNode(Node):
         elif status["change"]["alarm"]:  # while it is on, whatever else was said
             change = status["change"]
             level, text = DiagnosticStatus.WARN, self.session.change_text(change["since_sample"], change["since_time"])
+        elif status.get("inputs_stalled"):  # for as long as it lasts
+            level, text = DiagnosticStatus.WARN, f"input stalled or slow: {', '.join(status['inputs_stalled'])}"
         elif self.session.silent:  # for as long as it lasts, not only in the period it was said
             level, text = DiagnosticStatus.WARN, f"no {self.u_name} or {self.y_name} for silence_timeout or longer"
         elif self._warned_kinds:

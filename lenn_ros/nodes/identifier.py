@@ -121,6 +121,7 @@ class IdentifierNode(Node):
     loop_takes_messages = False  # set by run_node's wait-set loop (see _on_message)
     companions: tuple[Node, ...] = ()  # nodes the loop must serve with this one (the InputsNode)
     _EXIT_BUDGET = 1.2
+    _console_dropped = 0
     _ACK_FLOOR = 0.4
     _drained_for = 0.0
 
@@ -769,6 +770,10 @@ class IdentifierNode(Node):
 
     def _on_status_timer(self) -> None:
         self._watch_inputs()
+        dropped = console.dropped_lines()
+        if dropped > self._console_dropped:  # (said on the console itself once it takes lines again)
+            self._console_dropped = dropped
+            self._warned_kinds.add("console: log lines dropped, stderr not read")
         self._check_graph()
         self._publish(self.session.poll(self._paired_until()))
         self._emit_notices()

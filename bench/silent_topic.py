@@ -189,7 +189,7 @@ def summary(rows: list[dict], pairing: str, rate: float, seconds: float, late: i
     counters = json.loads(final.split(": ", 1)[1])["counters"] if final else {}
     return {
         "taken_share": round(counters.get("y_messages", 0) / max(rows[-1]["sent"], 1), 5),
-        "log_lines_dropped": counters.get("log_lines_dropped"),
+        "console_lines_lost": counters.get("console_lines_lost"),
         "input_stalls": counters.get("input_stalls"),
         "pairing": pairing,
         "rate_hz": rate,

@@ -133,7 +133,7 @@ def test_a_console_nobody_reads_never_stalls_the_node(domain: int) -> None:
         driver.publishing.set()
         driver.thread.start()
         # long after the pipe is full (~5 s of warnings), the node still takes every message
-        driver.wait(lambda s: s["counters"].get("log_lines_dropped", 0) > 0, timeout=60)
+        driver.wait(lambda s: s["counters"].get("console_lines_lost", 0) > 0, timeout=60)
         before, sent = driver.taken(), driver.sent
         driver.wait(lambda s: s["counters"]["y_messages"] > before + 4 * RATE, timeout=30)
         assert driver.taken() - before >= 0.9 * (driver.sent - sent) - RATE  # (a status is up to 0.5 s old)
@@ -142,7 +142,7 @@ def test_a_console_nobody_reads_never_stalls_the_node(domain: int) -> None:
         err = finish(node)
     notes = [line for line in err.splitlines() if line.startswith("[console]")]
     assert notes and "log line(s) dropped" in notes[0] and "the node went on working" in notes[0], err[-2000:]
-    assert final_status(err)["counters"]["log_lines_dropped"] > 0
+    assert final_status(err)["counters"]["console_lines_lost"] > 0
 
 
 def test_an_input_that_stops_while_matched_is_said_counted_resubscribed_and_taken_again(domain: int) -> None:

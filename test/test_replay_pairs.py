@@ -1,14 +1,14 @@
 """Replay republishes sample k as the k-th u and y_p, whatever the recording lost or reordered.
 
-The pairing itself (:func:`lenn_ros.bag.run.pair_raw`) is checked without ROS first; then
-the replay node as a real process into an rclpy listener and into the real identifier.
+The pairing itself (the one of every offline command, :func:`lenn_ros.service.recording.pair_raw`,
+the node's session over a recording) is checked without ROS first; then the replay node as a real
+process into an rclpy listener and into the real identifier.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -18,8 +18,9 @@ import numpy as np
 import pytest
 
 from lenn_ros import topics
-from lenn_ros.bag import BagError, BagWriter, iter_messages, read_run, read_samples, topic_types
-from lenn_ros.bag.run import pair_raw
+from lenn_ros.bag import BagWriter, iter_messages, read_run, read_samples, topic_types
+from lenn_ros.service import RecordingError
+from lenn_ros.service.recording import numbered_rows, read_recording
 
 REPO = Path(__file__).resolve().parents[1]
 EXAMPLE = REPO / "bags" / "example1"
@@ -30,47 +31,51 @@ SWAPPED = (501, 504)  # y_p samples whose arrivals are swapped in the copy
 # -- the pairing alone ---------------------------------------------------------------------------
 
 
-def test_lost_and_reordered_halves_pair_by_index() -> None:
-    u, u_seq = [10.0, 20.0, 40.0, 50.0], [1, 2, 4, 5]  # u(3) lost
-    y, y_seq = [-1.0, -3.0, -2.0, -5.0], [1, 3, 2, 5]  # y_p(2), y_p(3) swapped, y_p(4) lost
-    pairs = pair_raw(u, y, u_seq, y_seq, u_t=[0, 10, 30, 40], y_p_t=[1, 21, 11, 41])
-    assert pairs.index.tolist() == [1, 2, 3, 4, 5] and pairs.stream.tolist() == [0] * 5
-    assert pairs.u[[0, 1, 3, 4]].tolist() == [10.0, 20.0, 40.0, 50.0] and math.isnan(pairs.u[2])
-    assert pairs.y_p[[0, 1, 2, 4]].tolist() == [-1.0, -2.0, -3.0, -5.0] and math.isnan(pairs.y_p[3])
-    assert pairs.has_u.tolist() == [True, True, False, True, True]
-    assert pairs.has_y_p.tolist() == [True, True, True, False, True]
-    assert pairs.time_ns.tolist() == [0, 10, 21, 30, 40]  # u's log time, else y_p's
-    assert pairs.incomplete == 2 and not pairs.by_order
+def halves_bag(path: Path, u: list[tuple[int, float]], y_p: list[tuple[int, float]]) -> Path:
+    """A bag of u and y_p messages (sequence number, value), each list in its arrival order, interleaved."""
+    with BagWriter(path) as bag:
+        for name in ("/u", "/y_p"):
+            bag.add_topic(name)
+        for t, (name, (sequence, value)) in enumerate(
+            [pair for both in zip([("/u", m) for m in u], [("/y_p", m) for m in y_p], strict=False) for pair in both]
+            + [("/u", m) for m in u[len(y_p) :]]
+            + [("/y_p", m) for m in y_p[len(u) :]]
+        ):
+            bag.write_value(name, value, 1_000_000 * (t + 1), sequence=sequence)
+    return path
 
 
-def test_fill_gives_every_index_of_each_stream() -> None:
-    pairs = pair_raw([3.0, 5.0], [-3.0, -5.0], [3, 5], [3, 5], u_t=[30, 50], y_p_t=[31, 51], fill=True)
-    assert pairs.index.tolist() == [1, 2, 3, 4, 5]
-    assert pairs.has_u.tolist() == pairs.has_y_p.tolist() == [False, False, True, False, True]
-    assert np.isnan(pairs.u[[0, 1, 3]]).all() and np.isnan(pairs.y_p[[0, 1, 3]]).all()
-    assert pairs.time_ns.tolist() == [30, 30, 30, 30, 50]  # a filled row is due with its neighbours
-    unfilled = pair_raw([3.0, 5.0], [-3.0, -5.0], [3, 5], [3, 5])
-    assert unfilled.index.tolist() == [3, 5] and unfilled.incomplete == 0
+def test_lost_and_reordered_halves_pair_by_index(tmp_path: Path) -> None:
+    u = [(1, 10.0), (2, 20.0), (4, 40.0), (5, 50.0)]  # u(3) lost
+    y = [(1, -1.0), (3, -3.0), (2, -2.0), (5, -5.0)]  # y_p(2), y_p(3) swapped, y_p(4) lost
+    read = read_recording(halves_bag(tmp_path / "b", u, y))
+    samples = read.samples
+    assert samples.index.tolist() == [1, 2, 5] and not samples.by_order  # 3 and 4 are not whole
+    assert samples.u.tolist() == [10.0, 20.0, 50.0] and samples.y.tolist() == [-1.0, -2.0, -5.0]
+    assert read.session.all_counters()["unpaired"] == 2  # y_p(3) and u(4): counted, never paired
 
 
-def test_restart_at_one_is_a_new_stream_and_repeats_keep_the_first() -> None:
-    # u: 1 2 3 | 1 2, with a repeated 2 in the first stream; y_p: a repeated 1 first (not a restart)
-    u, u_seq = [1.0, 2.0, 2.5, 3.0, 11.0, 12.0], [1, 2, 2, 3, 1, 2]
-    y, y_seq = [-1.0, -1.5, -2.0, -3.0, -11.0, -12.0], [1, 1, 2, 3, 1, 2]
-    pairs = pair_raw(u, y, u_seq, y_seq, fill=True)
-    assert pairs.stream.tolist() == [0, 0, 0, 1, 1] and pairs.index.tolist() == [1, 2, 3, 1, 2]
-    assert pairs.u.tolist() == [1.0, 2.0, 3.0, 11.0, 12.0]
-    assert pairs.y_p.tolist() == [-1.0, -2.0, -3.0, -11.0, -12.0]
-    assert pairs.duplicates == 2 and pairs.incomplete == 0
+def test_numbered_rows_give_every_index_of_each_run() -> None:
+    rows, runs = numbered_rows(np.array([3, 5, 1, 2]))  # a publisher run 3, 5; a restart 1, 2
+    assert rows.tolist() == [2, 4, 5, 6] and runs.tolist() == [0, 0, 0, 0, 0, 1, 1]
 
 
-def test_without_sequence_numbers_by_order_only_when_counts_match() -> None:
-    pairs = pair_raw([1.0, 2.0], [-1.0, -2.0], [0, 0], None)
-    assert pairs.by_order and pairs.index.tolist() == [1, 2] and pairs.y_p.tolist() == [-1.0, -2.0]
-    with pytest.raises(BagError, match="u has 3 messages, y_p 2: pairing by order would shift"):
-        pair_raw([1.0, 2.0, 3.0], [-1.0, -2.0], None, None)
-    partly = pair_raw([1.0, 2.0, 9.0], [-1.0, -2.0], [1, 2, 0], [1, 2])  # an unindexed message is dropped
-    assert partly.u.tolist() == [1.0, 2.0] and partly.unindexed == 1
+def test_restart_at_one_is_a_new_stream_and_repeats_keep_the_first(tmp_path: Path) -> None:
+    u = [(1, 1.0), (2, 2.0), (2, 2.5), (3, 3.0), (1, 11.0), (2, 12.0)]  # a repeated 2, then a restart
+    y = [(1, -1.0), (1, -1.5), (2, -2.0), (3, -3.0), (1, -11.0), (2, -12.0)]  # a repeated 1 first: no restart
+    read = read_recording(halves_bag(tmp_path / "b", u, y))
+    assert read.samples.index.tolist() == [1, 2, 3, 1, 2]
+    assert read.samples.u.tolist() == [1.0, 2.0, 3.0, 11.0, 12.0]
+    assert read.samples.y.tolist() == [-1.0, -2.0, -3.0, -11.0, -12.0]
+    counters = read.session.all_counters()
+    assert counters["restarts"] == 1 and counters["duplicates"] + counters["stale"] == 2
+
+
+def test_without_sequence_numbers_by_order_only_when_counts_match(tmp_path: Path) -> None:
+    read = read_recording(halves_bag(tmp_path / "even", [(0, 1.0), (0, 2.0)], [(0, -1.0), (0, -2.0)]))
+    assert read.samples.by_order and read.samples.index.tolist() == [1, 2] and read.samples.y.tolist() == [-1.0, -2.0]
+    with pytest.raises(RecordingError, match="u has 3 messages, y_p 2: pairing by order would shift"):
+        read_recording(halves_bag(tmp_path / "odd", [(0, 1.0), (0, 2.0), (0, 3.0)], [(0, -1.0), (0, -2.0)]))
 
 
 def copy_damaged(source: Path, target: Path, keep_samples: bool) -> Path:
@@ -102,16 +107,11 @@ def copy_damaged(source: Path, target: Path, keep_samples: bool) -> Path:
 def test_damaged_shipped_bag_pairs_as_recorded(tmp_path: Path) -> None:
     original = read_run(EXAMPLE)
     assert original.u_sequence.tolist() == list(range(1, original.u.size + 1))  # sample k at position k - 1
-    damaged = read_run(copy_damaged(EXAMPLE, tmp_path / "damaged", keep_samples=False))
-    assert damaged.u.size == original.u.size - 1 and damaged.y_p.size == original.y_p.size - 1
-    pairs = pair_raw(damaged.u, damaged.y_p, damaged.u_sequence, damaged.y_p_sequence, fill=True)
-    assert pairs.index.tolist() == list(range(1, original.u.size + 1))
-    complete = pairs.has_u & pairs.has_y_p
-    assert np.flatnonzero(~complete).tolist() == [LOST_U - 1, LOST_Y - 1]
-    assert np.array_equal(pairs.u[complete], original.u[complete])
-    assert np.array_equal(pairs.y_p[complete], original.y_p[complete])
-    assert np.isnan(pairs.u[LOST_U - 1]) and pairs.y_p[LOST_U - 1] == original.y_p[LOST_U - 1]
-    assert np.isnan(pairs.y_p[LOST_Y - 1]) and pairs.u[LOST_Y - 1] == original.u[LOST_Y - 1]
+    damaged = read_recording(copy_damaged(EXAMPLE, tmp_path / "damaged", keep_samples=False)).samples
+    expected = [k for k in range(1, original.u.size + 1) if k not in (LOST_U, LOST_Y)]
+    assert damaged.index.tolist() == expected  # the swapped arrivals are put back in order, nothing shifted
+    assert np.array_equal(damaged.u, original.u[np.array(expected) - 1])
+    assert np.array_equal(damaged.y, original.y_p[np.array(expected) - 1])
 
 
 # -- the replay node over DDS --------------------------------------------------------------------
@@ -211,17 +211,17 @@ def test_replay_of_a_damaged_bag_publishes_samples_in_place(tmp_path: Path, doma
     assert len(listener.streams[topics.U]) == len(listener.streams[topics.Y_P]) == 1
     u, y_p = listener.streams[topics.U][0], listener.streams[topics.Y_P][0]
     if keep_samples:
-        assert "replaying the identifier's samples (/samples; 0 refused live, as NaN)" in stderr, stderr
+        assert "replaying the identifier's samples (0 refused live, as NaN)" in stderr, stderr
         assert f"{n} samples in 1 stream(s), all complete" in stderr
         assert_as_recorded(u, original.u, set())
         assert_as_recorded(y_p, original.y_p, set())
         return
-    lines = [line for line in stderr.splitlines() if "incomplete in the recording" in line]
+    lines = [line for line in stderr.splitlines() if "not whole in the recording" in line]
     assert len(lines) == 1, stderr
-    assert "/u and /y_p paired by sequence number" in lines[0]
-    assert "2 incomplete in the recording (u missing: 1, y_p missing: 1, both: 0)" in lines[0]
-    assert_as_recorded(u, original.u, {LOST_U})
-    assert_as_recorded(y_p, original.y_p, {LOST_Y})
+    assert "/u, /y_p by sequence" in lines[0]
+    assert "2 sample indices not whole in the recording" in lines[0]
+    assert_as_recorded(u, original.u, {LOST_U, LOST_Y})  # a sample either half of which is lost: NaN, in place
+    assert_as_recorded(y_p, original.y_p, {LOST_U, LOST_Y})
 
 
 @pytest.mark.ros
@@ -278,7 +278,8 @@ def test_identifier_learns_the_recorded_pairs_from_a_damaged_bag(tmp_path: Path,
     assert not learnt[~complete].any()
     status = final_status(ident_err)
     counters = status["counters"]
-    assert counters["nan"] == 2 and counters["unpaired"] == 0 and counters["stale"] == 0, counters
+    # each of the two samples not whole in the recording arrives NaN on both topics: 4 NaN halves
+    assert counters["nan"] == 4 and counters["unpaired"] == 0 and counters["stale"] == 0, counters
     # learnt where the live run learnt, but not from a skipped sample nor while the history refills after it
     assert live.learn is not None
     warm_up = int(np.argmax(live.learn))  # samples the live run needed before its first step

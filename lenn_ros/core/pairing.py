@@ -10,7 +10,8 @@ counted, as are repeats and stale indices. Memory is bounded by ``window``.
 
 Sequence numbers start again at 1 when the publisher restarts. Both halves of a new
 sample 1 arriving after later samples are taken as such a restart (a new stream);
-a lone repeated index 1, like any other old index, is counted as stale.
+a lone repeated index 1, like any other old index, is counted as stale, and one that comes
+before any later sample as a repeat (the first kept): the rule of :func:`sequence_streams`.
 """
 
 from __future__ import annotations
@@ -70,9 +71,12 @@ class Pairer:
         replayed into the new stream, so a topic that restarts ahead of the other
         loses nothing.
         """
+        if index == 1 and self._last_released <= 1:  # nothing higher came yet: a repeat, not a restart
+            self.counters["duplicates"] += 1
+            return []
         self.counters["stale"] += 1  # unless a restart claims it
         if index == 1:
-            self._restart_halves[topic] = value
+            self._restart_halves.setdefault(topic, value)  # (a repeat of it keeps the first, as any repeat)
         elif topic in self._restart_halves and len(self._restart_waiting[topic]) < self.window:
             self._restart_waiting[topic][index] = value
         if len(self._restart_halves) < 2:

@@ -40,9 +40,8 @@ from lenn_ros.core.fields import FieldError
 from lenn_ros.core.runs import breaks, finite_rows
 from lenn_ros.fit.data import Data, FitError
 from lenn_ros.service import RecordingError
-from lenn_ros.service.building import configuration, make_session
-from lenn_ros.service.reading import READING, listed, with_flags
-from lenn_ros.service.recording import pair_raw
+from lenn_ros.service.reading import READING, listed
+from lenn_ros.service.recording import read_recording
 
 #: node parameters that say how the input topics become samples: copied into the fitted params file
 INTERPRETATION = READING
@@ -66,12 +65,10 @@ def load_bag(path: Path, flags: dict[str, Any], progress: bool = False) -> Data:
             f"--y TOPIC --y-field PATH (and --sample-period T for topics from separate nodes); topics: {shown}"
         )
     try:
-        identifier, values = configuration(
-            path, None, model=False, adjust=lambda v: with_flags(v, flags, types, path), defaults=True
-        )
-        samples = pair_raw(path, make_session(identifier, values), values, progress)
+        read = read_recording(path, flags, progress=progress)
     except (RecordingError, ValueError) as error:
         raise FitError(str(error).splitlines()[0]) from None
+    samples, values = read.samples, read.values
     # a refused value (NaN) is a gap, like a lost message: the fit never joins across it
     good = finite_rows(samples.u) & finite_rows(samples.y)
     index, u, y = samples.index[good], samples.u[good], samples.y[good]

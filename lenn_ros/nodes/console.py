@@ -15,7 +15,7 @@ bytes; beyond it the oldest lines go, counted), and a writer thread passes the q
 the real stderr, blocking there instead of the node. A terminal or a file is left as it is
 (a terminal keeps its colours; a file never blocks). What was dropped is said in one line
 once the console takes lines again, and counted (:attr:`ConsoleGuard.dropped_lines`, the
-identifier's ``status`` counter ``log_lines_dropped``).
+identifier's ``status`` counter ``console_lines_lost``).
 """
 
 from __future__ import annotations

@@ -724,7 +724,7 @@ class IdentifierNode(Node):
         if self.watchdog is not None:
             status["counters"].update(self.watchdog.counters)
             status["inputs_stalled"] = self.watchdog.stalled
-        status["counters"]["log_lines_dropped"] = console.dropped_lines()
+        status["counters"]["console_lines_lost"] = console.dropped_lines()
         status["topics"] = {"u": self.u_name, "y_p": self.y_name}
         status["inputs_node"] = self._inputs_node_name  # whom `ros2 topic info -v` names as u's and y_p's subscriber
         status["readers"] = self._readers()

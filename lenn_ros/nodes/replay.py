@@ -13,15 +13,20 @@ lost or reordered message in the bag shifts nothing.
   (the pairs it formed live, so the replayed run is the live one whatever the recorder
   lost of u / y_p), else ``raw``;
 * ``samples``: that topic, or an error;
-* ``raw``: u and y_p paired by their recorded sequence numbers
-  (:func:`lenn_ros.bag.run.pair_raw`, as evaluate pairs them); a restart of the sequence
-  at 1 is a new stream, published through new publishers as a loop pass is. A bag without
-  sequence numbers is paired by order, and only when both counts match.
+* ``raw``: the recording's input topics paired as the identifier pairs them
+  (:func:`lenn_ros.service.recording.read_recording`, as evaluate and fit read them): by the
+  recorded sequence number, or on the grid or stamps the parameters name; a restart of the
+  numbering at 1 is a new stream, published through new publishers as a loop pass is. A bag
+  without sequence numbers is paired by order, and only when both counts match.
 
-A sample whose u or y_p is not in the recording (or an index neither holds) is still
-published, with NaN for the missing half: the identifier screens NaN (counted, the pair
-skipped, its history restarted there) instead of pairing later samples off by one. One
-log line says how many samples were incomplete.
+What is read is said as the identifier is told it, by parameters spelled like its own
+(``u_topics``, ``u_field``, ``u_names``, ``y_topics``, ``y_field``, ``y_names``, ``pairing``,
+``sample_period``, ``slop``; empty: what the bag's ``identifier_config`` says, else ``u`` and
+``y_p``), so a robot's own bag replays as the samples the identifier would form from it.
+
+A sample index the recording does not hold whole (a half lost, or an index neither holds) is
+still published, NaN: the identifier screens NaN (counted, the pair skipped, its history
+restarted there) instead of pairing later samples off by one. One log line says how many.
 
 Pacing (``rate``):
 
@@ -42,8 +47,8 @@ Pacing (``rate``):
 Before exiting, replay waits until every subscriber has acknowledged every sample.
 
 Several channels (MIMO): a bag whose u / y_p are Float64MultiArray (a recorded MIMO run,
-an ``import-csv`` with several columns) is replayed the same way, as vector messages
-whose layout label names the channels (:func:`lenn_ros.bag.vectors.pair_vector_run`).
+an ``import-csv`` with several columns), or fields that name several channels, is replayed
+the same way, as vector messages whose layout label names the channels.
 
 Looping (``loop``): each pass is a new stream, as if the run were recorded again. Replay
 waits until the last pass is acknowledged, then publishes through *new* publishers, so
@@ -73,12 +78,27 @@ from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
 
 from lenn_ros import topics
-from lenn_ros.bag import BagError, read_run
-from lenn_ros.bag.run import RawPairs, pair_raw, read_samples
-from lenn_ros.bag.vectors import is_vector_run, pair_vector_run
+from lenn_ros.bag import BagError
+from lenn_ros.bag.vectors import read_test_start
+from lenn_ros.config import side_channels
+from lenn_ros.core.runs import finite_rows
 from lenn_ros.nodes import TEST_START_UNMATCHED, latched_readers_matched
+from lenn_ros.service import RecordingError
+from lenn_ros.service.recording import numbered_rows, read_recording
 
 SOURCES = ("auto", "samples", "raw")
+#: What is read from the bag, spelled like the identifier's parameters ('' / [''] / 0: what the bag says).
+READING_PARAMETERS = (
+    ("u_topics", [""], "the bag's input topic(s), as the identifier's -r u:=TOPIC / u_topics ([''] = u)"),
+    ("y_topics", [""], "the bag's output topic(s) ([''] = y_p)"),
+    ("u_field", "", "field of the input message, e.g. data[1] ('' = the identifier's u_field, else data)"),
+    ("y_field", "", "field of the output message, e.g. position[elbow]"),
+    ("u_names", [""], "the input channels' names (u_names)"),
+    ("y_names", [""], "the output channels' names (y_names)"),
+    ("pairing", "", "how the topics become samples: sequence, stamp or sample ('' = as recorded, else sequence)"),
+    ("sample_period", 0.0, "sample pairing: seconds between samples"),
+    ("slop", 0.0, "stamp pairing: largest |t_u - t_y| of a pair, seconds"),
+)
 
 
 class Replay(Node):
@@ -130,25 +150,15 @@ class Replay(Node):
             "Set the live parameter changes the bag recorded (identifier_config) on the identifier at their samples.",
         )
         self._declare("identifier", "/identifier", "The identifier node whose parameters apply_changes sets.")
+        for name, default, text in READING_PARAMETERS:
+            self._declare(name, default, text)
         self.stop = stop or threading.Event()
         bag = self.get_parameter("bag").value
         if not bag:
             raise BagError("parameter 'bag' is empty; run with --ros-args -p bag:=PATH")
         self.bag = bag
-        self.mimo = _is_vector_bag(bag)
-        self._u_layout: Any = None  # MIMO: the vector messages' layouts, naming the channels
-        self._y_layout: Any = None
-        if self.mimo:
-            self._load_vectors(str(self._param("source")))
-        else:
-            run = read_run(bag)
-            self.pairs = self._pairs(run, str(self._param("source")))
-            self.u, self.y_p = self.pairs.u, self.pairs.y_p
-            self.test_start = run.test_start
+        self._load(str(self._param("source")))
         self._schedule_changes()
-        times = self.pairs.time_ns
-        self.offsets = (times - times[0]) / 1e9 if times.size else np.empty(0)
-        self.stream_starts = {int(k) for k in np.flatnonzero(np.diff(self.pairs.stream)) + 1}
         self.published = 0
         self.y_hat_count = 0
         self.samples_count = 0
@@ -166,43 +176,65 @@ class Replay(Node):
         array = topics.message_class(topics.FLOAT64_ARRAY)
         self.create_subscription(array, topics.SAMPLES, self._on_sample, topics.data_qos(), raw=True)
 
-    def _pairs(self, run: Any, source: str) -> RawPairs:
-        """Sample k of the recording at row k (NaN for a missing half); says once what was incomplete."""
+    def _reading(self) -> dict[str, Any]:
+        """What is read, from the parameters spelled like the identifier's (see the module docstring)."""
+        listed = {side: [str(t) for t in self._param(f"{side}_topics") if str(t).strip()] for side in ("u", "y")}
+        names = {side: ",".join(str(n) for n in self._param(f"{side}_names") if str(n).strip()) for side in ("u", "y")}
+        return {
+            "u": listed["u"], "y": listed["y"], "u_field": self._param("u_field"), "y_field": self._param("y_field"),
+            "u_names": names["u"], "y_names": names["y"], "pairing": self._param("pairing") or None,
+            "sample_period": self._param("sample_period") or None, "slop": self._param("slop") or None,
+        }  # fmt: skip
+
+    def _load(self, source: str) -> None:
+        """Sample k of each publisher run at its k-th row (NaN where the recording does not hold it whole)."""
         if source not in SOURCES:
             raise ValueError(f"source {source!r} is not one of {', '.join(SOURCES)}")
-        recorded = read_samples(self.bag) if source != "raw" else None
-        if recorded is not None and recorded.index.size:
-            times = np.round(recorded.time * 1e9).astype(np.int64)  # the sample's time: log times come in bursts
-            index = recorded.index
-            pairs = pair_raw(recorded.u, recorded.y_p, index, index, u_t=times, y_p_t=times, fill=True)
-            refused = pairs.has_u & pairs.has_y_p & ~(np.isfinite(pairs.u) & np.isfinite(pairs.y_p))
-            what = f"the identifier's samples ({recorded.topic}; {int(np.count_nonzero(refused))} refused live, as NaN)"
-        elif source == "samples":
+        try:
+            read = read_recording(self.bag, self._reading(), recorded=source != "raw")
+        except RecordingError as error:
+            raise BagError(str(error)) from None
+        samples = read.samples
+        if source == "samples" and samples.source != "samples":
             raise BagError(f"{self.bag}: no identifier samples topic in the bag; use source:=raw")
-        else:
-            try:
-                sequences = (run.u_sequence, run.y_p_sequence)
-                pairs = pair_raw(run.u, run.y_p, *sequences, u_t=run.u_t, y_p_t=run.y_p_t, fill=True)
-            except BagError as err:
-                raise BagError(f"{self.bag}: {err}") from None
-            names = f"{run.topics[topics.U]} and {run.topics[topics.Y_P]}"
-            how = "order (no sequence numbers recorded)" if pairs.by_order else "sequence number"
-            what = f"{names} paired by {how}"
-        streams = int(pairs.stream[-1]) + 1 if pairs.stream.size else 0
-        line = f"replaying {what}: {pairs.index.size} samples in {streams} stream(s)"
-        dropped = ((pairs.duplicates, "repeated messages"), (pairs.unindexed, "messages without a sequence number"))
-        tail = "".join(f"; {count} {name} dropped" for count, name in dropped if count)
-        if not pairs.incomplete:
+        rows, self.run_of = numbered_rows(samples.index)
+        shape = (len(self.run_of), *np.shape(samples.u)[1:])
+        self.u, self.y_p = np.full(shape, np.nan), np.full((len(self.run_of), *np.shape(samples.y)[1:]), np.nan)
+        self.u[rows], self.y_p[rows] = samples.u, samples.y
+        self.index = np.concatenate([np.arange(1, n + 1) for n in np.bincount(self.run_of)]) if rows.size else rows
+        times = np.full(len(self.run_of), np.nan)
+        times[rows] = samples.time
+        self.offsets = _due(times)
+        self.stream_starts = {int(k) for k in np.flatnonzero(np.diff(self.run_of)) + 1}
+        self.test_start = read_test_start(self.bag)
+        self.mimo = np.ndim(self.u) == 2
+        self._u_layout = self._y_layout = None
+        if self.mimo:
+            u_names, y_names = (side_channels(read.values, side)[0] for side in ("u", "y"))
+            self._u_layout, self._y_layout = topics.vector_layout(u_names), topics.vector_layout(y_names)
+        self._say_loaded(read, rows)
+
+    def _say_loaded(self, read: Any, rows: np.ndarray) -> None:
+        """One line: what is replayed, in how many streams, and how many sample indices it lacks."""
+        samples = read.samples
+        what = samples.source if samples.source != "samples" else "the identifier's samples"
+        if samples.source == "samples":
+            refused = int(np.count_nonzero(~(finite_rows(samples.u) & finite_rows(samples.y))))
+            what += f" ({refused} refused live, as NaN)"
+        line = f"replaying {what}: {len(self.run_of)} samples in {len(self.stream_starts) + 1} stream(s)"
+        if self.mimo:
+            line += f" of {self.u.shape[1]} inputs and {self.y_p.shape[1]} outputs"
+        counters = read.session.all_counters()
+        dropped = sum(counters.get(name, 0) for name in ("duplicates", "stale"))
+        tail = f"; {dropped} repeated or stale messages dropped" if dropped else ""
+        absent = len(self.run_of) - rows.size
+        if not absent:
             self.get_logger().info(f"{line}, all complete{tail}")
-            return pairs
-        no_y = int(np.count_nonzero(pairs.has_u & ~pairs.has_y_p))
-        no_u = int(np.count_nonzero(~pairs.has_u & pairs.has_y_p))
+            return
         self.get_logger().warning(
-            f"{line}; {pairs.incomplete} incomplete in the recording (u missing: {no_u}, y_p missing: {no_y}, "
-            f"both: {pairs.incomplete - no_u - no_y}): published in place with NaN for the missing half, so the "
-            f"identifier skips each and restarts its history there; no later sample is shifted{tail}"
+            f"{line}; {absent} sample indices not whole in the recording (a half or both lost): published in place "
+            f"as NaN, so the identifier skips each and restarts its history there; no later sample is shifted{tail}"
         )
-        return pairs
 
     def _schedule_changes(self) -> None:
         """The recorded live changes by the row before which each is set (the first whose index reaches it)."""
@@ -219,7 +251,7 @@ class Replay(Node):
             )
             return
         self._set_parameters = self.create_client(SetParameters, f"{self._param('identifier')}/set_parameters")
-        first_stream = self.pairs.index[self.pairs.stream == 0]  # (the changes were made during the first)
+        first_stream = self.index[self.run_of == 0]  # (the changes were made during the first)
         for change in changes:
             row = int(np.searchsorted(first_stream, change.from_index, side="left"))
             if row >= first_stream.size:
@@ -333,21 +365,6 @@ class Replay(Node):
         if not self.wait_acked(timeout=self._settle_timeout()):
             self.get_logger().warning("sample 1 of the new pass not acknowledged by every subscriber")
 
-    def _load_vectors(self, source: str) -> None:
-        """A bag of several channels per sample (MIMO): the same pairing and pacing, vector messages."""
-        if source not in SOURCES:
-            raise ValueError(f"source {source!r} is not one of {', '.join(SOURCES)}")
-        vectors = pair_vector_run(self.bag, use_samples=source != "raw")
-        if source == "samples" and vectors.source != "the identifier's samples":
-            raise BagError(f"{self.bag}: no identifier samples topic in the bag; use source:=raw")
-        self.pairs, self.u, self.y_p, self.test_start = vectors.pairs, vectors.u, vectors.y_p, vectors.test_start
-        self._u_layout, self._y_layout = (topics.vector_layout(names) for names in (vectors.u_names, vectors.y_names))
-        self.get_logger().info(
-            f"replaying {vectors.source}: {self.pairs.index.size} samples of {len(vectors.u_names)} inputs "
-            f"({', '.join(vectors.u_names)}) and {len(vectors.y_names)} outputs ({', '.join(vectors.y_names)}), "
-            f"{self.pairs.incomplete} incomplete (published with NaN, skipped by the identifier)"
-        )
-
     def _message(self, value: Any, layout: Any) -> Any:
         """One u or y_p message: a Float64, or (MIMO) a Float64MultiArray naming its channels."""
         if not self.mimo:
@@ -420,7 +437,7 @@ class Replay(Node):
             if self.stop.is_set():
                 break
             if k in self.stream_starts:  # the recorded publisher restarted: so does ours
-                self._start_stream(executor, f"stream {int(self.pairs.stream[k]) + 1} of the bag")
+                self._start_stream(executor, f"stream {int(self.run_of[k]) + 1} of the bag")
                 start = time.monotonic() - (self.offsets[k] / rate if rate > 0 else 0.0)
             if rate > 0:
                 self._spin_until(executor, start + self.offsets[k] / rate)
@@ -460,11 +477,15 @@ class Replay(Node):
         return all(pub.wait_for_all_acked(limit) for pub in (self.pub_u, self.pub_y))
 
 
-def _is_vector_bag(bag: str) -> bool:
-    try:
-        return is_vector_run(bag)
-    except BagError:
-        return False  # (read_run says what is wrong with the bag, in its words)
+def _due(times: np.ndarray) -> np.ndarray:
+    """Seconds from the first sample at which each row is due: a row without a time (not in the recording) with
+    the row before it (the first rows: with the first known)."""
+    known = np.isfinite(times)
+    if not known.any():
+        return np.zeros(times.size)
+    before = np.maximum.accumulate(np.where(known, np.arange(times.size), -1))
+    filled = times[np.where(before >= 0, before, int(np.argmax(known)))]
+    return filled - filled[0]
 
 
 def main(args: list[str] | None = None) -> int:

@@ -22,6 +22,7 @@ from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.session import ParameterChange, Session, SessionConfig
 from lenn_ros.core.structure import Identifier
 from lenn_ros.service import RecordingError
+from lenn_ros.service.reading import READING
 
 #: Every node parameter's default: what a value a params file or a recording leaves out means.
 NODE_DEFAULTS = {parameter.name: parameter.default for parameter in NODE_PARAMETERS}
@@ -42,8 +43,9 @@ def build(given: dict[str, Any], source: str, adjust: Any = None) -> tuple[Ident
     values = {**NODE_DEFAULTS, **given}
     if adjust is not None:
         values = adjust(values)
-    # the fields say how many channels (MIMO): node-level values, which resolve() leaves out
-    identifier = build_identifier({**values, **model}, network)
+    # the fields say how many channels (MIMO): node-level values, which resolve() leaves out; what was given or
+    # adjusted (the channels' names a bag labels) wins over the preset's defaults
+    identifier = build_identifier({**model, **values}, network)
     return as_node_builds_it(identifier, values, source), values
 
 
@@ -115,7 +117,8 @@ def configuration(
             given, source = {}, "node's defaults"
     given = dict(given)
     if not model:
-        given = {key: value for key, value in given.items() if key in NODE_DEFAULTS or key == topics.RESOLVED_TOPICS}
+        kept = {*NODE_DEFAULTS, *READING, topics.RESOLVED_TOPICS}  # (the channels' names are the model table's)
+        given = {key: value for key, value in given.items() if key in kept}
         given["weights_in"] = ""
     resolved_topics = given.pop(topics.RESOLVED_TOPICS, {})
 

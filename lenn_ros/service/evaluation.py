@@ -31,21 +31,15 @@ from typing import Any
 import numpy as np
 
 from lenn_ros import topics
-from lenn_ros.bag.reader import topic_types
 from lenn_ros.bag.vectors import read_test_start
 from lenn_ros.core.evaluation import Evaluation
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.runs import finite_rows, missing
 from lenn_ros.core.session import ParameterChange, Session, describe_gaps, json_safe
 from lenn_ros.service import RecordingError
-from lenn_ros.service.building import (
-    configuration,
-    make_session,
-    recorded_changes,
-    weights_path,
-)
-from lenn_ros.service.reading import given, with_flags
-from lenn_ros.service.recording import pair_raw, raw_losses, recorded_samples
+from lenn_ros.service.building import recorded_changes, weights_path
+from lenn_ros.service.reading import given
+from lenn_ros.service.recording import Reading, raw_losses, read_recording
 from lenn_ros.service.scoring import fit_band_coverage, one_step_band, score
 
 #: Without a recorded test phase or ``--test-from``: the last fifth of the samples is the test part.
@@ -174,16 +168,13 @@ def evaluate_bag(
     """
     path = Path(path)
     named = given(flags)
-    types = topic_types(path) if named else {}
-    identifier, values = configuration(
-        path, params, node, adjust=(lambda v: with_flags(v, flags, types, path)) if named else None, defaults=named
-    )
-    session = make_session(identifier, values)
+    read = read_recording(path, flags, params, node, model=True, recorded=True, progress=progress, defaults=named)
+    identifier, values, session = read.identifier, read.values, read.session
     changes = recorded_changes(path)
-    index, u, y, learn, source = _samples(path, session, values, changes, named, progress)
-    start, default = _test_part(path, index, learn, test_from, source)
+    index, u, y, source = read.samples.index, read.samples.u, read.samples.y, _source(read, named)
+    start, default = _test_part(path, index, read.learn, test_from, source)
     # raw inputs carry no learn flag: the learning parameter as it was set live, up to the test part
-    learn = (index < start) & (_learning_switch(index, values, changes) if learn is None else learn)
+    learn = (index < start) & (_learning_switch(index, values, changes) if read.learn is None else read.learn)
     mimo = isinstance(identifier, MimoIdentifier)
     names = list(identifier.names) if mimo else ["y"]
     y_hat = session.run_samples(index, u, y, learn, () if mimo else changes)
@@ -230,24 +221,13 @@ def _result(
     )  # fmt: skip
 
 
-def _samples(
-    path: Path, session: Session, values: dict[str, Any], changes: list[ParameterChange], named: bool, progress: bool
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None, str]:
-    """(index, u, y, learn, source): the identifier's recorded samples (unless topics are named), else the raw
-    inputs paired as the node pairs them; u and y have a column per channel for a MIMO model. ``learn`` is the
-    recorded flags (None for raw inputs: the test part decides)."""
-    identifier = session.identifier
-    shape = (identifier.structure.n_u, identifier.structure.n_y) if isinstance(identifier, MimoIdentifier) else (1, 1)
-    recorded = None if named else recorded_samples(path, *shape)
-    if recorded is not None:
-        index, u, y, learn = recorded
-        return index, u, y, learn, "samples"
-    samples = pair_raw(path, session, values, progress)
-    if len(samples.index) == 0:
-        raise RecordingError(f"{path}: no samples could be paired ({samples.source}); see the notices above")
-    plain = not named and all(name not in values.get(topics.RESOLVED_TOPICS, {}) for name in (topics.U, topics.Y_P))
-    how = samples.source.rsplit(" by ", 1)[-1]
-    return samples.index, samples.u, samples.y, None, f"u/y_p by {how}" if plain else samples.source
+def _source(read: Reading, named: bool) -> str:
+    """What was paired, as the report's first line says it: the identifier's samples, or the topics and how."""
+    samples = read.samples
+    if samples.source == "samples":
+        return "samples"
+    plain = [topic.rsplit("/", 1)[-1] for topic in samples.topics] == [topics.U, topics.Y_P]
+    return f"u/y_p by {samples.source.rsplit(' by ', 1)[-1]}" if plain else samples.source
 
 
 def _test_part(

@@ -87,6 +87,7 @@ class Samples:
     y: np.ndarray
     source: str
     by_order: bool = False
+    topics: tuple[str, ...] = ()  # the recorded topics read, u's first (empty: the identifier's samples)
 
 
 class PairSink:
@@ -282,7 +283,7 @@ def pair_raw(path: str | Path, session: Session, values: dict[str, Any], progres
     index, time, u, y = sink.arrays()
     how = "order (no sequence numbers recorded)" if by_order else values["pairing"]
     names = ", ".join(h.topic for h in halves)
-    return Samples(index, time, u, y, f"{names} by {how}", by_order)
+    return Samples(index, time, u, y, f"{names} by {how}", by_order, tuple(h.topic for h in halves))
 
 
 def _offer_all(session: Session, halves: list[Halves], by_order: bool, in_index_order: bool) -> None:
@@ -350,29 +351,20 @@ def raw_losses(path: str | Path) -> dict[str, int]:
 
 def samples_summary(path: str | Path, flags: dict[str, Any], progress: bool = False) -> dict[str, Any]:
     """The samples the identifier would form from the topics ``flags`` name (``bag-info`` with topics named)."""
-    from lenn_ros.bag.reader import topic_types as types_of
     from lenn_ros.core.runs import missing
     from lenn_ros.core.session import describe_gaps
-    from lenn_ros.service.building import configuration, make_session
-    from lenn_ros.service.reading import with_flags
 
-    path = Path(path)
-    types = types_of(path)
-    identifier, values = configuration(
-        path, None, model=False, adjust=lambda v: with_flags(v, flags, types, path), defaults=True
-    )
-    session = make_session(identifier, values)
-    samples = pair_raw(path, session, values, progress)
-    index = samples.index
-    dropped = {key: value for key, value in session.all_counters().items() if value and key not in ("paired",)}
+    read = read_recording(path, flags, progress=progress)
+    index, values = read.samples.index, read.values
+    counted = {key: value for key, value in read.session.all_counters().items() if value and key != "paired"}
     return {
-        "source": samples.source,
+        "source": read.samples.source,
         "count": int(index.size),
-        "first": int(index[0]) if index.size else None,
-        "last": int(index[-1]) if index.size else None,
-        "missing": missing(index)[1] if index.size else 0,
+        "first": int(index[0]),
+        "last": int(index[-1]),
+        "missing": missing(index)[1],
         "gaps": describe_gaps(index, values["pairing"], float(values.get("sample_period") or 0.0)),
-        "counters": dropped,
+        "counters": counted,
     }
 
 
@@ -386,3 +378,116 @@ def format_samples(summary: dict[str, Any]) -> str:
     if counted:
         lines.append(f"  counted: {counted}")
     return "\n".join(lines)
+
+
+@dataclass
+class Reading:
+    """A recording read: its samples, the node values they were formed by, and the session that formed them."""
+
+    identifier: Any
+    values: dict[str, Any]
+    session: Session
+    samples: Samples
+    learn: np.ndarray | None = None  # the identifier's recorded learn flags (recorded samples only)
+
+
+def labelled_names(path: str | Path, topic: str) -> list[str]:
+    """The channel names a Float64MultiArray topic's first message labels (``import-csv``, the recorder), or []."""
+    first = next(iter_messages(path, [topic]), None)
+    dims = list(getattr(getattr(first.message, "layout", None), "dim", [])) if first is not None else []
+    names = [part.strip() for part in dims[0].label.split(",")] if dims else []
+    return names if names and all(names) and len(names) == int(dims[0].size) else []
+
+
+def plain_values(path: str | Path, types: dict[str, str], values: dict[str, Any]) -> dict[str, Any]:
+    """The node values for a bag of plain ``u`` / ``y_p`` (a simulator's, ``import-csv``'s) that nobody described:
+    each side's type is the bag's; a Float64MultiArray side is read whole (``data[*]``), its channels named by the
+    messages' layout labels."""
+    from lenn_ros.bag.reader import find_topic
+
+    values = dict(values)
+    for side, name in ((U, topics.U), ("y", topics.Y_P)):
+        topic = find_topic(types, name)
+        if topic is None:
+            continue
+        values[f"{side}_type"] = types[topic]
+        if types[topic] == topics.FLOAT64_ARRAY and values.get(f"{side}_field", "data") == "data":
+            names = labelled_names(path, topic)
+            values[f"{side}_field"] = "data[*]"
+            values[f"{side}_names"] = names or [f"{side}{i}" for i in range(_array_width(path, topic))]
+    return values
+
+
+def _array_width(path: str | Path, topic: str) -> int:
+    first = next(iter_messages(path, [topic]), None)
+    return len(first.message.data) if first is not None else 1
+
+
+def read_recording(
+    path: str | Path,
+    flags: dict[str, Any] | None = None,
+    params: str | None = None,
+    node: str = "/identifier",
+    model: bool = False,
+    recorded: bool = False,
+    progress: bool = False,
+    defaults: bool | None = None,
+) -> Reading:
+    """A recording's samples as the node forms them, and what formed them: the one way in for every command.
+
+    What is read: ``flags`` (:mod:`~lenn_ros.service.reading`) over the params file (``node``'s sections), else
+    over the identifier's recorded configuration, else over the node's defaults for a bag of plain ``u`` / ``y_p``
+    or named topics. ``model``: the model of the params file or the recording (evaluate), else only how topics
+    become samples (fit, replay, bag-info). ``recorded``: the identifier's own ``samples`` where the bag holds them
+    and no topic is named (the pairs it formed live), else the raw topics paired by :func:`pair_raw`.
+    ``defaults``: whether the node's defaults may stand in for a configuration nobody gave (default: where topics
+    are named or the bag holds plain ``u`` / ``y_p``).
+    """
+    from lenn_ros.bag.reader import find_topic
+    from lenn_ros.service.building import configuration, make_session
+    from lenn_ros.service.reading import given, with_flags
+
+    path = Path(path)
+    types = topic_types(path)
+    named = given(flags)
+    plain = all(find_topic(types, name) is not None for name in (topics.U, topics.Y_P))
+
+    def adjust(values: dict[str, Any]) -> dict[str, Any]:
+        if plain and not params and find_topic(types, topics.IDENTIFIER_CONFIG) is None:
+            values = plain_values(path, types, values)
+        return with_flags(values, flags, types, path) if named else values
+
+    allowed = named or plain if defaults is None else defaults
+    identifier, values = configuration(path, params, node, model=model, adjust=adjust, defaults=allowed)
+    session = make_session(identifier, values)
+    if recorded and not named:
+        shape = (identifier.structure.n_u, identifier.structure.n_y) if is_mimo(values) else (1, 1)
+        found = recorded_samples(path, *shape)
+        if found is not None:
+            index, u, y, learn = found
+            return Reading(identifier, values, session, Samples(index, np.full(len(index), np.nan), u, y, "samples"),
+                           learn)  # fmt: skip
+    samples = pair_raw(path, session, values, progress)
+    if len(samples.index) == 0:
+        raise RecordingError(f"{path}: no samples could be paired ({samples.source}); see the notices")
+    return Reading(identifier, values, session, samples)
+
+
+def numbered_rows(index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For a publisher of sample indices (replay): each sample at the row its index says, within its publisher run.
+
+    Returns (row of each sample, run of each row): a restart of the numbering (an index not above the one before)
+    begins a new run, and within a run the missing indices from 1 up get rows of their own (NaN when published),
+    so the k-th message of a run is its sample k.
+    """
+    index = np.asarray(index, dtype=np.int64)
+    restart = np.r_[True, np.diff(index) <= 0]
+    run = np.cumsum(restart) - 1
+    starts = np.flatnonzero(restart)
+    highest = np.maximum.reduceat(index, starts) if index.size else np.empty(0, np.int64)
+    offset = np.r_[0, np.cumsum(highest)[:-1]] if index.size else np.empty(0, np.int64)
+    rows = offset[run] + index - 1
+    total = int(highest.sum()) if index.size else 0
+    runs = np.repeat(np.arange(len(starts)), highest) if index.size else np.empty(0, np.int64)
+    assert runs.size == total
+    return rows, runs

@@ -30,6 +30,7 @@ from lenn_ros.core.online_step import (
     Y_HAT_NEXT,
     StepPlan,
 )
+from lenn_ros.core.target_variance import TargetVariance
 
 
 @dataclass(frozen=True)
@@ -229,12 +230,8 @@ class Identifier:
     go on from the healthy model.
 
     The variance is the larger of the block's own and the target's *learnt* variance
-    (``target_variance``): a plant at rest has a block variance of nothing (a constant
-    command, a quantised encoder), and a guard measured against that rolled back every
-    healthy model that stood still. The learnt variance is the mean over the passed
-    blocks in which the target moved (variance at least ``REST_FRACTION`` of the learnt
-    one; the last ``SCALE_MEMORY`` of them weigh most), so standing still neither lowers
-    nor raises it; until the target has moved, the declared range ``y_scale`` squared stands in.
+    (``target_variance``, :class:`~lenn_ros.core.target_variance.TargetVariance`), so that a
+    plant at rest does not roll back a healthy model that stands still.
 
     After a divergence learning resumes by itself, from the healthy state, once
     ``resume_after`` blocks' worth of learnable samples have passed (``resume_in`` counts
@@ -253,10 +250,6 @@ class Identifier:
     counters: dict[str, int] = field(default_factory=dict)
     diverged: bool = False
 
-    #: A block whose target variance is below this fraction of the learnt one stands still.
-    REST_FRACTION: ClassVar[float] = 1e-2
-    #: Moving blocks the learnt target variance averages over (an exponential memory after them).
-    SCALE_MEMORY: ClassVar[int] = 16
     #: The pause after a divergence grows at most to this many times ``resume_after`` blocks.
     MAX_BACKOFF: ClassVar[int] = 64
 
@@ -284,8 +277,7 @@ class Identifier:
         self._plan_model: OnlineRegressor | None = None  # the model the plan was made for
         self.last_free_run: dict = {}
         self.last_leverage = np.zeros(0)  # run(): phi' P phi of each y^(k) (RLS; 0 elsewhere)
-        self.target_variance = 0.0  # learnt while the target moved (0: not yet)
-        self._moving_blocks = 0
+        self._target = TargetVariance()  # what the guard measures a block against
         self.hold_off = 0  # learnable samples of the last pause after a divergence
         self.resume_in = 0  # of them still to pass before learning resumes
         self._backoff = 1
@@ -484,7 +476,7 @@ class Identifier:
         self._block_targets.clear()
         mse = float(np.mean(errors * errors))
         variance = float(np.var(targets))
-        reference = max(variance, self.target_variance or self.structure.y_scale**2)
+        reference = self._target.reference(variance, self.structure.y_scale)
         if not np.isfinite(mse) or mse > self.divergence_ratio * reference + 1e-12:
             self._on_divergence()
             return False
@@ -492,24 +484,16 @@ class Identifier:
         # weights now (after its last update) are vouched for by the next block.
         self._healthy_state = self._candidate_state
         self._candidate_state = self.model.state()
-        self._learn_variance(variance)
+        self._target.learn(variance, self.structure.y_scale)
         self._passed_since_resume += 1
         if self._passed_since_resume >= self.resume_after:
             self._backoff = 1
         return True
 
-    def _learn_variance(self, variance: float) -> None:
-        """A passed block's target variance into the learnt one, unless the target stood still in it.
-
-        Before anything is learnt, "still" is measured against 1e-4 of the declared range
-        squared (an RMS of a tenth of a percent of ``y_scale``: well above a quantised
-        encoder's flicker at rest, well below any motion).
-        """
-        known = self.target_variance or 1e-4 * self.structure.y_scale**2
-        if not variance >= self.REST_FRACTION * known:
-            return
-        self._moving_blocks += 1
-        self.target_variance += (variance - self.target_variance) / min(self._moving_blocks, self.SCALE_MEMORY)
+    @property
+    def target_variance(self) -> float:
+        """The target's variance learnt while it moved (0: not yet): what the guard measures blocks against."""
+        return self._target.value
 
     def _on_divergence(self) -> None:
         self.counters["diverged"] += 1

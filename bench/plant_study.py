@@ -66,7 +66,7 @@ import numpy as np
 from joint_study import spread, timed_fit
 from peer_narx import Split, run_arx, run_frols
 
-from lenn_ros.core.kernels import njit
+from lenn_ros.core.jit import njit
 
 
 def _smooth_levels(rng: np.random.Generator, n: int, hold: tuple[int, int], low: float, high: float) -> np.ndarray:

@@ -54,7 +54,7 @@ def machine() -> dict[str, Any]:
         "python": platform.python_version(),
         "numpy": numpy.__version__,
         "numba": numba.__version__,
-        "compiled_kernels": offline.kernels.COMPILED,
+        "compiled_kernels": offline.jit.COMPILED,
         "platform": platform.platform(),
     }
 

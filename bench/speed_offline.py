@@ -32,7 +32,7 @@ from typing import Any
 
 import numpy as np
 
-from lenn_ros.core import kernels
+from lenn_ros.core import jit, learning_rules
 from lenn_ros.core.networks import MLP, FunctionalLinkNetwork, OnlineRegressor
 from lenn_ros.core.structure import Identifier
 from lenn_ros.paper.evaluation import simulate
@@ -175,7 +175,7 @@ def run_kernel(
     y = np.empty(inputs.shape[0])
     net = network
     if isinstance(net, MLP):
-        done = pick(kernels.mlp_sgd)(
+        done = pick(learning_rules.mlp_sgd)(
             net.params_,
             net.momentum_,
             inputs,
@@ -190,7 +190,7 @@ def run_kernel(
             y,
         )
     elif isinstance(net, FunctionalLinkNetwork) and net.solver == "sgd":
-        done = pick(kernels.functional_link_sgd)(
+        done = pick(learning_rules.functional_link_sgd)(
             net.weights_,
             net.momentum_,
             inputs,
@@ -205,9 +205,11 @@ def run_kernel(
             y,
         )
     elif isinstance(net, FunctionalLinkNetwork) and net.solver == "nlms":
-        done = pick(kernels.functional_link_nlms)(net.weights_, inputs, targets, float(net.nlms_step), 1e-6, learn, y)
+        done = pick(learning_rules.functional_link_nlms)(
+            net.weights_, inputs, targets, float(net.nlms_step), 1e-6, learn, y
+        )
     else:
-        done = pick(kernels.functional_link_rls)(
+        done = pick(learning_rules.functional_link_rls)(
             net.weights_, net.covariance_, inputs, targets, float(net.forgetting), net.trace_bound, learn, y,
             np.empty(0),  # (no leverage wanted)
         )  # fmt: skip
@@ -529,6 +531,6 @@ def kernel_equality(samples: int = 2000) -> dict[str, dict[str, float]]:
             "max_abs_state_difference": state_difference,
             "max_abs_output_difference": float(np.max(np.abs(y_compiled - y_python))),
             "py_func_cpu_seconds": seconds,
-            "compiled": kernels.COMPILED,
+            "compiled": jit.COMPILED,
         }
     return result

@@ -11,7 +11,7 @@ import sys
 
 import numpy as np
 
-from lenn_ros.core import kernels
+from lenn_ros.core import learning_rules
 
 SOLVERS = ("sgd", "nlms", "rls")
 
@@ -24,13 +24,15 @@ def run(solver: str) -> tuple[np.ndarray, np.ndarray]:
     weights = np.full(6, 0.1)
     y = np.empty(300)
     if solver == "sgd":
-        kernels.functional_link_sgd(
+        learning_rules.functional_link_sgd(
             weights, np.zeros(6), features, targets, np.zeros(6, np.int64), 1, 0.1, 0.5, True, 1.0, True, y
         )
     elif solver == "nlms":
-        kernels.functional_link_nlms(weights, features, targets, 0.5, 1e-6, True, y)
+        learning_rules.functional_link_nlms(weights, features, targets, 0.5, 1e-6, True, y)
     else:
-        kernels.functional_link_rls(weights, np.eye(6) * 100.0, features, targets, 0.99, 1e6, True, y, np.empty(0))
+        learning_rules.functional_link_rls(
+            weights, np.eye(6) * 100.0, features, targets, 0.99, 1e6, True, y, np.empty(0)
+        )
     return weights, y
 
 

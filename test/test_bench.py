@@ -11,7 +11,7 @@ import pytest
 import speed as bench
 import speed_offline as offline
 
-from lenn_ros.core import kernels
+from lenn_ros.core import jit
 
 #: The kernels the package ships, each with the network configuration that drives it.
 REQUIRED = ("lenn_sgd", "lenn_nlms", "lenn_rls", "mlp")
@@ -20,7 +20,7 @@ BRANCHED = ("lenn_sgd_two_branches", "mlp_two_branches")
 
 @pytest.fixture(scope="module")
 def equality() -> dict[str, dict[str, float]]:
-    if not kernels.COMPILED:
+    if not jit.COMPILED:
         pytest.skip("numba is not installed: the kernels run as Python, nothing to compare")
     return offline.kernel_equality(2000)
 

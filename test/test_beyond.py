@@ -14,7 +14,7 @@ from contextlib import redirect_stdout
 import numpy as np
 import pytest
 
-from lenn_ros.core import kernels
+from lenn_ros.core import learning_rules
 from lenn_ros.core.expansions import expand
 from lenn_ros.core.structure import Identifier
 from lenn_ros.paper.evaluation import simulate, train_and_test
@@ -65,7 +65,7 @@ def _rls(weights, covariance, x, targets, forgetting, max_trace, cross_degree) -
     done = 0
     for start in range(0, len(x), CHUNK):
         phi = _example4_features(x[start : start + CHUNK], cross_degree)
-        n = kernels.functional_link_rls(
+        n = learning_rules.functional_link_rls(
             weights,
             covariance,
             phi,
@@ -99,7 +99,7 @@ def test_rls_million_updates_on_example4_cross_terms_stays_least_squares():
     y = np.empty(CHUNK)
     for start in range(0, len(x), CHUNK):
         phi, t = _example4_features(x[start : start + CHUNK], 3), targets[start : start + CHUNK]
-        assert kernels.functional_link_rls(
+        assert learning_rules.functional_link_rls(
             weights, covariance, phi, t, 1.0, 1.0e6, True, y[: len(phi)], np.empty(0)
         ) == len(phi)
         gram += phi.T @ phi

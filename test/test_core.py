@@ -12,7 +12,7 @@ import numpy as np
 import pytest
 from numpy.polynomial import chebyshev, legendre
 
-from lenn_ros.core import kernels
+from lenn_ros.core import jit
 from lenn_ros.core.expansions import cross_term_exponents, expand, feature_count, legendre_features
 from lenn_ros.core.metrics import RunningNMSE, nmse, nmse_db
 from lenn_ros.core.networks import MLP, FunctionalLinkNetwork, LeNN, ModelFileError, OnlineRegressor
@@ -138,7 +138,7 @@ def test_compiled_kernels_equal_their_pure_python_run(tmp_path) -> None:
 
     Not ``.py_func``: a kernel split into compiled helpers keeps calling them compiled.
     """
-    if not kernels.COMPILED:
+    if not jit.COMPILED:
         pytest.skip("numba is not installed: the kernels are plain Python already, nothing to compare")
     import kernel_reference
 
@@ -280,7 +280,7 @@ def test_table1_counts() -> None:
 
 
 # -- the identifier: one-sample path equals the batch path -------------------------------------
-@pytest.mark.skipif(not kernels.JIT, reason="the compiled step exists only where numba compiles")
+@pytest.mark.skipif(not jit.JIT, reason="the compiled step exists only where numba compiles")
 @pytest.mark.parametrize(
     ("number", "settings"),
     [
@@ -412,7 +412,7 @@ def test_one_sample_expansion_is_bitwise_the_batch_expansion(
     assert np.array_equal(one_by_one, batch)
 
 
-@pytest.mark.skipif(not kernels.JIT, reason="the compiled step exists only where numba compiles")
+@pytest.mark.skipif(not jit.JIT, reason="the compiled step exists only where numba compiles")
 def test_terms_with_factors_step_compiled_as_in_python_and_in_batch(monkeypatch) -> None:
     """Every factor kind in a selected-terms model: compiled step = Python step = batch run, bit for bit."""
     from lenn_ros.core import structure
@@ -467,7 +467,7 @@ def test_one_output_free_run_is_the_several_output_path_compiled_or_not(example:
 
     from lenn_ros import config
 
-    if not kernels.JIT:
+    if not jit.JIT:
         pytest.skip("numba is not installed: there is no compiled free run")
     spec = get_example(example)
     series = simulate(spec.plant(), spec.noise_db, 3, 1500, 300)

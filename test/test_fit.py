@@ -19,7 +19,7 @@ import yaml
 
 import lenn_ros
 from lenn_ros.config import ConfigError, build_identifier, read_params_file, resolve
-from lenn_ros.core import kernels
+from lenn_ros.core import term_kernels
 from lenn_ros.core.evaluation import free_run_problems
 from lenn_ros.core.expansions import format_terms, parse_terms, siso_channels
 from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND
@@ -468,7 +468,7 @@ def test_input_only_prefixes_score_from_their_predictions_as_the_free_runs_do(mo
                                   lambda g, low, high, f=prefixes.features[:, :m], w=weights[:, :m]: f[low:high] @ w[g],
                                   pieces, FREE_RUN_DIVERGENCE_BOUND, mine)  # fmt: skip
             exponents, factors = prefixes.arrays(m)
-            kernels.simulate_pieces(record.values, *pieces, warm, source, lag, offset, scale, exponents, factors,
+            term_kernels.simulate_pieces(record.values, *pieces, warm, source, lag, offset, scale, exponents, factors,
                                     weights, 0, FREE_RUN_DIVERGENCE_BOUND, theirs, np.full(5, np.inf))  # fmt: skip
             assert np.array_equal(mine[:, [1, 3, 4]], theirs[:, [1, 3, 4]])  # samples, clipped, diverged
             assert mine[:, [0, 2]] == pytest.approx(theirs[:, [0, 2]], rel=1e-9)
@@ -488,7 +488,7 @@ def test_a_prefix_refused_in_one_block_is_not_simulated_further_and_scores_the_s
         y[k] = 0.6 * y[k - 1] + 0.2 * y[k - 2] + np.tanh(1.5 * u[k - 1])
     record = Record.of(siso_view(u, y + 0.01 * rng.standard_normal(n)), [1400])
     layout = Layout.of(1, Scaling.from_training(u, y))
-    simulate = kernels.simulate_pieces
+    simulate = term_kernels.simulate_pieces
     stopped = []
 
     def spy(*args) -> None:
@@ -502,10 +502,10 @@ def test_a_prefix_refused_in_one_block_is_not_simulated_further_and_scores_the_s
         design = dict(_designs([spec], record, layout))[spec]
         prefixes = evaluate_candidate(spec, record, layout, design).fallback[0]
         record.runs.clear()  # the runs already scored are kept: each prefix is simulated again below
-        monkeypatch.setattr(kernels, "simulate_pieces", spy)
+        monkeypatch.setattr(term_kernels, "simulate_pieces", spy)
         early = _score_prefixes(prefixes, record)
         record.runs.clear()
-        monkeypatch.setattr(kernels, "simulate_pieces", everything)
+        monkeypatch.setattr(term_kernels, "simulate_pieces", everything)
         assert _score_prefixes(prefixes, record) == early
     assert any(stopped) and not all(stopped)
 
@@ -1151,14 +1151,14 @@ def test_a_prefix_already_simulated_is_not_simulated_again_and_scores_the_same(m
         y[k] = 0.5 * y[k - 1] - 0.2 * y[k - 2] + u[k - 1]  # linear: every degree ranks its lags first
     record = Record.of(siso_view(u, y + 0.01 * rng.standard_normal(n)))
     layout = Layout.of(1, Scaling.from_training(u, y))
-    simulate = kernels.simulate_pieces
+    simulate = term_kernels.simulate_pieces
     calls = []
 
     def counted(*args) -> None:
         calls.append(1)
         simulate(*args)
 
-    monkeypatch.setattr(kernels, "simulate_pieces", counted)
+    monkeypatch.setattr(term_kernels, "simulate_pieces", counted)
     specs = [Spec("polynomial", 3, degree) for degree in (1, 2, 3)]
     candidates = [evaluate_candidate(spec, record, layout, design) for spec, design in _designs(specs, record, layout)]
     simulated, kept = len(calls), len(record.runs)

@@ -263,9 +263,9 @@ def test_a_mimo_configuration_that_cannot_work_is_one_clear_error(change: dict, 
 )
 def test_the_compiled_mimo_step_equals_the_python_step(monkeypatch, settings: dict) -> None:
     """The one compiled step with several channels: each output gives the Python step's numbers bit for bit."""
-    from lenn_ros.core import kernels, structure
+    from lenn_ros.core import jit, structure
 
-    if not kernels.JIT:
+    if not jit.JIT:
         pytest.skip("numba is not installed: there is no compiled step")
     series = simulate_mimo(narendra_mimo_plant(), -20.0, seed=4, train_samples=1200, test_samples=200)
     u = 1.5 * series.u  # beyond u_scale 1: inputs get clipped
@@ -297,9 +297,9 @@ def test_the_compiled_mimo_step_equals_the_python_step(monkeypatch, settings: di
 def test_the_compiled_joint_free_run_equals_the_python_one_and_flags_the_same_divergence(monkeypatch) -> None:
     from free_run_check import assert_same_divergence, assert_same_free_run
 
-    from lenn_ros.core import kernels
+    from lenn_ros.core import jit
 
-    if not kernels.JIT:
+    if not jit.JIT:
         pytest.skip("numba is not installed: there is no compiled free run")
     series = simulate_mimo(narendra_mimo_plant(), -20.0, seed=5, train_samples=3000, test_samples=600)
     identifier = _identifier(seed=5, scales=(1.6, 1.4))  # tight scales: some inputs get clipped
@@ -335,9 +335,9 @@ def test_separate_networks_work_with_several_channels(monkeypatch) -> None:
     """Model 3 per output (N1[own past] + N2[the channels it sees]): built from the parameters, two
     branches each, the compiled step and free run equal to the Python ones, and it learns the plant."""
     from lenn_ros.config import build_identifier, identifier_parameters
-    from lenn_ros.core import free_run, kernels, structure
+    from lenn_ros.core import free_run, jit, structure
 
-    if not kernels.JIT:
+    if not jit.JIT:
         pytest.skip("numba is not installed: there is no compiled step")
     values = {p.name: p.default for p in identifier_parameters(0, "lenn")}
     values.update({"u_field": "data[0], data[1]", "y_field": "position[a], position[b]", "u_topics": [""],

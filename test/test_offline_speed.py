@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lenn_ros.core import kernels
+from lenn_ros.core import jit
 from lenn_ros.core.expansions import (
     dictionary_exponents,
     expand,
@@ -24,7 +24,7 @@ from lenn_ros.paper import evaluation
 from lenn_ros.paper.evaluation import least_squares_floor, least_squares_weights, least_squares_weights_reference
 from lenn_ros.paper.examples import EXAMPLES
 
-pytestmark = pytest.mark.skipif(not kernels.JIT, reason="numba does not compile here: the references run anyway")
+pytestmark = pytest.mark.skipif(not jit.JIT, reason="numba does not compile here: the references run anyway")
 
 
 def _bits(a: np.ndarray) -> np.ndarray:
@@ -86,7 +86,7 @@ def test_identifier_run_is_bitwise_the_numpy_path(number: int, monkeypatch: pyte
         return evaluated.y_hat_test, evaluated.y_free_test, evaluated.train_errors, identifier.model.weights_
 
     compiled = run()
-    monkeypatch.setattr(kernels, "JIT", False)
+    monkeypatch.setattr(jit, "JIT", False)
     reference = run()
     for a, b in zip(compiled, reference, strict=True):
         assert np.array_equal(_bits(a), _bits(b))
@@ -123,7 +123,7 @@ def test_least_squares_floor_equals_lstsq_within_0_01_db(number: int, monkeypatc
     monkeypatch.setattr(evaluation, "_qr_least_squares", lambda *args: calls.append(1) or qr(*args))
     fast = least_squares_floor(example, series)
     assert bool(calls) == (number == 3)
-    monkeypatch.setattr(kernels, "JIT", False)  # features matrix + np.linalg.lstsq
+    monkeypatch.setattr(jit, "JIT", False)  # features matrix + np.linalg.lstsq
     assert abs(fast - least_squares_floor(example, series)) < 0.01
 
 

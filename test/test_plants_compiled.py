@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lenn_ros.core.kernels import COMPILED
+from lenn_ros.core.jit import COMPILED
 from lenn_ros.paper import plants
 from lenn_ros.paper.examples import EXAMPLES
 from lenn_ros.paper.expression import ExpressionError

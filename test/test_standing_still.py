@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from lenn_ros.config import build_identifier, resolve
-from lenn_ros.core import kernels
+from lenn_ros.core import jit
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.session import Session, SessionConfig
 from lenn_ros.core.structure import Identifier
@@ -152,7 +152,7 @@ def test_a_real_divergence_pauses_then_resumes_by_itself_with_a_back_off() -> No
 @pytest.mark.parametrize("compiled", [True, False])
 def test_pauses_and_resumes_are_the_same_stepped_and_batched(monkeypatch, compiled: bool) -> None:
     """A rule that diverges on every update (alpha 1e308): pause, resume, diverge, ... in run() as in step()."""
-    if compiled and not kernels.JIT:
+    if compiled and not jit.JIT:
         pytest.skip("the compiled step exists only where numba compiles")
     from lenn_ros.core import structure
 

@@ -21,7 +21,7 @@ from itertools import combinations_with_replacement
 
 import numpy as np
 
-from lenn_ros.core import kernels
+from lenn_ros.core import batch_kernels, jit, term_kernels
 
 BASES = ("legendre", "chebyshev", "trigonometric")
 
@@ -267,7 +267,7 @@ def _checked_terms(x: np.ndarray, exponents: np.ndarray, basis: str) -> tuple[np
 # least squares, RLS and the compiled step and free run treat these terms like the others.
 # A factor row is [kind, b, w_1 .. w_n]; kind 0 is no factor (the term is its polynomials).
 
-#: factor name -> kind code (shared with the compiled kernels: ``kernels.factor_value``)
+#: factor name -> kind code (shared with the compiled kernels: ``term_kernels.factor_value``)
 FACTOR_KINDS = {"lin": 1, "abs": 2, "relu": 3, "tanh": 4, "cos": 5, "sqabs": 6}
 _FACTOR_NAMES = {code: name for name, code in FACTOR_KINDS.items()}
 
@@ -278,7 +278,7 @@ def no_factors(n_terms: int, n_inputs: int) -> np.ndarray:
 
 
 def factor_function(kind: int, z: np.ndarray) -> np.ndarray:
-    """g(z) of a factor kind, vectorised (the reference for ``kernels.factor_value``)."""
+    """g(z) of a factor kind, vectorised (the reference for ``term_kernels.factor_value``)."""
     if kind == 1:
         return z
     if kind == 2:
@@ -319,7 +319,7 @@ def term_features(
 ) -> np.ndarray:
     """Columns prod_i P_{e_ti}(x_i) [* g_t(b_t + w_t . x)] for each exponent row (x already in [-1, 1]).
 
-    Compiled (:func:`kernels.term_expansion`) for the polynomial bases when numba
+    Compiled (:func:`batch_kernels.term_expansion`) for the polynomial bases when numba
     compiles, bit for bit :func:`term_features_reference` (test_offline_speed checks it): numpy
     makes one pass over the batch per degree and per term, several times the cost of
     the arithmetic, and this expansion is most of an offline run's time. ``order="F"``: the
@@ -327,11 +327,11 @@ def term_features(
     """
     x, exponents = _checked_terms(x, exponents, basis)
     factors = checked_factors(factors, exponents.shape[0], x.shape[1])
-    if not (kernels.JIT and basis in COMPILED_BASES):
+    if not (jit.JIT and basis in COMPILED_BASES):
         return np.asarray(term_features_reference(x, exponents, basis, factors), order=order)
     features = np.empty((x.shape[0], exponents.shape[0]), order=order)
-    code = kernels.BASIS_CODES[basis]
-    kernels.term_expansion(np.ascontiguousarray(x), np.ascontiguousarray(exponents), code, factors, features)
+    code = term_kernels.BASIS_CODES[basis]
+    batch_kernels.term_expansion(np.ascontiguousarray(x), np.ascontiguousarray(exponents), code, factors, features)
     return features
 
 

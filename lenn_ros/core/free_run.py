@@ -7,7 +7,7 @@ output the same way (:class:`OutputRun`: its structure's channels in regressor o
 the columns they are read from, its known linear parts), so both run here:
 
 - every output a functional-link network of one basis: one compiled call
-  (:func:`~lenn_ros.core.kernels.free_run`, the package's only simulation loop);
+  (:func:`~lenn_ros.core.term_kernels.free_run`, the package's only simulation loop);
 - otherwise (an MLP): one sample at a time in Python, every output predicted before
   any is fed back, with the same inputs, clipping and divergence bound.
 
@@ -65,11 +65,11 @@ def free_run_outputs(runs: Sequence[OutputRun], values: np.ndarray, start: int) 
     Returns (clipped network inputs per output, first diverged row or None); every
     output from a diverged row on is NaN.
     """
-    from lenn_ros.core import kernels
+    from lenn_ros.core import term_kernels
 
     models = [run.model for run in runs]
     compiled = (
-        all(getattr(m, "term_exponents", None) is not None and m.basis in kernels.BASIS_CODES for m in models)
+        all(getattr(m, "term_exponents", None) is not None and m.basis in term_kernels.BASIS_CODES for m in models)
         and len({m.basis for m in models}) == 1
     )
     if compiled:
@@ -132,7 +132,7 @@ class OutputArrays:
 
 @dataclass(frozen=True)
 class CompiledRun:
-    """:func:`~lenn_ros.core.kernels.free_run`'s arguments for some outputs, packed once.
+    """:func:`~lenn_ros.core.term_kernels.free_run`'s arguments for some outputs, packed once.
 
     The one place that packs them: an identifier's free run (:func:`free_run_outputs`) and
     ``fit``'s term models (``selection.simulate_joint``, and a refinement's hundreds of free
@@ -146,7 +146,7 @@ class CompiledRun:
     @classmethod
     def of(cls, outputs: Sequence[OutputArrays], basis: str) -> CompiledRun:
         """Every output's arrays side by side; one basis for all (the kernel's)."""
-        from lenn_ros.core import kernels
+        from lenn_ros.core import term_kernels
 
         width = max(1, *(len(o.source) for o in outputs))
         n_terms = [len(o.exponents) for o in outputs]
@@ -191,7 +191,7 @@ class CompiledRun:
             np.array([o.constant for o in outputs], dtype=np.float64),
             np.array([o.y_offset for o in outputs], dtype=np.float64),
             np.array([o.y_scale for o in outputs], dtype=np.float64),
-            kernels.BASIS_CODES[basis],
+            term_kernels.BASIS_CODES[basis],
         )
         return cls(head, tail, len(outputs))
 
@@ -200,11 +200,11 @@ class CompiledRun:
     ) -> tuple[np.ndarray, int]:
         """Simulate ``values`` (contiguous float64, [y, u] per sample) in place from ``start`` with the outputs'
         ``weights`` end to end: (clipped inputs per output, first diverged sample or -1)."""
-        from lenn_ros.core import kernels
+        from lenn_ros.core import term_kernels
 
         clipped = np.zeros(self.n_y, dtype=np.int64)
         weights = np.ascontiguousarray(weights, dtype=np.float64)
-        diverged_at = kernels.free_run(values, int(start), *self.head, weights, *self.tail, bound, clipped)
+        diverged_at = term_kernels.free_run(values, int(start), *self.head, weights, *self.tail, bound, clipped)
         return clipped, int(diverged_at)
 
 

@@ -24,7 +24,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from lenn_ros.core import kernels
+from lenn_ros.core import jit, learning_rules
 from lenn_ros.core.expansions import (
     BASES,
     COMPILED_BASES,
@@ -459,7 +459,7 @@ class FunctionalLinkNetwork(OnlineRegressor):
         x = self._check_inputs(x)
         if self.exponents is not None:
             return term_features(x, np.asarray(self.exponents, dtype=np.int64), self.basis, self.term_factors())
-        if x.shape[0] > 1 and kernels.JIT and self.basis in COMPILED_BASES:
+        if x.shape[0] > 1 and jit.JIT and self.basis in COMPILED_BASES:
             # one compiled pass over all branches, in the column order of the hstack below
             # (the same bits; test_offline_speed checks it); one sample keeps expand's scalar path
             rows = _expansion_rows(int(self.n_inputs), int(self.order), int(self.cross_degree), _branch_key(self))
@@ -495,7 +495,7 @@ class FunctionalLinkNetwork(OnlineRegressor):
             d = np.ascontiguousarray(np.broadcast_to(np.asarray(d, dtype=np.float64), (phi.shape[0],)))
         y = np.empty(phi.shape[0])
         if self.solver == "sgd":
-            done = kernels.functional_link_sgd(
+            done = learning_rules.functional_link_sgd(
                 self.weights_,
                 self.momentum_,
                 phi,
@@ -510,9 +510,9 @@ class FunctionalLinkNetwork(OnlineRegressor):
                 y,
             )
         elif self.solver == "nlms":
-            done = kernels.functional_link_nlms(self.weights_, phi, d, float(self.nlms_step), 1e-6, learn, y)
+            done = learning_rules.functional_link_nlms(self.weights_, phi, d, float(self.nlms_step), 1e-6, learn, y)
         else:
-            done = kernels.functional_link_rls(
+            done = learning_rules.functional_link_rls(
                 self.weights_,
                 self.covariance_,
                 phi,
@@ -635,7 +635,7 @@ class MLP(OnlineRegressor):
         x = np.ascontiguousarray(self._check_inputs(x)[:, self.input_order_])
         d = np.ascontiguousarray(np.broadcast_to(np.asarray(d, dtype=np.float64), (x.shape[0],)))
         y = np.empty(x.shape[0])
-        done = kernels.mlp_sgd(
+        done = learning_rules.mlp_sgd(
             self.params_,
             self.momentum_,
             x,

@@ -7,7 +7,7 @@ numba's dispatcher. :func:`functional_link_step` does all of it in one call, wit
 same arithmetic in the same order as the Python path of
 :meth:`lenn_ros.core.structure.Identifier.step` (regressor of
 :meth:`~lenn_ros.core.structure.ModelStructure.regressor_row`, the compiled
-:func:`~lenn_ros.core.kernels.term_expansion`, the learning rule's own kernel), so
+:func:`~lenn_ros.core.batch_kernels.term_expansion`, the learning rule's own kernel), so
 the two paths agree bit for bit and a test holds them to it.
 
 The state the call carries from one sample to the next lives in small arrays owned by
@@ -22,14 +22,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lenn_ros.core.kernels import (
-    functional_link_nlms,
-    functional_link_rls,
-    functional_link_sgd,
-    leverage,
-    njit,
-    term_expansion,
-)
+from lenn_ros.core.batch_kernels import term_expansion
+from lenn_ros.core.jit import njit
+from lenn_ros.core.learning_rules import functional_link_nlms, functional_link_rls, functional_link_sgd, leverage
 
 SOLVER_CODES = {"sgd": 0, "nlms": 1, "rls": 2}
 NLMS_EPSILON = 1e-6  # as FunctionalLinkNetwork.update_features passes it
@@ -334,12 +329,12 @@ class StepPlan:
     @classmethod
     def for_model(cls, model: object, structure: object) -> StepPlan | None:
         """The plan, or None where the model has no compiled step (MLP, trigonometric basis, or no numba)."""
-        from lenn_ros.core import kernels
+        from lenn_ros.core import jit, term_kernels
         from lenn_ros.core.expansions import COMPILED_BASES
 
         term_exponents = getattr(model, "term_exponents", None)
         if not (
-            kernels.JIT
+            jit.JIT
             and term_exponents is not None
             and getattr(model, "basis", None) in COMPILED_BASES
             and getattr(model, "solver", None) in SOLVER_CODES
@@ -367,7 +362,7 @@ class StepPlan:
             known_b=np.ascontiguousarray(known_b, dtype=np.float64),
             exponents=np.ascontiguousarray(exponents, dtype=np.int64),
             factors=model.term_factors(),
-            basis=kernels.BASIS_CODES[model.basis],
+            basis=term_kernels.BASIS_CODES[model.basis],
             solver=SOLVER_CODES[model.solver],
             tanh_output=model.output == "tanh",
             n_branches=int(model.feature_branch_.max(initial=0)) + 1,

@@ -30,6 +30,7 @@ from lenn_ros.core.online_step import (
     Y_HAT_NEXT,
     StepPlan,
 )
+from lenn_ros.core.target_variance import TargetVariance
 
 
 @dataclass(frozen=True)
@@ -55,7 +56,7 @@ class ModelStructure:
       speed that changes sign). The model is of the signed output, whose sign is a hidden
       state no NARX of |y| carries through a free run; each measured y takes the sign the
       model gives it (its free run alongside, or its prediction near zero:
-      :meth:`Identifier.step`), and what is published and scored is |y^|.
+      :class:`SignTracker`), and what is published and scored is |y^|.
 
     One description for any number of channels: the compiled step and the free run read
     it through :meth:`input_channels` and :meth:`known_parts`.
@@ -217,7 +218,8 @@ class Identifier:
     (:meth:`run` is :meth:`step` over a whole series, batched into the compiled
     kernel). Samples carry an index (the publication sequence number of the pair):
     a gap restarts the regressor history (no prediction across missing samples), a
-    repeated or older index is ignored, and neither is ever learnt from.
+    repeated or older index is ignored, and neither is ever learnt from. An output its sensor
+    reads as |y| (``y_abs``) is signed first, by a :class:`SignTracker`.
 
     Divergence guard: learning proceeds in blocks of ``health_interval`` learnt
     samples. After each block the mean squared a-priori error is compared with the
@@ -228,12 +230,8 @@ class Identifier:
     go on from the healthy model.
 
     The variance is the larger of the block's own and the target's *learnt* variance
-    (``target_variance``): a plant at rest has a block variance of nothing (a constant
-    command, a quantised encoder), and a guard measured against that rolled back every
-    healthy model that stood still. The learnt variance is the mean over the passed
-    blocks in which the target moved (variance at least ``REST_FRACTION`` of the learnt
-    one; the last ``SCALE_MEMORY`` of them weigh most), so standing still neither lowers
-    nor raises it; until the target has moved, the declared range ``y_scale`` squared stands in.
+    (``target_variance``, :class:`~lenn_ros.core.target_variance.TargetVariance`), so that a
+    plant at rest does not roll back a healthy model that stands still.
 
     After a divergence learning resumes by itself, from the healthy state, once
     ``resume_after`` blocks' worth of learnable samples have passed (``resume_in`` counts
@@ -252,10 +250,6 @@ class Identifier:
     counters: dict[str, int] = field(default_factory=dict)
     diverged: bool = False
 
-    #: A block whose target variance is below this fraction of the learnt one stands still.
-    REST_FRACTION: ClassVar[float] = 1e-2
-    #: Moving blocks the learnt target variance averages over (an exponential memory after them).
-    SCALE_MEMORY: ClassVar[int] = 16
     #: The pause after a divergence grows at most to this many times ``resume_after`` blocks.
     MAX_BACKOFF: ClassVar[int] = 64
 
@@ -283,110 +277,26 @@ class Identifier:
         self._plan_model: OnlineRegressor | None = None  # the model the plan was made for
         self.last_free_run: dict = {}
         self.last_leverage = np.zeros(0)  # run(): phi' P phi of each y^(k) (RLS; 0 elsewhere)
-        self.target_variance = 0.0  # learnt while the target moved (0: not yet)
-        self._moving_blocks = 0
+        self._target = TargetVariance()  # what the guard measures a block against
         self.hold_off = 0  # learnable samples of the last pause after a divergence
         self.resume_in = 0  # of them still to pass before learning resumes
         self._backoff = 1
         self._passed_since_resume = 0
+        self._signs = SignTracker()  # y_abs: the sign of each |y| (unused otherwise)
         self.mark_healthy()
 
     # -- one sample ------------------------------------------------------------------
     def step(self, index: int, u: float, y: float, learn: bool | None = None) -> StepResult:
         """Process the pair (u(k), y_p(k)) with sample index k."""
         if self.structure.y_abs:
-            return self._step_abs(index, u, y, learn)
+            return self._signs.step(self, index, u, y, learn)
         return self._step(index, u, y, learn)
-
-    def _sign_for(self, index: int) -> tuple[float, bool]:
-        """The sign a measured |y(index)| takes (``y_abs``), and whether it is sure.
-
-        Where the free run alongside (:meth:`_step_shadows`) is clearly away from zero
-        (SIGN_MARGIN of ``y_scale``), its sign; nearer zero, where a crossing's timing is
-        uncertain, the sign of the one-step prediction; + with neither (a history that starts
-        over). Sure where the two agree. Why the free run: a history signed the
-        wrong way round is the mirror image of the plant, and one-step predictions from it stay
-        mirrored (a slow output's next value is mostly its last); a stable model's free run
-        forgets its start and follows the input.
-        """
-        if self._last_index is None or index != self._last_index + 1:
-            return 1.0, False
-        free, one = self._shadow_next, self._signed_next
-        agree = free is not None and one is not None and (free < 0.0) == (one < 0.0)
-        if free is not None and abs(free) >= self.SIGN_MARGIN * self.structure.y_scale:
-            return (-1.0 if free < 0.0 else 1.0), agree
-        return (-1.0 if one is not None and one < 0.0 else 1.0), agree
-
-    #: ``y_abs``: the free run alongside decides a sign beyond this fraction of ``y_scale`` from zero
-    SIGN_MARGIN: ClassVar[float] = 0.1
-
-    def _step_abs(self, index: int, u: float, y: float, learn: bool | None) -> StepResult:
-        """:meth:`_step` on the signed output, scored and published as the sensor reads it.
-
-        With y signed as its prediction is, y - y^ is +-(|y| - |y^|): the model learns
-        exactly the error the sensor shows, and nothing the sensor cannot tell. A sample is
-        learnt only once the sign has settled after a start (the free runs from either sign of
-        it agree) and when its sign and those of its whole history were sure: a history signed
-        the wrong way round would teach the mirror image of the plant, and one wrong sign at a
-        crossing a jump it never made (counted: ``sign_unsure``).
-        """
-        sign, sure = self._sign_for(index)
-        signed = sign * y
-        self._sure_run = self._sure_run + 1 if sure else 0
-        trusted = self._settled and self._sure_run > self.structure.y_history
-        learn = self.learning if learn is None else learn
-        result = self._step(index, u, signed, learn and trusted)
-        if result.event == "duplicate":
-            return result
-        if learn and not trusted and result.y_hat is not None:  # a sample it would have learnt from
-            self.counters["sign_unsure"] = self.counters.get("sign_unsure", 0) + 1
-        self._signed_next = result.y_hat_next
-        self._step_shadows(index, u, signed)
-        if result.y_hat is not None:
-            result.y_hat = abs(result.y_hat)
-            result.error = y - result.y_hat
-        if result.y_hat_next is not None:
-            result.y_hat_next = abs(result.y_hat_next)
-        return result
-
-    def _step_shadows(self, index: int, u: float, signed: float) -> None:
-        """The free runs alongside (``y_abs``): the same weights, fed their own predictions, seeded by the
-        signed measurements until they predict, and a second one by their mirror image. Their difference
-        is twice what is left of the start (exactly, for a linear model); once it stays within SIGN_MARGIN
-        over the output's whole history, a sign the free run decides (beyond SIGN_MARGIN from zero) no
-        longer depends on the start's: it is settled, and the second one is dropped. (Mirror images
-        meet at zero: one sample of agreement there says nothing.)"""
-        if not self._shadows or self._shadows[0].model is not self.model:
-            plain = dataclasses.replace(self.structure, y_abs=False)
-            self._shadows = [Identifier(plain, self.model, learning=False) for _ in range(2)]
-            self._shadow_next, self._mirror_next, self._settled, self._agreed = None, None, False, 0
-        bound = FREE_RUN_DIVERGENCE_BOUND * self.structure.y_scale
-        following = []
-        feeds = ((self._shadow_next, signed), (self._mirror_next, -signed))
-        for shadow, (own, seed) in zip(self._shadows, feeds[: len(self._shadows)], strict=True):
-            value = shadow.step(index, u, seed if own is None else own, learn=False).y_hat_next
-            inside = value is not None and abs(value - self.structure.y_offset) <= bound
-            following.append(value if inside else None)
-        self._shadow_next, self._mirror_next = following[0], (following[1] if len(following) == 2 else None)
-        margin = self.SIGN_MARGIN * self.structure.y_scale
-        agree = None not in following and abs(following[0] - following[-1]) < margin
-        self._agreed = self._agreed + 1 if agree else 0
-        if len(following) == 2 and self._agreed >= self.structure.y_history:
-            self._settled, self._shadows = True, self._shadows[:1]
-
-    _signed_next: float | None = None  # y_abs: the signed one-step prediction of the next sample
-    _shadows: ClassVar[tuple] = ()  # y_abs: the free runs alongside (an instance sets its own)
-    _shadow_next: float | None = None  # and their predictions of the next sample
-    _mirror_next: float | None = None
-    _settled = False  # y_abs: the free runs have forgotten the start (its sign)
-    _agreed = 0  # y_abs: samples in a row the two free runs have agreed
-    _sure_run = 0  # y_abs: samples in a row whose sign was sure
 
     @property
     def sign_settled(self) -> bool | None:
         """``y_abs``: whether the sign of |y| has settled since the history last started (learning waits for
         it); None for an output read as it is."""
-        return self._settled if self.structure.y_abs else None
+        return self._signs.settled if self.structure.y_abs else None
 
     def _step(self, index: int, u: float, y: float, learn: bool | None = None) -> StepResult:
         learn = self.learning if learn is None else learn
@@ -538,8 +448,7 @@ class Identifier:
         self._restart_history()
 
     def _restart_history(self) -> None:
-        self._signed_next = self._shadow_next = self._mirror_next = None
-        self._shadows, self._settled, self._sure_run = (), False, 0
+        self._signs.restart()
         self._y_past.clear()
         self._u_past.clear()
         self._pending = None
@@ -567,7 +476,7 @@ class Identifier:
         self._block_targets.clear()
         mse = float(np.mean(errors * errors))
         variance = float(np.var(targets))
-        reference = max(variance, self.target_variance or self.structure.y_scale**2)
+        reference = self._target.reference(variance, self.structure.y_scale)
         if not np.isfinite(mse) or mse > self.divergence_ratio * reference + 1e-12:
             self._on_divergence()
             return False
@@ -575,24 +484,16 @@ class Identifier:
         # weights now (after its last update) are vouched for by the next block.
         self._healthy_state = self._candidate_state
         self._candidate_state = self.model.state()
-        self._learn_variance(variance)
+        self._target.learn(variance, self.structure.y_scale)
         self._passed_since_resume += 1
         if self._passed_since_resume >= self.resume_after:
             self._backoff = 1
         return True
 
-    def _learn_variance(self, variance: float) -> None:
-        """A passed block's target variance into the learnt one, unless the target stood still in it.
-
-        Before anything is learnt, "still" is measured against 1e-4 of the declared range
-        squared (an RMS of a tenth of a percent of ``y_scale``: well above a quantised
-        encoder's flicker at rest, well below any motion).
-        """
-        known = self.target_variance or 1e-4 * self.structure.y_scale**2
-        if not variance >= self.REST_FRACTION * known:
-            return
-        self._moving_blocks += 1
-        self.target_variance += (variance - self.target_variance) / min(self._moving_blocks, self.SCALE_MEMORY)
+    @property
+    def target_variance(self) -> float:
+        """The target's variance learnt while it moved (0: not yet): what the guard measures blocks against."""
+        return self._target.value
 
     def _on_divergence(self) -> None:
         self.counters["diverged"] += 1
@@ -646,7 +547,9 @@ class Identifier:
         u = np.asarray(u, dtype=np.float64)
         y = np.asarray(y, dtype=np.float64)
         learn_mask = np.broadcast_to(np.asarray(learn, dtype=bool), y.shape)
-        return (self._run_steps if self.structure.y_abs else self._run_batch)(u, y, learn_mask, changes)
+        if self.structure.y_abs:
+            return self._signs.run(self, u, y, learn_mask, changes)
+        return self._run_batch(u, y, learn_mask, changes)
 
     def _run_batch(
         self, u: np.ndarray, y: np.ndarray, learn_mask: np.ndarray, changes: Sequence[tuple[int, Callable[[], None]]]
@@ -699,41 +602,11 @@ class Identifier:
         self.last_leverage[first + 1 :] = leverage
         return y_hat
 
-    def _run_steps(
-        self, u: np.ndarray, y: np.ndarray, learn: np.ndarray, changes: Sequence[tuple[int, Callable[[], None]]]
-    ) -> np.ndarray:
-        """:meth:`run` as :meth:`step` over a fresh history, one sample at a time: with ``y_abs`` each
-        sample's sign comes from the predictions made before it, so no batch can be formed ahead."""
-        self.restart_stream()
-        cuts = sorted(changes, key=lambda c: c[0])
-        y_hat = np.full(len(y), np.nan)
-        self.last_leverage = np.zeros(len(y))
-        leverage = 0.0  # of the prediction made at the sample before
-        for k in range(len(y)):
-            while cuts and cuts[0][0] <= k:
-                cuts.pop(0)[1]()
-            result = self.step(k, float(u[k]), float(y[k]), bool(learn[k]))
-            if result.y_hat is not None:
-                y_hat[k] = result.y_hat
-                self.last_leverage[k] = leverage
-            leverage = result.leverage
-        for _, apply in cuts:
-            apply()
-        self.restart_stream()
-        return y_hat
-
     def signed(self, u: np.ndarray, y: np.ndarray) -> np.ndarray:
         """``y`` as the model reads it (``y_abs``: each sample signed as the frozen model predicts it, the
         sign the node gives it); ``y`` itself otherwise. What seeds a free run from measured outputs."""
         y = np.asarray(y, dtype=np.float64)
-        if not self.structure.y_abs:
-            return y
-        observer = Identifier(self.structure, self.model, learning=False)
-        out = np.empty(len(y))
-        for k in range(len(y)):
-            out[k] = observer._sign_for(k)[0] * y[k]
-            observer.step(k, float(u[k]), float(y[k]), learn=False)
-        return out
+        return self._signs.signed(self, u, y) if self.structure.y_abs else y
 
     def _update(self, inputs: np.ndarray, targets: np.ndarray, learning: bool, leverage: np.ndarray) -> np.ndarray:
         """The model's batch update; an RLS functional-link model also fills ``leverage``, as the live step has it."""
@@ -783,3 +656,147 @@ class Identifier:
             "diverged_at": diverged_at,
         }
         return np.abs(values[start:, 0]) if read_abs else values[start:, 0]
+
+
+# -- |y| outputs -------------------------------------------------------------------------
+class SignTracker:
+    """The sign of an output whose sensor reads |y| (``ModelStructure.y_abs``), for its :class:`Identifier`.
+
+    Why it exists: the model is of the signed output, and the sensor gives |y|. Each reading is
+    signed as the model predicts it, and learnt from only where that sign can be trusted; deciding
+    it is a state machine of its own beside the series-parallel step (two free runs alongside, how
+    long they have agreed, how many sure signs in a row), which only ``y_abs`` outputs need. Apart,
+    the :class:`Identifier` keeps to its step, its divergence guard and its runs, and hands a
+    ``y_abs`` sample over; its history restarts call :meth:`restart`. The methods take the
+    identifier they sign for rather than holding it (no reference cycle). It lives in this module,
+    not one of its own, because it drives the identifier's private step and builds identifiers
+    (the free runs alongside): a module of its own would have to import this one back.
+    """
+
+    #: the free run alongside decides a sign beyond this fraction of ``y_scale`` from zero
+    SIGN_MARGIN: ClassVar[float] = 0.1
+
+    def __init__(self) -> None:
+        self.signed_next: float | None = None  # the signed one-step prediction of the next sample
+        self.shadows: list[Identifier] = []  # the free runs alongside
+        self.shadow_next: float | None = None  # and their predictions of the next sample
+        self.mirror_next: float | None = None
+        self.settled = False  # the free runs have forgotten the start (its sign)
+        self.agreed = 0  # samples in a row the two free runs have agreed
+        self.sure_run = 0  # samples in a row whose sign was sure
+
+    def restart(self) -> None:
+        """The identifier's history starts over (a gap, a rejected sample, a new stream): so do the signs."""
+        self.signed_next = self.shadow_next = self.mirror_next = None
+        self.shadows, self.settled, self.sure_run = [], False, 0
+
+    def sign_for(self, identifier: Identifier, index: int) -> tuple[float, bool]:
+        """The sign a measured |y(index)| takes, and whether it is sure.
+
+        Where the free run alongside (:meth:`_step_shadows`) is clearly away from zero
+        (SIGN_MARGIN of ``y_scale``), its sign; nearer zero, where a crossing's timing is
+        uncertain, the sign of the one-step prediction; + with neither (a history that starts
+        over). Sure where the two agree. Why the free run: a history signed the
+        wrong way round is the mirror image of the plant, and one-step predictions from it stay
+        mirrored (a slow output's next value is mostly its last); a stable model's free run
+        forgets its start and follows the input.
+        """
+        if identifier._last_index is None or index != identifier._last_index + 1:
+            return 1.0, False
+        free, one = self.shadow_next, self.signed_next
+        agree = free is not None and one is not None and (free < 0.0) == (one < 0.0)
+        if free is not None and abs(free) >= self.SIGN_MARGIN * identifier.structure.y_scale:
+            return (-1.0 if free < 0.0 else 1.0), agree
+        return (-1.0 if one is not None and one < 0.0 else 1.0), agree
+
+    def step(self, identifier: Identifier, index: int, u: float, y: float, learn: bool | None) -> StepResult:
+        """The identifier's step on the signed output, scored and published as the sensor reads it.
+
+        With y signed as its prediction is, y - y^ is +-(|y| - |y^|): the model learns
+        exactly the error the sensor shows, and nothing the sensor cannot tell. A sample is
+        learnt only once the sign has settled after a start (the free runs from either sign of
+        it agree) and when its sign and those of its whole history were sure: a history signed
+        the wrong way round would teach the mirror image of the plant, and one wrong sign at a
+        crossing a jump it never made (counted: ``sign_unsure``).
+        """
+        sign, sure = self.sign_for(identifier, index)
+        signed = sign * y
+        self.sure_run = self.sure_run + 1 if sure else 0
+        trusted = self.settled and self.sure_run > identifier.structure.y_history
+        learn = identifier.learning if learn is None else learn
+        result = identifier._step(index, u, signed, learn and trusted)
+        if result.event == "duplicate":
+            return result
+        if learn and not trusted and result.y_hat is not None:  # a sample it would have learnt from
+            identifier.counters["sign_unsure"] = identifier.counters.get("sign_unsure", 0) + 1
+        self.signed_next = result.y_hat_next
+        self._step_shadows(identifier, index, u, signed)
+        if result.y_hat is not None:
+            result.y_hat = abs(result.y_hat)
+            result.error = y - result.y_hat
+        if result.y_hat_next is not None:
+            result.y_hat_next = abs(result.y_hat_next)
+        return result
+
+    def _step_shadows(self, identifier: Identifier, index: int, u: float, signed: float) -> None:
+        """The free runs alongside: the same weights, fed their own predictions, seeded by the
+        signed measurements until they predict, and a second one by their mirror image. Their difference
+        is twice what is left of the start (exactly, for a linear model); once it stays within SIGN_MARGIN
+        over the output's whole history, a sign the free run decides (beyond SIGN_MARGIN from zero) no
+        longer depends on the start's: it is settled, and the second one is dropped. (Mirror images
+        meet at zero: one sample of agreement there says nothing.)"""
+        structure = identifier.structure
+        if not self.shadows or self.shadows[0].model is not identifier.model:
+            plain = dataclasses.replace(structure, y_abs=False)
+            self.shadows = [Identifier(plain, identifier.model, learning=False) for _ in range(2)]
+            self.shadow_next, self.mirror_next, self.settled, self.agreed = None, None, False, 0
+        bound = FREE_RUN_DIVERGENCE_BOUND * structure.y_scale
+        following = []
+        feeds = ((self.shadow_next, signed), (self.mirror_next, -signed))
+        for shadow, (own, seed) in zip(self.shadows, feeds[: len(self.shadows)], strict=True):
+            value = shadow.step(index, u, seed if own is None else own, learn=False).y_hat_next
+            inside = value is not None and abs(value - structure.y_offset) <= bound
+            following.append(value if inside else None)
+        self.shadow_next, self.mirror_next = following[0], (following[1] if len(following) == 2 else None)
+        margin = self.SIGN_MARGIN * structure.y_scale
+        agree = None not in following and abs(following[0] - following[-1]) < margin
+        self.agreed = self.agreed + 1 if agree else 0
+        if len(following) == 2 and self.agreed >= structure.y_history:
+            self.settled, self.shadows = True, self.shadows[:1]
+
+    def signed(self, identifier: Identifier, u: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """Each |y| sample signed as the identifier's model, frozen, predicts it (:meth:`Identifier.signed`)."""
+        observer = Identifier(identifier.structure, identifier.model, learning=False)
+        out = np.empty(len(y))
+        for k in range(len(y)):
+            out[k] = observer._signs.sign_for(observer, k)[0] * y[k]
+            observer.step(k, float(u[k]), float(y[k]), learn=False)
+        return out
+
+    def run(
+        self,
+        identifier: Identifier,
+        u: np.ndarray,
+        y: np.ndarray,
+        learn: np.ndarray,
+        changes: Sequence[tuple[int, Callable[[], None]]],
+    ) -> np.ndarray:
+        """:meth:`Identifier.run` as its step over a fresh history, one sample at a time: each
+        sample's sign comes from the predictions made before it, so no batch can be formed ahead."""
+        identifier.restart_stream()
+        cuts = sorted(changes, key=lambda c: c[0])
+        y_hat = np.full(len(y), np.nan)
+        identifier.last_leverage = np.zeros(len(y))
+        leverage = 0.0  # of the prediction made at the sample before
+        for k in range(len(y)):
+            while cuts and cuts[0][0] <= k:
+                cuts.pop(0)[1]()
+            result = identifier.step(k, float(u[k]), float(y[k]), bool(learn[k]))
+            if result.y_hat is not None:
+                y_hat[k] = result.y_hat
+                identifier.last_leverage[k] = leverage
+            leverage = result.leverage
+        for _, apply in cuts:
+            apply()
+        identifier.restart_stream()
+        return y_hat

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lenn_ros.core import kernels
+from lenn_ros.core import term_kernels as kernels
 from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND
 from lenn_ros.fit.selection import (
     Candidate,

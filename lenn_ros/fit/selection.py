@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from lenn_ros.core import kernels
+from lenn_ros.core import term_kernels as kernels
 from lenn_ros.core.expansions import checked_factors, format_terms, term_features
 from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND, CompiledRun, OutputArrays
 from lenn_ros.core.scaling import Scaling, ranges

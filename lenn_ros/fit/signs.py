@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lenn_ros.core.kernels import njit
+from lenn_ros.core.jit import njit
 
 #: a near-zero minimum lies below this fraction of |y|'s 99th percentile
 NEAR_ZERO = 0.1

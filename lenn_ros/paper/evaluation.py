@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lenn_ros.core import kernels
+from lenn_ros.core import batch_kernels, jit, term_kernels
 from lenn_ros.core.evaluation import Evaluation, free_run_problems
 from lenn_ros.core.metrics import nmse_db, rmse
 from lenn_ros.core.networks import FunctionalLinkNetwork
@@ -163,15 +163,15 @@ def least_squares_weights(model: FunctionalLinkNetwork, x: np.ndarray, targets: 
     for the matrix and its SVD at 550 000 samples of Ex. 1 (cProfile). Ill-conditioned
     features fall back to a QR built row by row (:func:`_qr_least_squares`).
     """
-    if not kernels.JIT:
+    if not jit.JIT:
         return least_squares_weights_reference(model, x, targets)
     x = np.ascontiguousarray(model._check_inputs(x))
     targets = np.ascontiguousarray(targets, dtype=np.float64)
     exponents = np.ascontiguousarray(model.term_exponents()[0])
     factors = model.term_factors()
-    basis = kernels.BASIS_CODES[model.basis]
+    basis = term_kernels.BASIS_CODES[model.basis]
     gram = np.zeros((len(exponents) + 1, len(exponents) + 1))  # [Phi | d]' [Phi | d]
-    kernels.normal_equations(x, targets, exponents, factors, basis, gram)
+    batch_kernels.normal_equations(x, targets, exponents, factors, basis, gram)
     weights = _solve_normal_equations(gram[:-1, :-1], gram[:-1, -1])
     return _qr_least_squares(x, targets, exponents, factors, basis) if weights is None else weights
 
@@ -199,7 +199,7 @@ def _solve_normal_equations(gram: np.ndarray, moment: np.ndarray) -> np.ndarray 
 def _qr_least_squares(
     x: np.ndarray, targets: np.ndarray, exponents: np.ndarray, factors: np.ndarray, basis: int
 ) -> np.ndarray:
-    """Least squares from the triangular R of [Phi | d], built row by row (:func:`kernels.qr_rows`).
+    """Least squares from the triangular R of [Phi | d], built row by row (:func:`batch_kernels.qr_rows`).
 
     The conditioning is that of the features, not its square, and the cut-off for
     small singular values is ``np.linalg.lstsq``'s for the whole matrix
@@ -208,6 +208,6 @@ def _qr_least_squares(
     """
     n_terms = len(exponents)
     r = np.zeros((n_terms + 1, n_terms + 1))
-    kernels.qr_rows(x, targets, exponents, factors, basis, r)
+    batch_kernels.qr_rows(x, targets, exponents, factors, basis, r)
     cutoff = np.finfo(np.float64).eps * max(len(x), n_terms)
     return np.linalg.lstsq(r[:n_terms, :n_terms], r[:n_terms, n_terms], rcond=cutoff)[0]

@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from lenn_ros.core.kernels import njit
+from lenn_ros.core.jit import njit
 
 
 @njit(cache=True, nogil=True)

@@ -30,7 +30,7 @@ from typing import Protocol
 
 import numpy as np
 
-from lenn_ros.core.kernels import COMPILED, njit
+from lenn_ros.core.jit import COMPILED, njit
 from lenn_ros.paper.expression import Expression, compile_expression
 
 Function = Callable[..., float]

@@ -25,9 +25,10 @@ from lenn_ros.core.expansions import format_terms, parse_terms, siso_channels
 from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND
 from lenn_ros.core.scaling import Scaling
 from lenn_ros.core.structure import Identifier
-from lenn_ros.fit import families, refinement
+from lenn_ros.fit import refinement
 from lenn_ros.fit.build import Data, fit
-from lenn_ros.fit.families import Spec
+from lenn_ros.fit.families import FAMILIES, Spec
+from lenn_ros.fit.families import index as index_family
 from lenn_ros.fit.selection import (
     NONLINEAR_GAIN,
     PARSIMONY,
@@ -768,7 +769,7 @@ def test_the_stick_family_reads_its_dead_zone_from_the_record() -> None:
     are STICK_KNOTS times the step, on both sides. ``fit`` chooses the family there (the blocks prefer it) and
     simulates the body (measured -44.3 dB; without the family the increment family's -47.8 dB: on a record
     without noise least squares sets the stick threshold right, and both follow it)."""
-    from lenn_ros.fit.families import STICK_KNOTS
+    from lenn_ros.fit.families.stick import STICK_KNOTS
     from lenn_ros.fit.selection import valid_inputs
 
     u, y = coulomb_body(4000)
@@ -803,7 +804,7 @@ def test_fit_simulates_an_axis_standing_stuck_by_the_stick_family_and_the_node_r
     result = fit(Data(u, y, "axis"), start + 1)
     report = result["report"]
     assert report["model"]["family"] == "stick" and report["warnings"] == []
-    assert report["choices"]["refinement"]["tried"] == refinement.FAR_ITERATIONS["stick"]
+    assert report["choices"]["refinement"]["tried"] == FAMILIES["stick"].iterations
     assert report["nmse_free_run_db"] < -34.0
     assert level_free(result["model"])  # the integrator is kept exactly, and passed through by the node
     y_free = _identifier_from_params(tmp_path, result, Data(u, y, "axis"))[1].free_run(u, y, start)
@@ -976,20 +977,20 @@ def test_the_index_direction_is_the_first_filter_of_a_wiener_system() -> None:
     correlate with the filter's impulse response beyond 0.9999, which the least-squares FIR it starts from
     (the map's flattening mixed in) does not."""
     rng = np.random.default_rng(3)
-    n, lags = 4000, families.INDEX_LAGS[-1]
-    taps = lags - families.INDEX_SHIFTS
+    n, lags = 4000, index_family.INDEX_LAGS[-1]
+    taps = lags - index_family.INDEX_SHIFTS
     u = rng.standard_normal(n)
     impulse = 0.8 ** np.arange(taps) - 0.5 * 0.5 ** np.arange(taps)
     # y(k) = clip(impulse . (u(k-1), u(k-2), ...)): the input acts one sample later, as a sampled plant's does
     y = np.clip(np.r_[0.0, np.convolve(u, impulse)[: n - 1]], -0.6, 0.6) + 0.005 * rng.standard_normal(n)
     # rows as the selection builds them: y(k), y(k-1), ..., then u(k), u(k-1), ...; the target is y(k+1)
     rows = np.array([np.r_[y[k - lags + 1 : k + 1][::-1], u[k - lags + 1 : k + 1][::-1]] for k in range(lags, n - 1)])
-    columns, h, _middle, _spread, knots = families.index_direction(rows, lags)
+    columns, h, _middle, _spread, knots = index_family.index_direction(rows, lags)
     assert list(columns) == list(range(lags, lags + taps))
     start = np.linalg.lstsq(np.c_[np.ones(len(rows)), rows[:, columns + 1]], rows[:, 0], rcond=None)[0][1:]
     # measured: 0.999977 found, 0.99834 at the start
     assert abs(np.corrcoef(h, impulse)[0, 1]) > 0.9999 and abs(np.corrcoef(start, impulse)[0, 1]) < 0.999
-    assert len(knots) == len(families.INDEX_KNOTS)
+    assert len(knots) == len(index_family.INDEX_KNOTS)
 
 
 def test_a_test_part_recorded_apart_is_seeded_by_its_own_samples_and_said() -> None:

@@ -57,7 +57,8 @@ from lenn_ros.core.structure import Identifier
 from lenn_ros.core.threads import cores, side_by_side
 from lenn_ros.fit.data import REPORT_FILE, Data, FitError
 from lenn_ros.fit.delay import input_delays, shifted
-from lenn_ros.fit.families import INCREMENT_LAGS, INDEX_SHIFTS, candidate_specs, pass_through_weights
+from lenn_ros.fit.families import candidate_specs
+from lenn_ros.fit.families.base import pass_through_weights
 from lenn_ros.fit.memory import within_memory
 from lenn_ros.fit.refinement import Refinement, blocks_choice, fold_history, refine_on_folds
 from lenn_ros.fit.rest import without_rest
@@ -764,15 +765,17 @@ def _score_refinement(candidate: Candidate, result: Refinement) -> None:
 def _contenders(fitted: OutputFit, targets: list[tuple[OutputFit, Candidate]]) -> list[Candidate]:
     """An output's refined and input-only candidates, in the order :func:`_after_refinement` would choose."""
     refined = [candidate for owner, candidate in targets if owner is fitted]
-    return order_candidates(refined + [c for c in fitted.candidates if c.model is not None and c.spec.family == "fir"])
+    input_only = [c for c in fitted.candidates if c.model is not None and c.spec.registered.input_only]
+    return order_candidates(refined + input_only)
 
 
 def _coupled_specs(alone: OutputFit, n: int, columns: int) -> list:
-    """The grid of an output's view with the other outputs: the polynomial family, and the COUPLED_SPECS
-    structures that served it best alone."""
+    """The grid of an output's view with the other outputs: the families offered there (a registry entry's
+    ``coupled``: the polynomial family) up to COUPLED_LAGS, and the COUPLED_SPECS structures that served it best
+    alone."""
     best = [c.spec for c in alone.candidates if c.model is not None][:COUPLED_SPECS]
-    polynomial = [s for s in candidate_specs(n, columns) if s.family == "polynomial" and s.lags <= COUPLED_LAGS]
-    return polynomial + [spec for spec in best if spec not in polynomial]
+    offered = [s for s in candidate_specs(n, columns) if s.registered.coupled and s.lags <= COUPLED_LAGS]
+    return offered + [spec for spec in best if spec not in offered]
 
 
 def _finite(value: float) -> float | None:
@@ -833,7 +836,7 @@ def _choices(fitted: OutputFit, blocks: int, gaps: int) -> dict[str, Any]:
         "candidates": [c.as_dict() for c in fitted.candidates],
         "chosen": fitted.candidates.index(fitted.chosen),
         "refinement": fitted.refinement,
-        "time_scale": time_scale_note(fitted.chosen),
+        "time_scale": fitted.chosen.spec.time_scale,
         "dead_time": {name: d for name, d in zip(fitted.layout.names[1:], fitted.delays, strict=True) if d},
         **({"sign": fitted.sign} if fitted.sign else {}),
     }
@@ -850,7 +853,7 @@ REFINED_CANDIDATES = 3
 def refinement_targets(candidates: list[Candidate]) -> list[Candidate]:
     """The candidates refined on simulation error: the first REFINED_CANDIDATES usable ones that feed back
     their output (an input-only ``fir`` one's least squares already minimise its free-run error)."""
-    return [c for c in candidates if c.model is not None and c.spec.family != "fir"][:REFINED_CANDIDATES]
+    return [c for c in candidates if c.model is not None and not c.spec.registered.input_only][:REFINED_CANDIDATES]
 
 
 def _after_refinement(candidates: list[Candidate], contenders: list[Candidate]) -> tuple[Candidate, dict[str, Any]]:
@@ -863,24 +866,6 @@ def _after_refinement(candidates: list[Candidate], contenders: list[Candidate]) 
     candidates[:0] = contenders
     chosen = candidates[0]
     return chosen, {"done": True, **(chosen.refinement or {"iterations": 0, "tried": 0, "input_only": True})}
-
-
-def time_scale_note(candidate: Candidate) -> str:
-    """What the report says about lag spans: the issue of records sampled far faster than their dynamics."""
-    spec = candidate.spec
-    if spec.increment and spec.lags > max(INCREMENT_LAGS):
-        return (
-            f"multi-scale increments over {spec.lags - 1} samples (spans 1, 2, 4, ...): the record is sampled "
-            "far faster than its dynamics; the model runs at the recorded rate"
-        )
-    if spec.increment:
-        return "increment form: y(k+1) = y(k) + f(increments, inputs), the integrator kept exactly"
-    if spec.family == "index":
-        return (
-            f"lags {spec.lags} samples at the recorded rate; hinges of one filtered input over "
-            f"{spec.lags - INDEX_SHIFTS} input lags (a static map between filters), the output's lags linear"
-        )
-    return f"lags {spec.lags} samples at the recorded rate"
 
 
 def _select(

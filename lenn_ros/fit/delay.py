@@ -2,7 +2,7 @@
 
 A heated pipe, a conveyor, a pump's long hose or a driver's command pipeline delay the
 input by several samples. The families' nonlinear terms read the three newest lags of
-each signal (``families.RECENT``), so behind a dead time of d samples they read inputs
+each signal (``families.base.RECENT``), so behind a dead time of d samples they read inputs
 that have not yet acted, and the newest input that has is out of their reach: measured on
 a Hammerstein plant, a dead time of 8 samples cost 7.5 dB of free run (-37.6 to -30.1).
 Every system-identification toolbox estimates it (the ``nk`` of an ARX); ``fit`` does too,
@@ -31,7 +31,7 @@ import math
 
 import numpy as np
 
-from lenn_ros.fit.families import RECENT
+from lenn_ros.fit.families.base import RECENT
 from lenn_ros.fit.selection import Record, runs
 
 #: longest dead time looked for, in samples (shorter in a short record), the shortest that counts (one the

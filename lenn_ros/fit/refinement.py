@@ -41,9 +41,6 @@ from lenn_ros.fit.selection import (
 
 #: most Levenberg-Marquardt iterations tried per fold (and then on all samples)
 ITERATIONS = 15
-#: most iterations for a family whose least-squares start is known to lie far from its simulation-error fit
-#: (``stick``: least squares sets the stick threshold by noise, and the blocks still chose the last of 15)
-FAR_ITERATIONS = {"stick": 40}
 #: a fold stops once its held-out error has not improved for this many iterations
 PATIENCE = 6
 #: the held-out blocks of a long record are simulated on at most this many samples each
@@ -205,8 +202,9 @@ def _training_pieces(blocks: list[tuple[int, int]], fold: int, n: int) -> list[t
 
 
 def iterations_for(candidate: Candidate) -> int:
-    """Most iterations tried for ``candidate``: ITERATIONS, or its family's FAR_ITERATIONS."""
-    return FAR_ITERATIONS.get(candidate.spec.family, ITERATIONS)
+    """Most iterations tried for ``candidate``: ITERATIONS, or its family's own where its least-squares start is
+    known to lie far from its simulation-error fit (its registry entry's ``iterations``)."""
+    return candidate.spec.registered.iterations or ITERATIONS
 
 
 def cross_validated_refinement(candidate: Candidate, record: Record, iterations: int | None = None) -> Refinement:

@@ -25,13 +25,13 @@ from typing import Any
 import numpy as np
 
 from lenn_ros.fit.data import Data
-from lenn_ros.fit.families import LONG_SPANS
+from lenn_ros.fit.families import LONGEST_LAGS
 from lenn_ros.fit.selection import MAX_FOLDS, runs
 
 #: every signal within this share of its training range over the stretch: the plant rests
 REST_BAND = 0.01
 #: the longest lag span a candidate reads
-SPAN = max(LONG_SPANS)
+SPAN = LONGEST_LAGS
 #: samples kept at the start of a rest stretch (its equilibrium as rows, past any candidate's lags) and at its
 #: end (the lags of the first samples that move again)
 REST_HEAD = 2 * SPAN

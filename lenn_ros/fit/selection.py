@@ -50,7 +50,8 @@ from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND, CompiledRun, Outpu
 from lenn_ros.core.scaling import Scaling, ranges
 from lenn_ros.core.structure import ModelStructure
 from lenn_ros.core.threads import side_by_side
-from lenn_ros.fit.families import Dictionary, Spec, candidate_specs
+from lenn_ros.fit.families import Spec, candidate_specs
+from lenn_ros.fit.families.base import Dictionary
 
 #: relative simulation error a term (or a candidate's extra terms) must buy to be kept
 PARSIMONY = 0.01

@@ -50,7 +50,7 @@ import numpy as np
 
 from lenn_ros.core.scaling import Scaling
 from lenn_ros.fit.build import Data, fit
-from lenn_ros.fit.selection import Layout, TermModel, siso_view
+from lenn_ros.fit.termmodel import Layout, TermModel, siso_view
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 VALIDATION_FRACTION = 0.2

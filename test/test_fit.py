@@ -29,34 +29,30 @@ from lenn_ros.fit import refinement
 from lenn_ros.fit.build import Data, fit
 from lenn_ros.fit.families import FAMILIES, Spec
 from lenn_ros.fit.families import index as index_family
+from lenn_ros.fit.record import Record, Simulation, fold_blocks, runs
+from lenn_ros.fit.regression import Folds, forward_regression
 from lenn_ros.fit.selection import (
     NONLINEAR_GAIN,
     PARSIMONY,
-    TRAINING_RANGE,
     Candidate,
-    Folds,
-    Layout,
     Prefixes,
-    Record,
-    Simulation,
-    TermModel,
     _block_pieces,
     _designs,
     _score_prefixes,
     evaluate_candidate,
-    fold_blocks,
-    forward_regression,
-    level_free,
     order_candidates,
+)
+from lenn_ros.fit.soundness import (
+    TRAINING_RANGE,
+    level_free,
     reads_outputs,
-    runs,
     runs_from_predictions,
     shuffled_run,
-    siso_view,
     soundness_problem,
     stress_views,
     widened,
 )
+from lenn_ros.fit.termmodel import Layout, TermModel, siso_view
 from lenn_ros.paper.examples import get_example
 
 SILVERBOX = Path(__file__).resolve().parents[2] / "shared" / "data" / "silverbox_multisine.csv"

@@ -24,7 +24,7 @@ from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.networks import ModelFileError
 from lenn_ros.fit.build import fit, load_data, write_outputs
 from lenn_ros.fit.data import Data
-from lenn_ros.fit.selection import RIDGE
+from lenn_ros.fit.regression import RIDGE
 from lenn_ros.paper.evaluation import simulate_mimo
 from lenn_ros.paper.plants import narendra_mimo_plant
 

@@ -9,7 +9,7 @@ each step reported:
    margin: :func:`lenn_ros.core.scaling.ranges`);
 3. for each output, selects the family (polynomial, hinge, rff, index, increment, stick,
    legendre, fir: :mod:`lenn_ros.fit.families`), the lags and the terms over that output's *view*:
-   its own past and every input (:class:`~lenn_ros.fit.selection.Layout`). Orthogonal
+   its own past and every input (:class:`~lenn_ros.fit.termmodel.Layout`). Orthogonal
    forward regression ranks the terms; every candidate is judged by the free runs of
    blocks of the training samples, each simulated by the weights of the other blocks,
    and rejected when it runs away, leaves the range or does worse than the mean anywhere
@@ -60,27 +60,22 @@ from lenn_ros.fit.delay import input_delays, shifted
 from lenn_ros.fit.families import candidate_specs
 from lenn_ros.fit.families.base import pass_through_weights
 from lenn_ros.fit.memory import within_memory
+from lenn_ros.fit.record import Record, fold_blocks
 from lenn_ros.fit.refinement import Refinement, blocks_choice, fold_history, refine_on_folds
 from lenn_ros.fit.rest import without_rest
 from lenn_ros.fit.selection import (
     NONLINEAR_GAIN,
     PARSIMONY,
     Candidate,
-    Layout,
-    Record,
-    TermModel,
-    fold_blocks,
     joint_block_score,
-    level_free,
     loosen,
     order_candidates,
     out_of_fold_residuals,
-    output_rows,
     select_structure,
-    siso_view,
-    widened,
 )
 from lenn_ros.fit.signs import recover_signs
+from lenn_ros.fit.soundness import level_free, output_rows, widened
+from lenn_ros.fit.termmodel import Layout, TermModel, siso_view
 from lenn_ros.table import TableError, read_table
 
 #: share of the training samples the epochs of an MLP / SGD fit are early-stopped on
@@ -579,7 +574,7 @@ def _fit_behind_dead_time(
     """One output's fit with its inputs' dead times (``delays``, per column after the output): the families are
     built over the view with each input moved down by its dead time (:func:`~lenn_ros.fit.delay.shifted`), so
     the nonlinear terms' newest lags are those that act, and the models are then written over the view as
-    measured (:meth:`~lenn_ros.fit.selection.TermModel.delayed`), which refinement, scoring and the node use."""
+    measured (:meth:`~lenn_ros.fit.termmodel.TermModel.delayed`), which refinement, scoring and the node use."""
     if not any(delays):
         fitted = _fit_output(name, record, layout, refine, say, specs, workers)
         fitted.delays = delays
@@ -939,8 +934,8 @@ DELIVERED_RANGES = 10.0
 
 
 def _read_wide(chosen: Candidate) -> None:
-    """An exact integrator (:func:`~lenn_ros.fit.selection.level_free`) reads its output's differences over
-    DELIVERED_RANGES training ranges (:func:`~lenn_ros.fit.selection.widened`: the same model inside the
+    """An exact integrator (:func:`~lenn_ros.fit.soundness.level_free`) reads its output's differences over
+    DELIVERED_RANGES training ranges (:func:`~lenn_ros.fit.soundness.widened`: the same model inside the
     range), its fold weights with it: a joint without gravity or a wheel goes where its input takes it, and
     there the network's differences, clipped at the range, would read zero."""
     if chosen.model is None or not level_free(chosen.model):
@@ -952,7 +947,7 @@ def _read_wide(chosen: Candidate) -> None:
 def pass_through_outside(model: TermModel) -> tuple[Any, np.ndarray]:
     """(the node's structure, the network's weights) of a model of one output of one input.
 
-    A model that integrates exactly (:func:`~lenn_ros.fit.selection.level_free`: a joint
+    A model that integrates exactly (:func:`~lenn_ros.fit.soundness.level_free`: a joint
     without gravity, a wheel, a positioning axis) passes y(k) through as ``y1`` at the
     output's scale plus the bias at its offset. Inside the network that y(k) is read scaled
     and clipped to the training range, so where the output goes beyond it (a wheel keeps

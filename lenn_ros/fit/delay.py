@@ -7,7 +7,7 @@ that have not yet acted, and the newest input that has is out of their reach: me
 a Hammerstein plant, a dead time of 8 samples cost 7.5 dB of free run (-37.6 to -30.1).
 Every system-identification toolbox estimates it (the ``nk`` of an ARX); ``fit`` does too,
 and then builds each input's terms from its lags d, d + 1, ... (:func:`shifted`), and the
-model delivered reads them there (:meth:`~lenn_ros.fit.selection.TermModel.delayed`): the
+model delivered reads them there (:meth:`~lenn_ros.fit.termmodel.TermModel.delayed`): the
 node runs it as any other model of longer lags.
 
 The estimate is a test, not a guess: input c's dead time is the longest d for which its
@@ -32,7 +32,7 @@ import math
 import numpy as np
 
 from lenn_ros.fit.families.base import RECENT
-from lenn_ros.fit.selection import Record, runs
+from lenn_ros.fit.record import Record, runs
 
 #: longest dead time looked for, in samples (shorter in a short record), the shortest that counts (one the
 #: families' RECENT newest lags would not reach), and the input lags the test reads beyond the longest (a third

@@ -9,7 +9,7 @@ that carries the outputs' sensitivities to the weights along (forward sensitivit
 Refining on the training samples always lowers the training simulation error, and on
 a small record it fits the noise as surely (a 680-sample robot arm refined 20 times
 simulated its test part worse). So the number of iterations is chosen like the
-structure: on every block of :func:`~lenn_ros.fit.selection.fold_blocks`, the weights
+structure: on every block of :func:`~lenn_ros.fit.record.fold_blocks`, the weights
 fitted without that block are refined on the others (at most MAX_FOLD_TRAINING of them,
 the nearest it) and the block's own free run is scored after every iteration; the count
 with the lowest pooled score over all blocks wins, and zero, no refinement, is one of
@@ -28,16 +28,10 @@ import numpy as np
 
 from lenn_ros.core import kernels
 from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND
-from lenn_ros.fit.selection import (
-    Candidate,
-    Record,
-    TermModel,
-    fold_blocks,
-    level_free,
-    output_rows,
-    runs,
-    soundness_problem,
-)
+from lenn_ros.fit.record import Record, fold_blocks, runs
+from lenn_ros.fit.selection import Candidate
+from lenn_ros.fit.soundness import level_free, output_rows, soundness_problem
+from lenn_ros.fit.termmodel import TermModel
 
 #: most Levenberg-Marquardt iterations tried per fold (and then on all samples)
 ITERATIONS = 15
@@ -123,7 +117,7 @@ def levenberg_marquardt(
 
 
 def pass_through(model: TermModel) -> np.ndarray:
-    """Mask of the weights the refinement leaves alone: a :func:`~lenn_ros.fit.selection.level_free` model's
+    """Mask of the weights the refinement leaves alone: a :func:`~lenn_ros.fit.soundness.level_free` model's
     ``y1`` at exactly the output's scale. Refined, it would leak or run away by a hair and the model would
     no longer integrate exactly, which the selection chose it for (and judged it as)."""
     if not level_free(model):
@@ -305,7 +299,7 @@ def blocks_choice(histories: list[tuple[np.ndarray, int]]) -> Refinement:
 
 def _soundest(model: TermModel, record: Record, steps: list[np.ndarray]) -> tuple[int, np.ndarray, str]:
     """(iterations, weights, why more were refused) of the most refined weights that still pass the selection's
-    :func:`~lenn_ros.fit.selection.soundness_problem`.
+    :func:`~lenn_ros.fit.soundness.soundness_problem`.
 
     The blocks vouch for the refinement's fit, not for its stability: an iteration can lower
     every block's error and leave a model that runs away on the training input shuffled (seen on

@@ -1,7 +1,7 @@
 """Model families ``lenn-ros fit`` chooses among: the dictionaries of terms it selects from, one module each.
 
 Every family is a functional link (fixed features, weights linear), so each is one
-:class:`~lenn_ros.fit.selection.TermModel`: the identifier node runs and adapts any of
+:class:`~lenn_ros.fit.termmodel.TermModel`: the identifier node runs and adapts any of
 them by RLS with the same compiled step. What they offer (each module says more):
 
 - ``polynomial``: Legendre polynomials of the lags and their products up to a degree
@@ -28,7 +28,7 @@ The term parameters (knots, velocity scales) come from the training inputs and a
 rounded to six significant digits, which is how ``format_terms`` writes them: the
 params file holds the very terms the weights were fitted with.
 
-A dictionary is built over one output's view (:class:`~lenn_ros.fit.selection.Layout`):
+A dictionary is built over one output's view (:class:`~lenn_ros.fit.termmodel.Layout`):
 column 0 is the output, the other columns what it reads (one input u, or several). Its
 width is columns x lags, so the families serve one input or several alike: what they do
 with "the input" they do with every column after the output. With more than one input,

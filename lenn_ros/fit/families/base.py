@@ -30,7 +30,7 @@ def round6(value: float) -> float:
 
 
 class OutputScaling(Protocol):
-    """What the increment form's pass-through needs of a view's scaling (a :class:`~lenn_ros.fit.selection.Layout`)."""
+    """What the increment form's pass-through needs of a view's scaling (a :class:`~lenn_ros.fit.termmodel.Layout`)."""
 
     @property
     def y_offset(self) -> float: ...

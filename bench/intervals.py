@@ -2,7 +2,7 @@
 
 For each set: ``fit`` with its defaults on the README split, then the fraction of the
 test samples inside the one-step band and inside the free-run band (both from the
-errors of the selection's held-out blocks, see ``lenn_ros.fit.build.fit_intervals``), with the
+errors of the selection's held-out blocks, see ``lenn_ros.fit.scoring.fit_intervals``), with the
 band half-widths relative to the test output's standard deviation. A band is honest when
 its coverage sits near 95 % on data it was not built from.
 
@@ -21,8 +21,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from peer_narx import splits
 
-from lenn_ros.fit.build import fit
 from lenn_ros.fit.data import Data
+from lenn_ros.fit.procedure import fit
 
 
 def run(quick: bool) -> list[dict]:

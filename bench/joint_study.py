@@ -24,7 +24,8 @@ import time
 
 import numpy as np
 
-from lenn_ros.fit.build import Data, fit
+from lenn_ros.fit.data import Data
+from lenn_ros.fit.procedure import fit
 from lenn_ros.paper.physical import FrictionJoint
 from lenn_ros.paper.signals import Excitation
 

@@ -17,7 +17,8 @@ from peer_narx import DATA
 from plant_study import axis_p2p
 
 from lenn_ros.core.metrics import nmse_db
-from lenn_ros.fit.build import Data, fit
+from lenn_ros.fit.data import Data
+from lenn_ros.fit.procedure import fit
 
 
 def _row(name: str, u: np.ndarray, y: np.ndarray, start: int) -> str:

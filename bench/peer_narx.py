@@ -13,7 +13,7 @@ All get the same protocol, in the same run, on the same splits:
 - the score is the free-run (simulation) RMSE on the test part, the free run starting
   from the measured outputs just before it (a live switch from series-parallel to
   parallel); a diverged run scores nan. Where ``fit`` judges the test part a record of
-  its own (:func:`~lenn_ros.fit.build.separate_test_record`), every method is seeded by
+  its own (:func:`~lenn_ros.fit.scoring.separate_test_record`), every method is seeded by
   the test part's own first samples instead, as many as it reads, and scored after them;
 - wall time is measured around each whole procedure (selection included);
 - beside them, the test-mean predictor: the RMSE of predicting every test sample by the
@@ -49,7 +49,8 @@ from pathlib import Path
 import numpy as np
 
 from lenn_ros.core.scaling import Scaling
-from lenn_ros.fit.build import Data, fit
+from lenn_ros.fit.data import Data
+from lenn_ros.fit.procedure import fit
 from lenn_ros.fit.termmodel import Layout, TermModel, siso_view
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"

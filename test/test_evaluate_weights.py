@@ -23,7 +23,9 @@ from lenn_ros import topics
 from lenn_ros.bag.writer import BagWriter
 from lenn_ros.config import NODE_PARAMETERS, build_identifier, read_params_file, resolve
 from lenn_ros.evaluate import EvaluateError, evaluate_bag
-from lenn_ros.fit.build import Data, fit, write_outputs
+from lenn_ros.fit.data import Data
+from lenn_ros.fit.export import write_outputs
+from lenn_ros.fit.procedure import fit
 from lenn_ros.paper.evaluation import Series, train_and_test
 
 REPO = Path(__file__).resolve().parents[1]

@@ -26,9 +26,10 @@ from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND
 from lenn_ros.core.scaling import Scaling
 from lenn_ros.core.structure import Identifier
 from lenn_ros.fit import refinement
-from lenn_ros.fit.build import Data, fit
+from lenn_ros.fit.data import Data
 from lenn_ros.fit.families import FAMILIES, Spec
 from lenn_ros.fit.families import index as index_family
+from lenn_ros.fit.procedure import fit
 from lenn_ros.fit.record import Record, Simulation, fold_blocks, runs
 from lenn_ros.fit.regression import Folds, forward_regression
 from lenn_ros.fit.selection import (
@@ -698,7 +699,7 @@ def test_peer_linear_arx_is_least_squares_with_lags_chosen_on_the_tail() -> None
 
 
 def test_fit_solver_sgd_trains_the_selected_terms_by_epochs_and_round_trips(tmp_path: Path) -> None:
-    from lenn_ros.fit.build import write_outputs
+    from lenn_ros.fit.export import write_outputs
 
     u, y = cubic_plant(2500, 8)
     result = fit(Data(u, y, "synthetic"), 2001, solver="sgd")
@@ -809,7 +810,7 @@ def test_fit_simulates_an_axis_standing_stuck_by_the_stick_family_and_the_node_r
 
 def _identifier_from_params(tmp_path: Path, result: dict, data: Data) -> tuple[dict, Identifier]:
     """(the params file's values, the identifier built from them): what ``fit -o`` wrote, as the node starts."""
-    from lenn_ros.fit.build import write_outputs
+    from lenn_ros.fit.export import write_outputs
 
     values = read_params_file(write_outputs(tmp_path / "model", result, data)["params"])
     resolved, network = resolve(values)
@@ -856,7 +857,7 @@ def test_fit_simulates_a_speed_read_as_its_absolute_value_and_the_node_signs_it(
     the model of the signed record beside it and keeps it by the blocks (measured -38.1 dB on this seed); the
     params file says ``y_abs``, and an identifier from it runs the same free run, seeding it with the signs
     its own predictions and free run give the measured |y|. Step by step, it publishes |y^| and y - |y^|."""
-    from lenn_ros.fit.build import format_report
+    from lenn_ros.fit.report import format_report
 
     u, y, speed = _plant_study().belt_speed(0)
     start = len(y) * 2 // 3
@@ -892,7 +893,7 @@ def test_fit_undoes_refinement_that_would_diverge_on_the_buck_converter_and_says
     """On the buck converter the blocks chose two refinement iterations of an increment model; the second
     runs away on the training input shuffled, and (kept) the model diverged 41 samples into the test. It is
     undone, the report's text says so, and the test free run is finite (measured RMSE 0.2831)."""
-    from lenn_ros.fit.build import format_report
+    from lenn_ros.fit.report import format_report
 
     data = SILVERBOX.parent
     parts = [np.genfromtxt(data / f"buck_converter_{part}.csv", delimiter=",", names=True) for part in ("id", "valid")]
@@ -914,7 +915,7 @@ def test_an_exact_integrator_is_delivered_with_its_pass_through_outside_the_netw
     prediction inside, shifted; inside the range it is the same model."""
     import joint_study
 
-    from lenn_ros.fit.build import write_outputs
+    from lenn_ros.fit.export import write_outputs
 
     u, y = joint_study.record("horizontal", 0.005, 40.0, 0)
     start = len(y) * 2 // 3
@@ -992,7 +993,7 @@ def test_the_index_direction_is_the_first_filter_of_a_wiener_system() -> None:
 def test_a_test_part_recorded_apart_is_seeded_by_its_own_samples_and_said() -> None:
     """Two experiments joined (as benchmark files and users do): the test part is judged a record of its own and
     simulated from its own first samples; a record that goes on is simulated from the build part's last ones."""
-    from lenn_ros.fit.build import format_report
+    from lenn_ros.fit.report import format_report
 
     u_build, y_build = cubic_plant(3000, 0)
     u_test, y_test = cubic_plant(1000, 1)  # starts at rest, where the build part ends moving
@@ -1029,21 +1030,21 @@ def test_a_test_part_recorded_apart_is_seeded_by_its_own_samples_and_said() -> N
 def test_only_the_leader_is_refined_on_all_samples_and_a_leader_that_loses_its_lead_is_replaced(monkeypatch) -> None:
     """Every target's blocks are refined, but only the candidate that then leads is refined on all its samples;
     if that refinement raises its score (iterations undone as unsound), the choice is made again."""
-    from lenn_ros.fit import build
-    from lenn_ros.fit.build import format_report
+    from lenn_ros.fit import schedule
+    from lenn_ros.fit.report import format_report
 
     u, y = cubic_plant(3000, 0)
     report = fit(Data(u, y, "lazy"), 2001)["report"]
     listed = report["choices"]["candidates"]
     chosen = listed[report["choices"]["chosen"]]
     targets = [c for c in listed if c.get("refinement")]
-    assert len(targets) == build.REFINED_CANDIDATES
+    assert len(targets) == schedule.REFINED_CANDIDATES
     assert chosen["refinement"]["applied"] is True and np.isfinite(chosen["refinement"]["rmse_training_after"])
     others = [c for c in targets if c is not chosen]
     assert others and all(c["refinement"]["applied"] is False for c in others)
     assert "not applied: not chosen" in format_report(report)
 
-    real, finalised = build.refine_on_folds, []
+    real, finalised = schedule.refine_on_folds, []
 
     def first_one_undone(candidate, record, histories):
         result = real(candidate, record, histories)
@@ -1052,7 +1053,7 @@ def test_only_the_leader_is_refined_on_all_samples_and_a_leader_that_loses_its_l
             result.rmse_blocks_after *= 10.0
         return result
 
-    monkeypatch.setattr(build, "refine_on_folds", first_one_undone)
+    monkeypatch.setattr(schedule, "refine_on_folds", first_one_undone)
     report = fit(Data(u, y, "lazy"), 2001)["report"]
     listed = report["choices"]["candidates"]
     chosen = listed[report["choices"]["chosen"]]
@@ -1084,9 +1085,9 @@ def test_the_views_of_several_outputs_wait_only_for_what_they_need_and_are_told_
     import functools
     import threading
 
-    from lenn_ros.fit import build
+    from lenn_ros.fit import schedule
 
-    monkeypatch.setattr(build, "cores", lambda: workers)
+    monkeypatch.setattr(schedule, "cores", lambda: workers)
     events: list[tuple[str, int]] = []
     lock = threading.Lock()
     own_done: set[int] = set()
@@ -1124,7 +1125,7 @@ def test_the_views_of_several_outputs_wait_only_for_what_they_need_and_are_told_
         return [(key, functools.partial(job, key)) for key in range(50)]
 
     told: list[str] = []
-    fits, scores, ahead = build._views_side_by_side(4, view, together, told.append, spare)
+    fits, scores, ahead = schedule.views_side_by_side(4, view, together, told.append, spare)
     assert fits == {"own": [("own", j) for j in range(4)], "coupled": [("coupled", j) for j in range(4)]}
     assert told == [f"{kind} {j}" for j in range(4) for kind in ("own", "coupled")]
     assert set(scores) == {"own", "coupled"}
@@ -1259,7 +1260,7 @@ def test_fit_finds_a_dead_time_and_simulates_behind_it_as_without_it(tmp_path: P
     the three newest input lags read inputs that have not acted yet (-30.9 dB on this seed, -30.1 over three);
     with it, the free run is that of the same plant without a dead time (-38.6 dB). The report says it, and the
     params file starts an identifier that runs the same free run."""
-    from lenn_ros.fit.build import format_report
+    from lenn_ros.fit.report import format_report
 
     u, y = _plant_study().PLANTS["hammerstein-dead-time"](0)
     start = len(y) * 2 // 3
@@ -1277,7 +1278,8 @@ def test_the_report_says_where_the_test_leaves_the_training_range_and_what_error
     """Two tanks whose test part fills the lower tank higher than training ever did (to 9.2 against 7.7): the
     report counts the test samples beyond the training range, per signal, and the share of the free run's
     squared error they carry (measured 157 samples, 41 %); a test part inside the range gets no such line."""
-    from lenn_ros.fit.build import beyond_training_range, format_report
+    from lenn_ros.fit.report import format_report
+    from lenn_ros.fit.scoring import beyond_training_range
 
     u, y = _plant_study().tanks(0)
     start = len(y) * 2 // 3

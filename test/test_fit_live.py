@@ -24,7 +24,9 @@ from test_fit import _plant_study, cubic_plant  # noqa: E402
 
 from lenn_ros.config import build_identifier, read_params_file, resolve  # noqa: E402
 from lenn_ros.core.networks import OnlineRegressor  # noqa: E402
-from lenn_ros.fit.build import Data, fit, write_outputs  # noqa: E402
+from lenn_ros.fit.data import Data  # noqa: E402
+from lenn_ros.fit.export import write_outputs  # noqa: E402
+from lenn_ros.fit.procedure import fit  # noqa: E402
 
 
 class SeriesTalker(Talker):

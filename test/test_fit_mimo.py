@@ -22,8 +22,10 @@ from lenn_ros.bag import BagError, import_csv, read_run
 from lenn_ros.config import build_identifier, read_params_file, resolve
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.networks import ModelFileError
-from lenn_ros.fit.build import fit, load_data, write_outputs
 from lenn_ros.fit.data import Data
+from lenn_ros.fit.export import write_outputs
+from lenn_ros.fit.load import load_data
+from lenn_ros.fit.procedure import fit
 from lenn_ros.fit.regression import RIDGE
 from lenn_ros.paper.evaluation import simulate_mimo
 from lenn_ros.paper.plants import narendra_mimo_plant

@@ -7,8 +7,10 @@ import pytest
 from test_rest import cubic
 
 from lenn_ros.fit import memory
-from lenn_ros.fit.build import Data, fit, format_report
+from lenn_ros.fit.data import Data
 from lenn_ros.fit.memory import LEAST_ROWS, MEMORY_SHARE, bytes_per_row, within_memory
+from lenn_ros.fit.procedure import fit
+from lenn_ros.fit.report import format_report
 
 
 def record(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from lenn_ros.fit.build import Data, fit, format_report
+from lenn_ros.fit.data import Data
+from lenn_ros.fit.procedure import fit
+from lenn_ros.fit.report import format_report
 from lenn_ros.fit.rest import REST_HEAD, REST_TAIL, SMOOTHING, rest_stretches, without_rest
 
 

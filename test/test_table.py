@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 from test_fit import cubic_plant
 
-from lenn_ros.fit.build import Data, FitError, fit, load_data
+from lenn_ros.fit.data import Data, FitError
+from lenn_ros.fit.load import load_data
+from lenn_ros.fit.procedure import fit
 from lenn_ros.table import TableError, read_table
 
 NUMBERS = [[0.5, -1.25], [1e-3, 2.0], [-3.0, 4.5e2]]
@@ -90,7 +92,7 @@ def test_fit_reads_missing_samples_as_gaps_and_counts_test_from_by_row(tmp_path:
 
 
 def _row_of(data: Data, given: int) -> int:
-    from lenn_ros.fit.build import test_row
+    from lenn_ros.fit.load import test_row
 
     return test_row(data.index, given, data.test_start)
 

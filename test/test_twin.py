@@ -19,8 +19,9 @@ import yaml
 
 import lenn_ros
 from lenn_ros.core.fields import FieldError, compile_path, compile_vector, compose
-from lenn_ros.fit.build import fit, write_outputs
 from lenn_ros.fit.data import Data
+from lenn_ros.fit.export import write_outputs
+from lenn_ros.fit.procedure import fit
 from lenn_ros.model import ModelError
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "daisy_robot-arm.csv"

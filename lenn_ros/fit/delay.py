@@ -177,3 +177,8 @@ def shifted(
         at += len(piece)
     rows = np.vstack(pieces) if pieces else np.empty((0, values.shape[1]))
     return rows, starts[1:]
+
+
+def delays_text(delays: tuple[int, ...], names: tuple[str, ...]) -> str:
+    """``u 5 samples`` (the columns with one): what the report says of the inputs' dead times."""
+    return ", ".join(f"{name} {d} samples" for name, d in zip(names, delays, strict=True) if d)

@@ -29,9 +29,9 @@ def run(quick: bool) -> list[dict]:
     rows = []
     for split in splits(quick):
         began = time.perf_counter()
-        report = fit(Data(split.u, split.y, split.name), split.test_from)["report"]
-        bands = report["intervals"]
-        spread = float(np.std(report["y_test"]))
+        report = fit(Data(split.u, split.y, split.name), split.test_from)
+        bands = report.intervals
+        spread = float(np.std(report.y_test))
         rows.append(
             {
                 "data": split.name,
@@ -39,7 +39,7 @@ def run(quick: bool) -> list[dict]:
                 "one_step_width": bands["one_step"]["half_width"] / spread,
                 "free_run": bands["free_run"]["coverage_test"],
                 "free_run_width": bands["free_run"]["half_width"] / spread,
-                "rmse_free_run": report["rmse_free_run"],
+                "rmse_free_run": report.rmse_free_run,
                 "seconds": time.perf_counter() - began,
             }
         )

@@ -22,7 +22,7 @@ from lenn_ros.fit.procedure import fit
 
 
 def _row(name: str, u: np.ndarray, y: np.ndarray, start: int) -> str:
-    identifier = fit(Data(u, y, name), start + 1)["identifier"]
+    identifier = fit(Data(u, y, name), start + 1).identifier
     half = start + (len(y) - start) // 2
 
     before = nmse_db(y[half:], identifier.free_run(u, y, half))

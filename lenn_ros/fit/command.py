@@ -7,12 +7,12 @@ here are only the flags that say how the data become samples and the order of th
 
 from __future__ import annotations
 
-import json
+import sys
 from pathlib import Path
 from typing import Any
 
 from lenn_ros.fit.data import FitError
-from lenn_ros.fit.export import jsonable, write_outputs
+from lenn_ros.fit.export import write_outputs
 from lenn_ros.fit.load import load_data, test_row
 from lenn_ros.fit.procedure import fit
 from lenn_ros.fit.report import format_report, plot
@@ -27,8 +27,6 @@ def bag_flags(args: Any) -> dict[str, Any]:
 
 def main(args: Any) -> int:
     """``lenn-ros fit``: read, fit, write (``-o``), plot and report."""
-    import sys
-
     data = load_data(args.data, args.u, args.y, bag_flags(args))
     dt = args.dt or data.sample_period
     if args.dt and data.sample_period and abs(args.dt - data.sample_period) > 0.01 * data.sample_period:
@@ -38,13 +36,12 @@ def main(args: Any) -> int:
     test_from = test_row(data.index, args.test_from, data.test_start)
     solver = getattr(args, "solver", "ls") or "ls"
     result = fit(data, test_from, refine=not args.no_refine, network=network, solver=solver, progress=progress)
-    report = result["report"]
     if args.output:
-        report["files"] = write_outputs(args.output, result, data)
+        result.files = write_outputs(args.output, result, data)
     if args.plot:
-        plot(args.plot, report, Path(args.data).name)
+        plot(args.plot, result, Path(args.data).name)
     if args.json:
-        print(json.dumps(jsonable(report), indent=1, allow_nan=False))
+        print(result.to_json())
         return 0
-    print(format_report(report, dt))
+    print(format_report(result, dt))
     return 0

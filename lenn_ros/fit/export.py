@@ -14,7 +14,6 @@ is given depends on the model chosen, not on how it was chosen.
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 from pathlib import Path
 from typing import Any
@@ -29,7 +28,7 @@ from lenn_ros.core.structure import Identifier
 from lenn_ros.core.threads import cores, side_by_side
 from lenn_ros.fit.data import REPORT_FILE, Data
 from lenn_ros.fit.record import Record
-from lenn_ros.fit.result import OutputFit
+from lenn_ros.fit.result import FitResult, OutputFit
 from lenn_ros.fit.selection import Candidate
 from lenn_ros.fit.soundness import level_free, output_rows, widened
 from lenn_ros.fit.termmodel import TermModel
@@ -407,7 +406,7 @@ def _vector_reading(data: Data) -> dict[str, Any]:
     }
 
 
-def write_outputs(directory: str | Path, result: dict[str, Any], data: Data) -> dict[str, str]:
+def write_outputs(directory: str | Path, result: FitResult, data: Data) -> dict[str, str]:
     """``DIR/params.yaml`` (key ``/**``: any node name or namespace), ``DIR/weights.npz`` and ``DIR/fit.json``.
 
     The params file holds how the node reads its topics (a bag's types, fields, pairing,
@@ -422,62 +421,45 @@ def write_outputs(directory: str | Path, result: dict[str, Any], data: Data) -> 
     """
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
-    report, identifier = result["report"], result["identifier"]
+    identifier = result.identifier
     weights = directory / "weights.npz"
-    train = report["train_samples"]
+    train = result.train_samples
     u, y = data.matrices()
     if isinstance(identifier, MimoIdentifier):
         identifier.save_state(weights)
-        forgetting = report["model"]["live"]["forgetting"]
-        values = {**_vector_reading(data), **mimo_values(result["models"], data, forgetting)}
+        forgetting = result.model["live"]["forgetting"]
+        values = {**_vector_reading(data), **mimo_values(result.models, data, forgetting)}
         note = (
             "several channels, read as the bag's\n# topics were (or Float64MultiArray samples); weights_in is absolute"
         )
     else:
         identifier.model.save(weights)
-        forgetting = report["model"]["live"].get("forgetting", 1.0)
-        model_values = params_values(identifier, result["model"], forgetting, u[:train, 0], y[:, 0])
+        forgetting = result.model["live"].get("forgetting", 1.0)
+        model_values = params_values(identifier, result.models[0], forgetting, u[:train, 0], y[:, 0])
         values = {**data.interpretation, **model_values}
         note = "starts from weights_in below;\n# move the directory and weights_in must follow: it is absolute"
     values["weights_in"] = str(weights.resolve())
-    params = write_params(directory, report, values, note)
-    return {"params": str(params), "weights": str(weights), "report": str(write_report(directory, report))}
+    params = write_params(directory, result, values, note)
+    return {"params": str(params), "weights": str(weights), "report": str(write_report(directory, result))}
 
 
-def write_report(directory: Path, report: dict[str, Any]) -> Path:
+def write_report(directory: Path, result: FitResult) -> Path:
     """DIR/fit.json: the report as ``--json`` prints it, beside the weights.
 
     :func:`lenn_ros.load_model` and the twin node read it for the residual statistics
     (the bands, the twin's noise) and for what the model is.
     """
     path = directory / REPORT_FILE
-    path.write_text(json.dumps(jsonable(report), indent=1, allow_nan=False))
+    path.write_text(result.to_json())
     return path
 
 
-def write_params(directory: Path, report: dict[str, Any], values: dict[str, Any], note: str) -> Path:
+def write_params(directory: Path, result: FitResult, values: dict[str, Any], note: str) -> Path:
     """DIR/params.yaml for every node (``/**``), headed by where it came from and how to start from it."""
     params = directory / "params.yaml"
     header = (
-        f"# written by lenn-ros fit ({report['data']}, test from sample {report['test_from']})\n"
+        f"# written by lenn-ros fit ({result.data}, test from sample {result.test_from})\n"
         f"# ros2 run lenn_ros identifier --ros-args --params-file {params}   ({note})\n"
     )
     params.write_text(header + yaml.safe_dump({"/**": {"ros__parameters": values}}, sort_keys=False))
     return params
-
-
-def jsonable(report: dict[str, Any]) -> dict[str, Any]:
-    """Strict JSON: the series left out, numpy scalars as numbers, NaN/inf as null (a diverged run)."""
-
-    def clean(value: Any) -> Any:
-        if isinstance(value, dict):
-            return {k: clean(v) for k, v in value.items()}
-        if isinstance(value, list | tuple):
-            return [clean(v) for v in value]
-        if isinstance(value, np.generic):
-            value = value.item()
-        if isinstance(value, float) and not math.isfinite(value):
-            return None
-        return value
-
-    return clean({k: v for k, v in report.items() if not k.endswith(("_test", "_train"))})

@@ -42,6 +42,7 @@ from typing import Any
 import numpy as np
 
 from lenn_ros.core.scaling import DEFAULT_MARGIN, ranges
+from lenn_ros.core.structure import Identifier
 from lenn_ros.core.threads import cores, side_by_side
 from lenn_ros.fit.data import Data, FitError
 from lenn_ros.fit.delay import delays_text, input_delays, shifted
@@ -50,12 +51,12 @@ from lenn_ros.fit.families import candidate_specs
 from lenn_ros.fit.memory import within_memory
 from lenn_ros.fit.record import Record, fold_blocks
 from lenn_ros.fit.rest import without_rest
-from lenn_ros.fit.result import OutputFit
+from lenn_ros.fit.result import FitResult, OutputFit
 from lenn_ros.fit.schedule import refine_outputs, refinement_jobs, views_side_by_side
-from lenn_ros.fit.scoring import fit_intervals, score
+from lenn_ros.fit.scoring import TestPart, fit_intervals, score
 from lenn_ros.fit.selection import NONLINEAR_GAIN, PARSIMONY, Candidate, joint_block_score, loosen, select_structure
 from lenn_ros.fit.signs import recover_signs
-from lenn_ros.fit.termmodel import Layout, TermModel
+from lenn_ros.fit.termmodel import Layout
 
 
 def check_split(n: int, test_from: int) -> int:
@@ -80,8 +81,9 @@ def fit(
     network: str = "lenn",
     solver: str = "ls",
     progress: Any = None,
-) -> dict[str, Any]:
-    """The whole procedure; returns the report (also what ``--json`` prints), the identifier and the models.
+) -> FitResult:
+    """The whole procedure; returns its result: the report's figures (:meth:`FitResult.as_dict` is what
+    ``--json`` prints), the identifier and the models.
 
     Each output's structure is chosen on blocks of the training samples (each simulated by
     the weights of the others), the weights delivered are those of all training samples,
@@ -104,7 +106,7 @@ def fit(
                     progress(f"note: {done['text']}")
         result = _fit(part, part_test_from, refine, network, solver, progress, test_from - part_test_from)
     if said:  # the report counts samples as the user does
-        result["report"].update(test_from=test_from, train_samples=test_from - 1, **said)
+        result.test_from, result.train_samples, result.left_out = test_from, test_from - 1, said
     return result
 
 
@@ -114,19 +116,14 @@ LEFT_OUT = {"rest": without_rest, "memory": within_memory}
 
 def _fit(
     data: Data, test_from: int, refine: bool, network: str, solver: str, progress: Any, left_out: int = 0
-) -> dict[str, Any]:
+) -> FitResult:
+    """The procedure on the rows the rules of LEFT_OUT left, counted as ``data`` counts them (``left_out``: the
+    rows they took before the test part, added to the sample numbers the report names)."""
     began = time.perf_counter()
     say = progress or (lambda text: None)
     u, y = data.matrices()
-    if not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
-        bad = int(np.count_nonzero(~(np.isfinite(u).all(axis=1) & np.isfinite(y).all(axis=1))))
-        raise FitError(f"{bad} samples hold NaN/inf: remove or interpolate them before fitting")
+    _check_channels(data, u, y, network, solver)
     single = data.n_u == 1 and data.n_y == 1
-    if not single and (network != "lenn" or solver != "ls"):
-        raise FitError(
-            f"{data.n_u} inputs and {data.n_y} outputs: only the LeNN by least squares is fitted for several "
-            "channels (drop --network/--solver)"
-        )
     start = check_split(len(y), test_from)
     breaks = [b for b in data.breaks if 0 < b < start]
     try:
@@ -147,48 +144,48 @@ def _fit(
     forgetting = live_forgetting(start)
     identifier, described, models = identifiers(outputs, data, u[:start], y[:start], network, solver, forgetting, say)
     scored = score(identifier, data, start, models, [fitted.columns for fitted in outputs], left_out)
-    report: dict[str, Any] = {"data": data.source, "test_from": test_from, "train_samples": start}
-    held_out = lenn_ls
-    parts = []
-    bands = side_by_side(  # each output's bands are its own: on the cores side by side
-        lambda j: fit_intervals(scored["per_output"][j], identifier if single else None, outputs[j], held_out),
+    made = (described, forgetting, len(blocks), len(breaks))
+    _complete(scored, outputs, identifier if single else None, lenn_ls, made)
+    coupled = {"coupling": coupling} if coupling else {}
+    model = described if single else {**describe_mimo(models, forgetting), **coupled}
+    return FitResult(
+        data=data.source, test_from=test_from, train_samples=start, per_output=scored.outputs,
+        free_run=scored.free_run, model=model, inputs=list(data.u_names), outputs=list(data.y_names),
+        seconds=round(time.perf_counter() - began, 2), identifier=identifier, models=models, fits=outputs,
+    )  # fmt: skip
+
+
+def _check_channels(data: Data, u: np.ndarray, y: np.ndarray, network: str, solver: str) -> None:
+    """FitError for samples that hold NaN/inf, and for several channels asked to be fitted other than by the
+    LeNN by least squares."""
+    if not (np.all(np.isfinite(u)) and np.all(np.isfinite(y))):
+        bad = int(np.count_nonzero(~(np.isfinite(u).all(axis=1) & np.isfinite(y).all(axis=1))))
+        raise FitError(f"{bad} samples hold NaN/inf: remove or interpolate them before fitting")
+    if not (data.n_u == 1 and data.n_y == 1) and (network != "lenn" or solver != "ls"):
+        raise FitError(
+            f"{data.n_u} inputs and {data.n_y} outputs: only the LeNN by least squares is fitted for several "
+            "channels (drop --network/--solver)"
+        )
+
+
+def _complete(
+    scored: TestPart, outputs: list[OutputFit], identifier: Identifier | None, held_out: bool, made: tuple
+) -> None:
+    """Each output's report beyond its test figures: its warnings first, its 95 % bands (each output's its own:
+    on the cores side by side), its model and how it was chosen. ``identifier``: one input's and one output's
+    (its in-sample bands when not ``held_out``); ``made``: (the single output's model description, the live
+    forgetting, the blocks, the gaps)."""
+    described, forgetting, blocks, gaps = made
+    bands = side_by_side(
+        lambda j: fit_intervals(scored.outputs[j], scored.y_hat_train[j], identifier, outputs[j], held_out),
         range(len(outputs)),
         cores(),
     )
-    for j, (fitted, intervals) in enumerate(zip(outputs, bands, strict=True)):
-        part = scored["per_output"][j]
-        part["warnings"] = fitted.warnings + part["warnings"]
-        part["intervals"] = intervals
-        part["model"] = described if single else describe_model(fitted.model, fitted.chosen, forgetting)
-        part["choices"] = _choices(fitted, len(blocks), len(breaks))
-        parts.append(part)
-    report.update(_joined(parts, scored, data, models, forgetting))
-    if coupling:
-        report["model"]["coupling"] = coupling
-    report["seconds"] = round(time.perf_counter() - began, 2)
-    return {"report": report, "identifier": identifier, "model": models[0] if single else None, "models": models,
-            "outputs": outputs}  # fmt: skip
-
-
-def _joined(
-    parts: list[dict[str, Any]], scored: dict[str, Any], data: Data, models: list[TermModel], forgetting: float
-) -> dict[str, Any]:
-    """The report's figures: one output's at the top level, several outputs' each in ``per_output``."""
-    if len(parts) == 1 and data.n_u == 1:
-        return {**{k: v for k, v in parts[0].items() if k != "name"}, "free_run": scored["free_run"]}
-    for part in parts:
-        for key in ("y_test", "y_hat_test", "y_free_test"):
-            part.pop(key)
-    return {
-        "samples": parts[0]["samples"],
-        "inputs": list(data.u_names),
-        "outputs": list(data.y_names),
-        "model": describe_mimo(models, forgetting),
-        "per_output": parts,
-        "free_run": scored["free_run"],
-        "warnings": [f"{p['name']}: {text}" for p in parts for text in p.pop("warnings")],
-        **{key: scored[key] for key in ("y_test", "y_hat_test", "y_free_test")},
-    }
+    for fitted, part, intervals in zip(outputs, scored.outputs, bands, strict=True):
+        part.warnings = fitted.warnings + part.warnings
+        part.intervals = intervals
+        part.model = described if described is not None else describe_model(fitted.model, fitted.chosen, forgetting)
+        part.choices = _choices(fitted, blocks, gaps)
 
 
 def _fit_outputs(

@@ -1,9 +1,10 @@
 """The text report of ``lenn-ros fit``, and its plot: how each output's model was chosen, then its test figures.
 
-The JSON (``--json``, fit.json) holds every figure; the text is what a reader needs of it,
-the first dozen candidates, notes where the test part or the record needs one, and how
-to start the node from the files written. Apart from the procedure: it formats the
-report and computes nothing.
+The JSON (``--json``, fit.json: :meth:`~lenn_ros.fit.result.FitResult.as_dict`) holds every
+figure; the text is what a reader needs of the same :class:`~lenn_ros.fit.result.FitResult`:
+the first dozen candidates, notes where the test part or the record needs one, and how to
+start the node from the files written. Apart from the procedure: it formats the result and
+computes nothing.
 """
 
 from __future__ import annotations
@@ -12,46 +13,44 @@ from pathlib import Path
 from typing import Any
 
 from lenn_ros.fit.delay import delays_text
-from lenn_ros.fit.procedure import LEFT_OUT
+from lenn_ros.fit.result import FitResult, OutputReport
 
 
-def plot(path: str | Path, report: dict[str, Any], name: str) -> Path:
+def plot(path: str | Path, result: FitResult, name: str) -> Path:
     """Plant against the model on the test part (one-step and free run), one panel per output; one output's
     with its free-run band. ``name``: the data's, for the title."""
     from lenn_ros.plotting import plot_channels, plot_identification
 
-    if "per_output" not in report:
-        title = f"{name}: free-run RMSE {report['rmse_free_run']:.4g} on the test part"
-        band = report["intervals"]["free_run"]["half_width"]
-        return plot_identification(path, report["y_test"], report["y_hat_test"], title, report["y_free_test"], band)
+    if result.alone:
+        title = f"{name}: free-run RMSE {result.rmse_free_run:.4g} on the test part"
+        band = result.intervals["free_run"]["half_width"]
+        return plot_identification(path, result.y_test, result.y_hat_test, title, result.y_free_test, band)
     title = f"{name}: model on the test part (free run from the measured outputs before it)"
-    return plot_channels(path, report["outputs"], report["y_test"], report["y_hat_test"], title, report["y_free_test"])
+    return plot_channels(path, result.outputs, result.y_test, result.y_hat_test, title, result.y_free_test)
 
 
-def format_report(report: dict[str, Any], dt: float | None = None) -> str:
+def format_report(result: FitResult, dt: float | None = None) -> str:
     """The text report: how each output's model was chosen, then its test figures."""
     lines = [
-        f"{report['data']}: built on samples 1..{report['train_samples']}, "
-        f"tested on {report['samples']} samples from {report['test_from']}",
+        f"{result.data}: built on samples 1..{result.train_samples}, "
+        f"tested on {result.samples} samples from {result.test_from}",
     ]
-    for left_out in LEFT_OUT:
-        if report.get(left_out):
-            lines.append(f"  note: {report[left_out]['text']}")
-    if report["free_run"].get("test_record_of_its_own"):
-        lines.append(f"  note: {report['free_run']['test_record_of_its_own']}")
-    if "per_output" not in report:
-        return "\n".join(lines + _model_lines(report, "  ") + _test_lines(report, dt))
-    for part in report["per_output"]:
-        lines.append(f"  output {part['name']}:")
+    lines += [f"  note: {done['text']}" for done in result.left_out.values()]
+    if result.free_run.get("test_record_of_its_own"):
+        lines.append(f"  note: {result.free_run['test_record_of_its_own']}")
+    if result.alone:
+        return "\n".join(lines + _model_lines(result.only, "  ") + _test_lines(result, dt))
+    for part in result.per_output:
+        lines.append(f"  output {part.name}:")
         lines += _model_lines(part, "    ")
-    lines += _table_lines(report)
-    lines += _closing_lines(report, dt)
+    lines += _table_lines(result)
+    lines += _closing_lines(result, dt)
     return "\n".join(lines)
 
 
-def _model_lines(part: dict[str, Any], indent: str) -> list[str]:
+def _model_lines(part: OutputReport, indent: str) -> list[str]:
     """How one output's model was chosen and what it is."""
-    m, c = part["model"], part["choices"]
+    m, c = part.model, part.choices
     scaling = c["scaling"]
     if "offsets" in scaling:
         shown = ", ".join(f"{n} = {o:.6g} +- {scaling['scales'][n]:.6g}" for n, o in scaling["offsets"].items())
@@ -110,22 +109,22 @@ def _model_lines(part: dict[str, Any], indent: str) -> list[str]:
     return lines
 
 
-def _table_lines(report: dict[str, Any]) -> list[str]:
+def _table_lines(result: FitResult) -> list[str]:
     """Several outputs' test figures, one row each."""
     lines = [
-        f"  test part ({report['samples']} samples; free run of all outputs together from the "
-        f"{report['free_run']['starts_from']}):",
+        f"  test part ({result.samples} samples; free run of all outputs together from the "
+        f"{result.free_run['starts_from']}):",
         "    output        one-step NMSE / RMSE      free-run NMSE / RMSE    95 % free-run band covers",
     ]
-    for part in report["per_output"]:
-        band = part["intervals"]["free_run"]
+    for part in result.per_output:
+        band = part.intervals["free_run"]
         lines.append(
-            f"    {part['name']:<12} {part['nmse_db']:8.2f} dB {part['rmse']:10.4g}   "
-            f"{part['nmse_free_run_db']:8.2f} dB {part['rmse_free_run']:10.4g}   "
+            f"    {part.name:<12} {part.nmse_db:8.2f} dB {part.rmse:10.4g}   "
+            f"{part.nmse_free_run_db:8.2f} dB {part.rmse_free_run:10.4g}   "
             f"+-{band['half_width']:.4g}: {band['coverage_test']:.1%}"
         )
-    for part in report["per_output"]:
-        lines += [line.replace("note: ", f"note ({part['name']}): ", 1) for line in _beyond_lines(part, "  ")]
+    for part in result.per_output:
+        lines += [line.replace("note: ", f"note ({part.name}): ", 1) for line in _beyond_lines(part, "  ")]
     return lines
 
 
@@ -157,58 +156,60 @@ def _candidate_lines(choices: dict[str, Any], indent: str = "  ") -> list[str]:
     return lines
 
 
-def _test_lines(report: dict[str, Any], dt: float | None) -> list[str]:
-    lines = [f"  test part ({report['samples']} samples):"]
-    lines.append(f"    one-step: RMSE {report['rmse']:.5g}, NMSE {report['nmse_db']:.2f} dB")
-    free = report["free_run"]
+def _test_lines(result: FitResult, dt: float | None) -> list[str]:
+    """One output's test figures, its bands and where the test part leaves the training range."""
+    part = result.only
+    lines = [f"  test part ({part.samples} samples):"]
+    lines.append(f"    one-step: RMSE {part.rmse:.5g}, NMSE {part.nmse_db:.2f} dB")
+    free = result.free_run
     lines.append(
         f"    free run (from the {free['starts_from']}): "
-        f"RMSE {report['rmse_free_run']:.5g}, NMSE {report['nmse_free_run_db']:.2f} dB, "
+        f"RMSE {part.rmse_free_run:.5g}, NMSE {part.nmse_free_run_db:.2f} dB, "
         f"{free['clipped_inputs']} inputs clipped"
     )
-    bands = report.get("intervals")
+    bands = part.intervals
     if bands:
         one, run = bands["one_step"], bands["free_run"]
         lines.append(
             f"    95 % bands (from held-out blocks of the training samples): one-step +-{one['half_width']:.4g} "
             f"covers {one['coverage_test']:.1%}, free run +-{run['half_width']:.4g} covers {run['coverage_test']:.1%}"
         )
-    outside = report["test_samples_outside_training_range"]
+    outside = part.test_samples_outside_training_range
     if outside["u"] or outside["y"]:
         lines.append(
             f"  note: {outside['u']} test u and {outside['y']} test y samples lie beyond the training range "
             "plus margin; their network inputs are clipped (counted above)"
         )
-    lines += _beyond_lines(report, "  ")
-    return lines + _closing_lines(report, dt)
+    lines += _beyond_lines(part, "  ")
+    return lines + _closing_lines(result, dt)
 
 
-def _beyond_lines(report: dict[str, Any], indent: str) -> list[str]:
+def _beyond_lines(part: OutputReport, indent: str) -> list[str]:
     """One line when the test part leaves the training range: where, and what share of the error is there."""
-    beyond = report["beyond_training_range"]
+    beyond = part.beyond_training_range
     if not beyond["samples"]:
         return []
     where = ", ".join(f"{name} {count}" for name, count in beyond["by_signal"].items())
-    share = beyond["samples"] / report["samples"]
+    share = beyond["samples"] / part.samples
     return [
-        f"{indent}note: {beyond['samples']} of {report['samples']} test samples ({share:.0%}) lie beyond the range "
+        f"{indent}note: {beyond['samples']} of {part.samples} test samples ({share:.0%}) lie beyond the range "
         f"of the training samples ({where}): the model extrapolates there; they carry "
         f"{beyond['free_run_error_share']:.0%} of the free run's squared error"
     ]
 
 
-def _closing_lines(report: dict[str, Any], dt: float | None) -> list[str]:
+def _closing_lines(result: FitResult, dt: float | None) -> list[str]:
     """Warnings, the test part's length, the files written and how to start from them, the time taken."""
-    lines = [f"  WARNING: {text}" for text in report["warnings"]]
+    lines = [f"  WARNING: {text}" for text in result.warnings]
     if dt:
-        lines.append(f"  sample time {dt:g} s: test part {report['samples'] * dt:.4g} s")
-    if "files" in report:
-        files = report["files"]
+        lines.append(f"  sample time {dt:g} s: test part {result.samples * dt:.4g} s")
+    if result.files is not None:
+        files = result.files
         lines.append(f"  wrote {files['params']}, {files['weights']} and {files.get('report', 'no report')}")
         lines.append(
-            f"  live: ros2 run lenn_ros identifier --ros-args --params-file {report['files']['params']} "
+            f"  live: ros2 run lenn_ros identifier --ros-args --params-file {files['params']} "
             "(its weights_in names the weights file)"
         )
         lines.append(f"  twin: ros2 run lenn_ros twin --ros-args -p model:={Path(files['params']).parent}")
-    lines.append(f"  {report['seconds']} s")
+    lines.append(f"  {result.seconds} s")
     return lines

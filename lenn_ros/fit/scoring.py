@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import itertools
 import math
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -24,9 +25,20 @@ from lenn_ros.core.structure import Identifier
 from lenn_ros.core.threads import cores, side_by_side
 from lenn_ros.fit.data import Data
 from lenn_ros.fit.record import Record
-from lenn_ros.fit.result import OutputFit
+from lenn_ros.fit.result import OutputFit, OutputReport
 from lenn_ros.fit.selection import out_of_fold_residuals
 from lenn_ros.fit.termmodel import TermModel
+
+
+@dataclass
+class TestPart:
+    """The frozen model on the test part: each output's figures (its bands, model and choices are the
+    procedure's to add), the free run of all outputs together, and each output's one-step predictions over
+    the training rows (what a model the blocks did not run takes its bands from: :func:`fit_intervals`)."""
+
+    outputs: list[OutputReport]
+    free_run: dict[str, Any]
+    y_hat_train: list[np.ndarray]
 
 
 def score(
@@ -36,7 +48,7 @@ def score(
     models: list[TermModel],
     columns: list[list[int]],
     left_out: int = 0,
-) -> dict[str, Any]:
+) -> TestPart:
     """Test-part figures of the frozen model, per output: one-step and free run from sample ``start``.
 
     ``data.breaks`` (samples that start a new run: gaps in a bag) are never crossed: the
@@ -77,38 +89,50 @@ def score(
         "test_record_of_its_own": record_of_its_own,
     }
     healthy = not info["diverged"]
-    per_output = []
-    for j, (name, model) in enumerate(zip(data.y_names, models, strict=True)):
-        y_test, free, one_step = y[start:, j], y_free[:, j], y_hat[start:, j]
-        simulated, predicted = np.isfinite(free), np.isfinite(one_step)
-        ok = healthy and bool(simulated.any())
-        view = values[:, columns[j]]
-        x_test, _ = model.layout.regressors(view[start - model.warm_up :])
-        scaled = (view[start:] - np.asarray(model.layout.offsets)) / np.asarray(model.layout.scales)
-        per_output.append(
-            {
-                "name": name,
-                "samples": len(y_test),
-                "rmse": rmse(y_test[predicted], one_step[predicted]),
-                "nmse_db": nmse_db(y_test[predicted], one_step[predicted]),
-                "rmse_free_run": rmse(y_test[simulated], free[simulated]) if ok else math.nan,
-                "nmse_free_run_db": nmse_db(y_test[simulated], free[simulated]) if ok else math.nan,
-                "free_run": info,
-                "clipped_inputs_one_step": int(np.count_nonzero(np.abs(x_test) > 1.0)),
-                "test_samples_outside_training_range": {
-                    "u": int(np.count_nonzero(np.abs(scaled[:, 1:]) > 1.0)),
-                    "y": int(np.count_nonzero(np.abs(scaled[:, 0]) > 1.0)),
-                },
-                "beyond_training_range": beyond_training_range(view, start, model.layout.names, y_test - free),
-                "warnings": free_run_problems(y_test[simulated], free[simulated], info),
-                "y_test": y_test,
-                "y_hat_test": one_step,
-                "y_free_test": free,
-                "y_hat_train": y_hat[:start, j],
-            }
-        )
-    return {"per_output": per_output, "free_run": info, "y_test": y[start:], "y_hat_test": y_hat[start:],
-            "y_free_test": y_free}  # fmt: skip
+    outputs = [
+        _figures(name, model, values[:, columns[j]], start, (y[start:, j], y_hat[start:, j], y_free[:, j]), info,
+                 healthy)
+        for j, (name, model) in enumerate(zip(data.y_names, models, strict=True))
+    ]  # fmt: skip
+    return TestPart(outputs, info, [y_hat[:start, j] for j in range(len(models))])
+
+
+def _figures(
+    name: str,
+    model: TermModel,
+    view: np.ndarray,
+    start: int,
+    series: tuple[np.ndarray, np.ndarray, np.ndarray],
+    info: dict[str, Any],
+    healthy: bool,
+) -> OutputReport:
+    """One output's test figures. ``view``: its [y, u] columns over the whole record; ``series``: its test
+    samples, the model's one-step predictions and its free run over them; ``info``: the free run of all
+    outputs, ``healthy`` when it did not diverge."""
+    y_test, one_step, free = series
+    simulated, predicted = np.isfinite(free), np.isfinite(one_step)
+    ok = healthy and bool(simulated.any())
+    x_test, _ = model.layout.regressors(view[start - model.warm_up :])
+    scaled = (view[start:] - np.asarray(model.layout.offsets)) / np.asarray(model.layout.scales)
+    return OutputReport(
+        name=name,
+        samples=len(y_test),
+        rmse=rmse(y_test[predicted], one_step[predicted]),
+        nmse_db=nmse_db(y_test[predicted], one_step[predicted]),
+        rmse_free_run=rmse(y_test[simulated], free[simulated]) if ok else math.nan,
+        nmse_free_run_db=nmse_db(y_test[simulated], free[simulated]) if ok else math.nan,
+        free_run=info,
+        clipped_inputs_one_step=int(np.count_nonzero(np.abs(x_test) > 1.0)),
+        test_samples_outside_training_range={
+            "u": int(np.count_nonzero(np.abs(scaled[:, 1:]) > 1.0)),
+            "y": int(np.count_nonzero(np.abs(scaled[:, 0]) > 1.0)),
+        },
+        beyond_training_range=beyond_training_range(view, start, model.layout.names, y_test - free),
+        warnings=free_run_problems(y_test[simulated], free[simulated], info),
+        y_test=y_test,
+        y_hat_test=one_step,
+        y_free_test=free,
+    )
 
 
 def beyond_training_range(
@@ -179,7 +203,7 @@ def separate_test_record(models: list[TermModel], views: list[np.ndarray], start
 
 
 def fit_intervals(
-    report: dict[str, Any], identifier: Identifier | None, fitted: OutputFit, held_out: bool
+    part: OutputReport, y_hat_train: np.ndarray, identifier: Identifier | None, fitted: OutputFit, held_out: bool
 ) -> dict[str, Any]:
     """Nominal 95 % bands of one output, one step ahead and in free run, and how much of the test part they cover.
 
@@ -188,7 +212,8 @@ def fit_intervals(
     ahead and in free run. An MLP or SGD model, which the blocks did not run, takes its
     own errors over the training record (in-sample: optimistic, and said). A
     half-width is the 95 % quantile of |e|, not 1.96 sigma: free-run errors drift and
-    have heavy tails. The one-step std is also the noise the twin node may add.
+    have heavy tails. The one-step std is also the noise the twin node may add. ``part``: the output's
+    test figures and series; ``y_hat_train``: its one-step predictions over the training rows.
     """
     record = fitted.record
     y_train = record.y
@@ -198,24 +223,23 @@ def fit_intervals(
         source = "the selection's blocks, each run by the weights fitted without it"
     else:
         warm = identifier.structure.warm_up
-        one_step = report["y_hat_train"][warm:] - y_train[warm:]
+        one_step = y_hat_train[warm:] - y_train[warm:]
         free = identifier.free_run(record.values[:, 1], y_train, warm) - y_train[warm:]
         source = "the delivered model over the training record (in-sample: optimistic)"
-    report.pop("y_hat_train")
     one_step = one_step[np.isfinite(one_step)]
     one_step_width, free_width = band_half_width(one_step), band_half_width(free)
-    y_test = report["y_test"]
+    y_test = part.y_test
     return {
         "level": 0.95,
         "one_step": {
             "half_width": one_step_width,
             "std": float(np.std(one_step)) if len(one_step) else math.nan,
             "from": f"{len(one_step)} one-step errors of {source}",
-            "coverage_test": coverage(y_test, report["y_hat_test"], one_step_width),
+            "coverage_test": coverage(y_test, part.y_hat_test, one_step_width),
         },
         "free_run": {
             "half_width": free_width,
             "from": f"{int(np.count_nonzero(np.isfinite(free)))} errors of {source}",
-            "coverage_test": coverage(y_test, report["y_free_test"], free_width),
+            "coverage_test": coverage(y_test, part.y_free_test, free_width),
         },
     }

@@ -2,7 +2,7 @@
 
 For each set: ``fit`` with its defaults on the README split, then the fraction of the
 test samples inside the one-step band and inside the free-run band (both from the
-errors of the selection's held-out blocks, see ``lenn_ros.fit.build.fit_intervals``), with the
+errors of the selection's held-out blocks, see ``lenn_ros.fit.scoring.fit_intervals``), with the
 band half-widths relative to the test output's standard deviation. A band is honest when
 its coverage sits near 95 % on data it was not built from.
 
@@ -21,17 +21,17 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from peer_narx import splits
 
-from lenn_ros.fit.build import fit
 from lenn_ros.fit.data import Data
+from lenn_ros.fit.procedure import fit
 
 
 def run(quick: bool) -> list[dict]:
     rows = []
     for split in splits(quick):
         began = time.perf_counter()
-        report = fit(Data(split.u, split.y, split.name), split.test_from)["report"]
-        bands = report["intervals"]
-        spread = float(np.std(report["y_test"]))
+        report = fit(Data(split.u, split.y, split.name), split.test_from)
+        bands = report.intervals
+        spread = float(np.std(report.y_test))
         rows.append(
             {
                 "data": split.name,
@@ -39,7 +39,7 @@ def run(quick: bool) -> list[dict]:
                 "one_step_width": bands["one_step"]["half_width"] / spread,
                 "free_run": bands["free_run"]["coverage_test"],
                 "free_run_width": bands["free_run"]["half_width"] / spread,
-                "rmse_free_run": report["rmse_free_run"],
+                "rmse_free_run": report.rmse_free_run,
                 "seconds": time.perf_counter() - began,
             }
         )

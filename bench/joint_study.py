@@ -24,7 +24,9 @@ import time
 
 import numpy as np
 
-from lenn_ros.fit.build import Data, fit
+from lenn_ros.fit.data import Data
+from lenn_ros.fit.procedure import fit
+from lenn_ros.fit.result import FitResult
 from lenn_ros.paper.physical import FrictionJoint
 from lenn_ros.paper.signals import Excitation
 
@@ -61,10 +63,10 @@ def spread(values: list[float]) -> str:
     return f"{np.mean(values):.1f} ({min(values):.1f}..{max(values):.1f})"
 
 
-def timed_fit(u: np.ndarray, y: np.ndarray, name: str, test_from: int) -> tuple[dict, float]:
-    """(``fit``'s report with its defaults, the seconds it took)."""
+def timed_fit(u: np.ndarray, y: np.ndarray, name: str, test_from: int) -> tuple[FitResult, float]:
+    """(``fit``'s result with its defaults, the seconds it took)."""
     began = time.perf_counter()
-    report = fit(Data(u, y, name), test_from)["report"]
+    report = fit(Data(u, y, name), test_from)
     return report, time.perf_counter() - began
 
 
@@ -91,9 +93,9 @@ def main(argv: list[str] | None = None) -> int:
                 u, y = np.r_[u[: test_from - 1], u_test], np.r_[y[: test_from - 1], y_test]
             report, took = timed_fit(u, y, f"{variant} seed {seed}", test_from)
             seconds.append(took)
-            one.append(report["nmse_db"])
-            free.append(report["nmse_free_run_db"])
-            m = report["model"]
+            one.append(report.nmse_db)
+            free.append(report.nmse_free_run_db)
+            m = report.model
             models.append(f"{m['family']} {m['structure']['y_lags']}/{m['n_terms']}")
         print(
             f"| {variant} | {spread(one)} | {spread(free)} | {np.mean(seconds):.1f} | {', '.join(models)} |",

@@ -17,11 +17,12 @@ from peer_narx import DATA
 from plant_study import axis_p2p
 
 from lenn_ros.core.metrics import nmse_db
-from lenn_ros.fit.build import Data, fit
+from lenn_ros.fit.data import Data
+from lenn_ros.fit.procedure import fit
 
 
 def _row(name: str, u: np.ndarray, y: np.ndarray, start: int) -> str:
-    identifier = fit(Data(u, y, name), start + 1)["identifier"]
+    identifier = fit(Data(u, y, name), start + 1).identifier
     half = start + (len(y) - start) // 2
 
     before = nmse_db(y[half:], identifier.free_run(u, y, half))

@@ -13,7 +13,7 @@ All get the same protocol, in the same run, on the same splits:
 - the score is the free-run (simulation) RMSE on the test part, the free run starting
   from the measured outputs just before it (a live switch from series-parallel to
   parallel); a diverged run scores nan. Where ``fit`` judges the test part a record of
-  its own (:func:`~lenn_ros.fit.build.separate_test_record`), every method is seeded by
+  its own (:func:`~lenn_ros.fit.scoring.separate_test_record`), every method is seeded by
   the test part's own first samples instead, as many as it reads, and scored after them;
 - wall time is measured around each whole procedure (selection included);
 - beside them, the test-mean predictor: the RMSE of predicting every test sample by the
@@ -49,8 +49,9 @@ from pathlib import Path
 import numpy as np
 
 from lenn_ros.core.scaling import Scaling
-from lenn_ros.fit.build import Data, fit
-from lenn_ros.fit.selection import Layout, TermModel, siso_view
+from lenn_ros.fit.data import Data
+from lenn_ros.fit.procedure import fit
+from lenn_ros.fit.termmodel import Layout, TermModel, siso_view
 
 DATA = Path(__file__).resolve().parents[1].parent / "shared" / "data"
 VALIDATION_FRACTION = 0.2
@@ -184,16 +185,15 @@ def run_frols(split: Split, own: bool = False) -> dict:
 def run_lenn(split: Split, breaks: tuple[int, ...] = ()) -> dict:
     began = time.perf_counter()
     result = fit(Data(split.u, split.y, split.name, breaks=list(breaks)), split.test_from)
-    report = result["report"]
-    m = report["model"]
-    refined = report["choices"]["refinement"].get("iterations", 0)
+    m = result.model
+    refined = result.choices["refinement"].get("iterations", 0)
     return {
-        "rmse_free_run": report["rmse_free_run"],
+        "rmse_free_run": result.rmse_free_run,
         "seconds": time.perf_counter() - began,
         "model": f"{m['family']} degree {m['expansion']['degree']}, lags {m['structure']['y_lags']}, "
         f"{m['n_terms']} terms" + (f", refined {refined}x" if refined else ""),
-        "clipped": report["free_run"]["clipped_inputs"],
-        "own_record": bool(report["free_run"]["test_record_of_its_own"]),
+        "clipped": result.free_run["clipped_inputs"],
+        "own_record": bool(result.free_run["test_record_of_its_own"]),
     }
 
 
@@ -270,14 +270,13 @@ def run_lenn_mimo(split: MimoSplit) -> dict:
     u_names = tuple(f"u{i + 1}" for i in range(split.u.shape[1]))
     result = fit(Data(split.u, split.y, split.name, u_names=u_names, y_names=split.y_names), split.test_from)
     seconds = time.perf_counter() - began
-    report = result["report"]
-    model = report["model"]
-    lags = [part["model"]["structure"]["y_lags"] for part in report["per_output"]]
-    families = [part["model"]["family"] for part in report["per_output"]]
+    model = result.model
+    lags = [part.model["structure"]["y_lags"] for part in result.per_output]
+    families = [part.model["family"] for part in result.per_output]
     siso, siso_models, siso_seconds = [], [], 0.0
     # each SISO fit judges the split from its own channel pair alone; compared with the MIMO fit, it is
     # seeded where the MIMO fit was (a break at the test start), so both score the same kind of run
-    own = (split.test_from - 1,) if report["free_run"]["test_record_of_its_own"] else ()
+    own = (split.test_from - 1,) if result.free_run["test_record_of_its_own"] else ()
     if split.u.shape[1] == split.y.shape[1]:
         for j in range(split.y.shape[1]):
             part = run_lenn(Split(f"{split.name} {split.y_names[j]}", split.u[:, j], split.y[:, j], split.test_from,
@@ -287,7 +286,7 @@ def run_lenn_mimo(split: MimoSplit) -> dict:
             siso_seconds += part["seconds"]
     reads = "reads the other outputs" if model.get("coupling", {}).get("reads_other_outputs") else "own past only"
     return {
-        "rmse_free_run": [o["rmse_free_run"] for o in report["per_output"]],
+        "rmse_free_run": [o.rmse_free_run for o in result.per_output],
         "siso_rmse_free_run": siso,
         "seconds": seconds,
         "siso_seconds": siso_seconds,

@@ -477,9 +477,9 @@ def main(argv: list[str] | None = None) -> int:
             test_from = len(y) * 2 // 3 + 1
             report, took = timed_fit(u, y, f"{name} seed {seed}", test_from)
             seconds.append(took)
-            free.append(report["nmse_free_run_db"])
-            one.append(report["nmse_db"])
-            m = report["model"]
+            free.append(report.nmse_free_run_db)
+            one.append(report.nmse_db)
+            m = report.model
             models.append(f"{m['family']} {m['expansion']['degree']}/{m['structure']['y_lags']}/{m['n_terms']}")
             split = Split(name, u, y, test_from, "")
             arx.append(_db(run_arx(split)["rmse_free_run"], y[test_from - 1 :]))

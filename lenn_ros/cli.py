@@ -36,9 +36,9 @@ def _evaluate(args: argparse.Namespace) -> int:
 
 
 def _fit(args: argparse.Namespace) -> int:
-    from lenn_ros.fit import build
+    from lenn_ros.fit import command
 
-    return build.main(args)
+    return command.main(args)
 
 
 def _import_csv(args: argparse.Namespace) -> int:

@@ -41,7 +41,7 @@ LAYER_ERRORS = (
     ("lenn_ros.bag.errors", "BagError"),
     ("lenn_ros.config", "ConfigError"),
     ("lenn_ros.service", "RecordingError"),
-    ("lenn_ros.fit.build", "FitError"),
+    ("lenn_ros.fit.data", "FitError"),
     ("lenn_ros.table", "TableError"),
     ("lenn_ros.core.networks", "ModelFileError"),
     ("lenn_ros.paper.expression", "ExpressionError"),

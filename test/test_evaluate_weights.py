@@ -22,7 +22,9 @@ from test_fit import cubic_plant
 from lenn_ros import topics
 from lenn_ros.bag.writer import BagWriter
 from lenn_ros.config import NODE_PARAMETERS, build_identifier, read_params_file, resolve
-from lenn_ros.fit.build import Data, fit, write_outputs
+from lenn_ros.fit.data import Data
+from lenn_ros.fit.export import write_outputs
+from lenn_ros.fit.procedure import fit
 from lenn_ros.paper.evaluation import Series, train_and_test
 from lenn_ros.service import RecordingError
 from lenn_ros.service.evaluation import evaluate_bag
@@ -78,10 +80,10 @@ def test_evaluate_with_fit_params_starts_from_the_fitted_weights(fitted, tmp_pat
     assert evaluation.evaluation.nmse_db == pytest.approx(expected, abs=1e-9)
     assert evaluation.weights_in == str(Path(files["weights"]).resolve())
     # the figure is fit's model (adapted by RLS over the training part), not a fresh one's
-    assert evaluation.evaluation.nmse_db < result["report"]["nmse_db"] + 3.0
+    assert evaluation.evaluation.nmse_db < result.nmse_db + 3.0
     # the fit's free-run band (fit.json beside the weights), and its coverage of this recording's free run
     band = evaluation.intervals["free_run"]
-    assert band["half_width"] == result["report"]["intervals"]["free_run"]["half_width"]
+    assert band["half_width"] == result.intervals["free_run"]["half_width"]
     e = evaluation.evaluation
     inside = np.abs(e.y_test - e.y_free_test) <= band["half_width"]
     assert band["coverage_test"] == pytest.approx(inside.mean(), abs=1e-12)

@@ -25,37 +25,35 @@ from lenn_ros.core.expansions import format_terms, parse_terms, siso_channels
 from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND
 from lenn_ros.core.scaling import Scaling
 from lenn_ros.core.structure import Identifier
-from lenn_ros.fit import families, refinement
-from lenn_ros.fit.build import Data, fit
-from lenn_ros.fit.families import Spec
+from lenn_ros.fit import refinement
+from lenn_ros.fit.data import Data
+from lenn_ros.fit.families import FAMILIES, Spec
+from lenn_ros.fit.families import index as index_family
+from lenn_ros.fit.procedure import fit
+from lenn_ros.fit.record import Record, Simulation, fold_blocks, runs
+from lenn_ros.fit.regression import Folds, forward_regression
 from lenn_ros.fit.selection import (
     NONLINEAR_GAIN,
     PARSIMONY,
-    TRAINING_RANGE,
     Candidate,
-    Folds,
-    Layout,
     Prefixes,
-    Record,
-    Simulation,
-    TermModel,
     _block_pieces,
     _designs,
     _score_prefixes,
     evaluate_candidate,
-    fold_blocks,
-    forward_regression,
-    level_free,
     order_candidates,
+)
+from lenn_ros.fit.soundness import (
+    TRAINING_RANGE,
+    level_free,
     reads_outputs,
-    runs,
     runs_from_predictions,
     shuffled_run,
-    siso_view,
     soundness_problem,
     stress_views,
     widened,
 )
+from lenn_ros.fit.termmodel import Layout, TermModel, siso_view
 from lenn_ros.paper.examples import get_example
 
 SILVERBOX = Path(__file__).resolve().parents[2] / "shared" / "data" / "silverbox_multisine.csv"
@@ -87,15 +85,14 @@ def linear_arx_free_run(u: np.ndarray, y: np.ndarray, start: int) -> float:
 def test_fit_finds_the_cubic_term_and_beats_linear_arx(seed: int) -> None:
     u, y = cubic_plant(3000, seed)
     result = fit(Data(u, y, "synthetic"), 2001)
-    report = result["report"]
-    assert report["samples"] == 1000
-    assert "y1^3" in report["model"]["expansion"]["terms"] or "y1^2" in report["model"]["expansion"]["terms"]
-    assert report["rmse_free_run"] < 0.5 * linear_arx_free_run(u, y, 2000)
-    assert report["rmse_free_run"] < 0.01  # noise is 0.002; the output spans about +-1
-    assert report["warnings"] == []
-    assert report["free_run"]["diverged"] is False
-    chosen = report["choices"]["candidates"][report["choices"]["chosen"]]
-    scored = [c for c in report["choices"]["candidates"] if c["rmse_free_run_validation"]]
+    assert result.samples == 1000
+    assert "y1^3" in result.model["expansion"]["terms"] or "y1^2" in result.model["expansion"]["terms"]
+    assert result.rmse_free_run < 0.5 * linear_arx_free_run(u, y, 2000)
+    assert result.rmse_free_run < 0.01  # noise is 0.002; the output spans about +-1
+    assert result.warnings == []
+    assert result.free_run["diverged"] is False
+    chosen = result.choices["candidates"][result.choices["chosen"]]
+    scored = [c for c in result.choices["candidates"] if c["rmse_free_run_validation"]]
     lowest = min(c["rmse_free_run_validation"] for c in scored)
     close = [c for c in scored if c["rmse_free_run_validation"] <= lowest * 1.01]
     assert chosen["rmse_free_run_validation"] <= lowest * 1.01  # parsimony: the fewest terms of those within 1 %
@@ -259,10 +256,10 @@ def test_silverbox_slice_beats_linear_and_polynomial_narx_level() -> None:
     """Real data (a slice, to stay fast): the cubic spring must be found and simulated."""
     table = np.loadtxt(SILVERBOX, delimiter=",", skiprows=1, max_rows=30_000)
     u, y = table[:, 1], table[:, 2]
-    report = fit(Data(u, y, "silverbox slice"), 24_001)["report"]
-    assert report["rmse_free_run"] < 0.5 * linear_arx_free_run(u, y, 24_000)
-    assert report["rmse_free_run"] < 0.002  # FROLS reaches ~0.0043 on the full split
-    assert any("^3" in term or "^2" in term for term in report["model"]["expansion"]["terms"])
+    report = fit(Data(u, y, "silverbox slice"), 24_001)
+    assert report.rmse_free_run < 0.5 * linear_arx_free_run(u, y, 24_000)
+    assert report.rmse_free_run < 0.002  # FROLS reaches ~0.0043 on the full split
+    assert any("^3" in term or "^2" in term for term in report.model["expansion"]["terms"])
 
 
 def test_epochs_with_early_stopping_beat_one_pass_on_small_data() -> None:
@@ -592,10 +589,9 @@ def test_fit_holds_a_sticky_joint_where_it_sticks() -> None:
 
     u, y = joint_study.record("sticky", 0.005, 40.0, 2)
     result = fit(Data(u, y, "sticky joint"), len(y) * 2 // 3 + 1)
-    report = result["report"]
-    assert report["model"]["family"] == "increment" and report["warnings"] == []
-    assert any(term.startswith("tanh(") and "u1" in term for term in result["model"].terms)
-    assert report["nmse_free_run_db"] < -32.0
+    assert result.model["family"] == "increment" and result.warnings == []
+    assert any(term.startswith("tanh(") and "u1" in term for term in result.models[0].terms)
+    assert result.nmse_free_run_db < -32.0
 
 
 def test_blocks_breaks_and_fold_weights() -> None:
@@ -649,9 +645,9 @@ def test_when_no_candidate_passes_the_strict_checks_fit_says_so() -> None:
     """A random walk unrelated to u: nothing simulates it better than the mean."""
     rng = np.random.default_rng(0)
     u, y = rng.uniform(-1, 1, 1500), np.cumsum(rng.standard_normal(1500))
-    report = fit(Data(u, y, "random walk"), 1201)["report"]
-    assert "no candidate structure passed the strict checks" in report["warnings"][0]
-    assert "free run worse than its mean" in report["warnings"][0]
+    report = fit(Data(u, y, "random walk"), 1201)
+    assert "no candidate structure passed the strict checks" in report.warnings[0]
+    assert "free run worse than its mean" in report.warnings[0]
 
 
 @pytest.mark.skipif(not BALL_AND_BEAM.exists(), reason="shared ball-and-beam data not present")
@@ -662,11 +658,10 @@ def test_ball_and_beam_chosen_structure_simulates_its_own_training_data() -> Non
     table = np.genfromtxt(BALL_AND_BEAM, delimiter=",", names=True)
     u, y = np.asarray(table["u"], float), np.asarray(table["y"], float)
     result = fit(Data(u, y, "ball and beam"), 667, refine=False)
-    report = result["report"]
-    assert report["warnings"] == []
-    assert soundness_problem(result["model"], Record.of(siso_view(u[:666], y[:666]))) == ""
-    assert report["free_run"]["clipped_inputs"] == 0
-    assert report["nmse_free_run_db"] < -1.0  # measured -1.66 dB (random Fourier features of 3 lags)
+    assert result.warnings == []
+    assert soundness_problem(result.models[0], Record.of(siso_view(u[:666], y[:666]))) == ""
+    assert result.free_run["clipped_inputs"] == 0
+    assert result.nmse_free_run_db < -1.0  # measured -1.66 dB (random Fourier features of 3 lags)
 
 
 def test_peer_table_shows_the_test_mean_predictor_and_marks_rows_worse_than_it() -> None:
@@ -701,22 +696,21 @@ def test_peer_linear_arx_is_least_squares_with_lags_chosen_on_the_tail() -> None
 
 
 def test_fit_solver_sgd_trains_the_selected_terms_by_epochs_and_round_trips(tmp_path: Path) -> None:
-    from lenn_ros.fit.build import write_outputs
+    from lenn_ros.fit.export import write_outputs
 
     u, y = cubic_plant(2500, 8)
     result = fit(Data(u, y, "synthetic"), 2001, solver="sgd")
-    report = result["report"]
-    assert report["model"]["live"]["solver"] == "sgd" and report["model"]["epochs"]["best_epoch"] > 1
-    assert report["choices"]["refinement"] == {"done": False}
-    assert report["rmse_free_run"] < 0.5 * float(np.std(y[2000:]))  # well better than the mean
+    assert result.model["live"]["solver"] == "sgd" and result.model["epochs"]["best_epoch"] > 1
+    assert result.choices["refinement"] == {"done": False}
+    assert result.rmse_free_run < 0.5 * float(np.std(y[2000:]))  # well better than the mean
     files = write_outputs(tmp_path / "model", result, Data(u, y, "fitted"))
     values = read_params_file(files["params"])
-    assert values["solver"] == "sgd" and values["alpha"] == pytest.approx(result["identifier"].model.alpha)
+    assert values["solver"] == "sgd" and values["alpha"] == pytest.approx(result.identifier.model.alpha)
     resolved, network = resolve(values)
     identifier = build_identifier(resolved, network)
     identifier.model.load_state(values["weights_in"])
     y_free = identifier.free_run(u, y, 2000)
-    assert float(np.sqrt(np.mean((y_free - y[2000:]) ** 2))) == pytest.approx(report["rmse_free_run"], rel=1e-9)
+    assert float(np.sqrt(np.mean((y_free - y[2000:]) ** 2))) == pytest.approx(result.rmse_free_run, rel=1e-9)
 
 
 def test_fit_bands_cover_what_they_say_on_a_plant_like_its_training() -> None:
@@ -728,7 +722,7 @@ def test_fit_bands_cover_what_they_say_on_a_plant_like_its_training() -> None:
     one, free = [], []
     for seed in range(3, 9):
         u, y = cubic_plant(2500, seed)
-        bands = fit(Data(u, y, "synthetic"), 2001)["report"]["intervals"]
+        bands = fit(Data(u, y, "synthetic"), 2001).intervals
         one.append(bands["one_step"]["coverage_test"])
         free.append(bands["free_run"]["coverage_test"])
     for name, values in (("one-step", one), ("free-run", free)):
@@ -744,9 +738,9 @@ def test_fit_keeps_the_integrator_of_a_joint_without_gravity() -> None:
     import joint_study
 
     u, y = joint_study.record("horizontal", 0.005, 40.0, 0)
-    report = fit(Data(u, y, "horizontal joint"), len(y) * 2 // 3 + 1)["report"]
-    assert report["model"]["family"] == "increment" and report["warnings"] == []
-    assert report["nmse_free_run_db"] < -25.0  # measured -28.1 dB
+    report = fit(Data(u, y, "horizontal joint"), len(y) * 2 // 3 + 1)
+    assert report.model["family"] == "increment" and report.warnings == []
+    assert report.nmse_free_run_db < -25.0  # measured -28.1 dB
 
 
 def coulomb_body(n: int, a: float = 0.95, b: float = 0.02, c: float = 0.008) -> tuple[np.ndarray, np.ndarray]:
@@ -768,7 +762,7 @@ def test_the_stick_family_reads_its_dead_zone_from_the_record() -> None:
     are STICK_KNOTS times the step, on both sides. ``fit`` chooses the family there (the blocks prefer it) and
     simulates the body (measured -44.3 dB; without the family the increment family's -47.8 dB: on a record
     without noise least squares sets the stick threshold right, and both follow it)."""
-    from lenn_ros.fit.families import STICK_KNOTS
+    from lenn_ros.fit.families.stick import STICK_KNOTS
     from lenn_ros.fit.selection import valid_inputs
 
     u, y = coulomb_body(4000)
@@ -785,8 +779,8 @@ def test_the_stick_family_reads_its_dead_zone_from_the_record() -> None:
     steps = -(bias[0::2] + bias[1::2]) / 2.0  # relu(p - k c) and relu(-p - k c): the biases' mean is -k c
     assert np.allclose(steps / np.array(STICK_KNOTS), steps[0] / STICK_KNOTS[0], rtol=1e-4)
     assert abs(steps[1] / (0.008 / scaling.y_scale) - 1.0) < 0.1
-    report = fit(Data(u, y, "Coulomb body"), 3001)["report"]
-    assert report["model"]["family"] == "stick" and report["nmse_free_run_db"] < -42.0
+    report = fit(Data(u, y, "Coulomb body"), 3001)
+    assert report.model["family"] == "stick" and report.nmse_free_run_db < -42.0
 
 
 def test_fit_simulates_an_axis_standing_stuck_by_the_stick_family_and_the_node_runs_it(tmp_path: Path) -> None:
@@ -801,18 +795,17 @@ def test_fit_simulates_an_axis_standing_stuck_by_the_stick_family_and_the_node_r
     u, y = plant_study.axis_p2p(1)
     start = len(y) * 2 // 3
     result = fit(Data(u, y, "axis"), start + 1)
-    report = result["report"]
-    assert report["model"]["family"] == "stick" and report["warnings"] == []
-    assert report["choices"]["refinement"]["tried"] == refinement.FAR_ITERATIONS["stick"]
-    assert report["nmse_free_run_db"] < -34.0
-    assert level_free(result["model"])  # the integrator is kept exactly, and passed through by the node
+    assert result.model["family"] == "stick" and result.warnings == []
+    assert result.choices["refinement"]["tried"] == FAMILIES["stick"].iterations
+    assert result.nmse_free_run_db < -34.0
+    assert level_free(result.models[0])  # the integrator is kept exactly, and passed through by the node
     y_free = _identifier_from_params(tmp_path, result, Data(u, y, "axis"))[1].free_run(u, y, start)
-    assert float(np.sqrt(np.mean((y_free - y[start:]) ** 2))) == pytest.approx(report["rmse_free_run"], rel=1e-6)
+    assert float(np.sqrt(np.mean((y_free - y[start:]) ** 2))) == pytest.approx(result.rmse_free_run, rel=1e-6)
 
 
 def _identifier_from_params(tmp_path: Path, result: dict, data: Data) -> tuple[dict, Identifier]:
     """(the params file's values, the identifier built from them): what ``fit -o`` wrote, as the node starts."""
-    from lenn_ros.fit.build import write_outputs
+    from lenn_ros.fit.export import write_outputs
 
     values = read_params_file(write_outputs(tmp_path / "model", result, data)["params"])
     resolved, network = resolve(values)
@@ -859,24 +852,23 @@ def test_fit_simulates_a_speed_read_as_its_absolute_value_and_the_node_signs_it(
     the model of the signed record beside it and keeps it by the blocks (measured -38.1 dB on this seed); the
     params file says ``y_abs``, and an identifier from it runs the same free run, seeding it with the signs
     its own predictions and free run give the measured |y|. Step by step, it publishes |y^| and y - |y^|."""
-    from lenn_ros.fit.build import format_report
+    from lenn_ros.fit.report import format_report
 
     u, y, speed = _plant_study().belt_speed(0)
     start = len(y) * 2 // 3
     result = fit(Data(u, y, "belt"), start + 1)
-    report = result["report"]
-    assert report["choices"]["sign"]["used"] and report["model"]["structure"]["y_abs"]
-    assert "the node signs each y_p as its model does (y_abs)" in format_report(report)
-    assert report["nmse_free_run_db"] < -35.0 and report["warnings"] == []
+    assert result.choices["sign"]["used"] and result.model["structure"]["y_abs"]
+    assert "the node signs each y_p as its model does (y_abs)" in format_report(result)
+    assert result.nmse_free_run_db < -35.0 and result.warnings == []
     values, identifier = _identifier_from_params(tmp_path, result, Data(u, y, "belt"))
     assert values["y_abs"] is True
     y_free = identifier.free_run(u, y, start)
     assert np.all(y_free >= 0.0)
-    assert float(np.sqrt(np.mean((y_free - y[start:]) ** 2))) == pytest.approx(report["rmse_free_run"], rel=1e-6)
+    assert float(np.sqrt(np.mean((y_free - y[start:]) ** 2))) == pytest.approx(result.rmse_free_run, rel=1e-6)
     # as a model to use (a twin steps it): the run goes on from its signed outputs, read as |y|
     model = lenn_ros.load_model(tmp_path / "model")
     free = model.simulate(u[start:], y_initial=y[:start], u_initial=u[:start])
-    np.testing.assert_array_equal(free, report["y_free_test"])
+    np.testing.assert_array_equal(free, result.y_free_test)
     stepper = model.stepper(y_initial=y[:start], u_initial=u[:start])
     np.testing.assert_array_equal([stepper.step(value)[0] for value in u[start:]], free)
     # the signs the frozen model gives the measured |y|, started on the wrong side mid-motion (its history
@@ -888,25 +880,25 @@ def test_fit_simulates_a_speed_read_as_its_absolute_value_and_the_node_signs_it(
     scored = [r for r in results[start:] if r.y_hat is not None]
     assert all(r.y_hat >= 0.0 and r.error == pytest.approx(y[r.index] - r.y_hat) for r in scored)
     assert 10.0 * np.log10(np.mean([r.error**2 for r in scored]) / np.var(y[start:])) < -35.0
-    assert report["nmse_db"] < -35.0
+    assert result.nmse_db < -35.0
 
 
 def test_fit_undoes_refinement_that_would_diverge_on_the_buck_converter_and_says_so() -> None:
     """On the buck converter the blocks chose two refinement iterations of an increment model; the second
     runs away on the training input shuffled, and (kept) the model diverged 41 samples into the test. It is
     undone, the report's text says so, and the test free run is finite (measured RMSE 0.2831)."""
-    from lenn_ros.fit.build import format_report
+    from lenn_ros.fit.report import format_report
 
     data = SILVERBOX.parent
     parts = [np.genfromtxt(data / f"buck_converter_{part}.csv", delimiter=",", names=True) for part in ("id", "valid")]
     u = np.concatenate([np.asarray(p["input"], float) for p in parts])
     y = np.concatenate([np.asarray(p["y"], float) for p in parts])
-    report = fit(Data(u, y, "buck converter"), len(parts[0]) + 1)["report"]
-    refinement = report["choices"]["refinement"]
+    report = fit(Data(u, y, "buck converter"), len(parts[0]) + 1)
+    refinement = report.choices["refinement"]
     assert refinement["unsound"] == "1 iteration(s) undone: free run on the training input shuffled in blocks " \
         "left the training range"  # fmt: skip
     assert "1 iteration(s) undone" in format_report(report)
-    assert not report["free_run"]["diverged"] and report["rmse_free_run"] < 0.29
+    assert not report.free_run["diverged"] and report.rmse_free_run < 0.29
 
 
 def test_an_exact_integrator_is_delivered_with_its_pass_through_outside_the_network(tmp_path: Path) -> None:
@@ -917,12 +909,12 @@ def test_an_exact_integrator_is_delivered_with_its_pass_through_outside_the_netw
     prediction inside, shifted; inside the range it is the same model."""
     import joint_study
 
-    from lenn_ros.fit.build import write_outputs
+    from lenn_ros.fit.export import write_outputs
 
     u, y = joint_study.record("horizontal", 0.005, 40.0, 0)
     start = len(y) * 2 // 3
     result = fit(Data(u, y, "horizontal joint"), start + 1)
-    identifier, model = result["identifier"], result["model"]
+    identifier, model = result.identifier, result.models[0]
     assert level_free(model) and identifier.structure.known_a == (1.0,)
     inside = identifier.run(u[start:], y[start:], learn=False).ravel()
     features, _ = model.regression(siso_view(u[start:], y[start:]))
@@ -947,9 +939,9 @@ def test_fit_reaches_a_static_nonlinearity_with_several_turns_by_the_papers_expa
     n = 3000
     u = np.repeat(rng.uniform(-1, 1, n // 10 + 1), 10)[:n] + 0.3 * np.sin(2 * np.pi * np.arange(n) / 250)
     y = get_example(1).plant().run(u)[:n] + 0.01 * rng.standard_normal(n)
-    report = fit(Data(u, y, "example 1"), 2001)["report"]
-    assert report["model"]["family"] == "legendre" and report["warnings"] == []
-    assert report["nmse_free_run_db"] < -13.0
+    report = fit(Data(u, y, "example 1"), 2001)
+    assert report.model["family"] == "legendre" and report.warnings == []
+    assert report.nmse_free_run_db < -13.0
 
 
 def test_fit_simulates_a_static_map_between_two_filters_by_hinges_of_a_filtered_input(tmp_path: Path) -> None:
@@ -963,12 +955,11 @@ def test_fit_simulates_a_static_map_between_two_filters_by_hinges_of_a_filtered_
     start = len(y) * 2 // 3
     data = Data(u, y, "wiener-hammerstein")
     result = fit(data, start + 1)
-    report = result["report"]
-    assert report["model"]["family"] == "index" and report["warnings"] == []
-    assert report["nmse_free_run_db"] < -30.0
-    assert "hinges of one filtered input" in report["choices"]["time_scale"]
+    assert result.model["family"] == "index" and result.warnings == []
+    assert result.nmse_free_run_db < -30.0
+    assert "hinges of one filtered input" in result.choices["time_scale"]
     y_free = _identifier_from_params(tmp_path, result, data)[1].free_run(u, y, start)
-    assert float(np.sqrt(np.mean((y_free - y[start:]) ** 2))) == pytest.approx(report["rmse_free_run"], rel=1e-6)
+    assert float(np.sqrt(np.mean((y_free - y[start:]) ** 2))) == pytest.approx(result.rmse_free_run, rel=1e-6)
 
 
 def test_the_index_direction_is_the_first_filter_of_a_wiener_system() -> None:
@@ -976,77 +967,77 @@ def test_the_index_direction_is_the_first_filter_of_a_wiener_system() -> None:
     correlate with the filter's impulse response beyond 0.9999, which the least-squares FIR it starts from
     (the map's flattening mixed in) does not."""
     rng = np.random.default_rng(3)
-    n, lags = 4000, families.INDEX_LAGS[-1]
-    taps = lags - families.INDEX_SHIFTS
+    n, lags = 4000, index_family.INDEX_LAGS[-1]
+    taps = lags - index_family.INDEX_SHIFTS
     u = rng.standard_normal(n)
     impulse = 0.8 ** np.arange(taps) - 0.5 * 0.5 ** np.arange(taps)
     # y(k) = clip(impulse . (u(k-1), u(k-2), ...)): the input acts one sample later, as a sampled plant's does
     y = np.clip(np.r_[0.0, np.convolve(u, impulse)[: n - 1]], -0.6, 0.6) + 0.005 * rng.standard_normal(n)
     # rows as the selection builds them: y(k), y(k-1), ..., then u(k), u(k-1), ...; the target is y(k+1)
     rows = np.array([np.r_[y[k - lags + 1 : k + 1][::-1], u[k - lags + 1 : k + 1][::-1]] for k in range(lags, n - 1)])
-    columns, h, _middle, _spread, knots = families.index_direction(rows, lags)
+    columns, h, _middle, _spread, knots = index_family.index_direction(rows, lags)
     assert list(columns) == list(range(lags, lags + taps))
     start = np.linalg.lstsq(np.c_[np.ones(len(rows)), rows[:, columns + 1]], rows[:, 0], rcond=None)[0][1:]
     # measured: 0.999977 found, 0.99834 at the start
     assert abs(np.corrcoef(h, impulse)[0, 1]) > 0.9999 and abs(np.corrcoef(start, impulse)[0, 1]) < 0.999
-    assert len(knots) == len(families.INDEX_KNOTS)
+    assert len(knots) == len(index_family.INDEX_KNOTS)
 
 
 def test_a_test_part_recorded_apart_is_seeded_by_its_own_samples_and_said() -> None:
     """Two experiments joined (as benchmark files and users do): the test part is judged a record of its own and
     simulated from its own first samples; a record that goes on is simulated from the build part's last ones."""
-    from lenn_ros.fit.build import format_report
+    from lenn_ros.fit.report import format_report
 
     u_build, y_build = cubic_plant(3000, 0)
     u_test, y_test = cubic_plant(1000, 1)  # starts at rest, where the build part ends moving
     u, y = np.r_[u_build, u_test], np.r_[y_build, y_test]
     result = fit(Data(u, y, "joined"), 3001, refine=False)
-    report, identifier = result["report"], result["identifier"]
+    identifier = result.identifier
     window = identifier.structure.warm_up
-    assert "record of its own" in report["free_run"]["test_record_of_its_own"]
-    assert report["free_run"]["not_simulated"] == window
-    assert report["free_run"]["starts_from"] == f"measured outputs of samples 3001..{3000 + window}, not scored"
-    assert np.all(np.isnan(report["y_free_test"][:window])) and np.all(np.isfinite(report["y_free_test"][window:]))
-    assert np.all(np.isnan(report["y_hat_test"][:window]))
-    assert np.array_equal(report["y_free_test"][window:], identifier.free_run(u_test, y_test, window))
+    assert "record of its own" in result.free_run["test_record_of_its_own"]
+    assert result.free_run["not_simulated"] == window
+    assert result.free_run["starts_from"] == f"measured outputs of samples 3001..{3000 + window}, not scored"
+    assert np.all(np.isnan(result.y_free_test[:window])) and np.all(np.isfinite(result.y_free_test[window:]))
+    assert np.all(np.isnan(result.y_hat_test[:window]))
+    assert np.array_equal(result.y_free_test[window:], identifier.free_run(u_test, y_test, window))
     from_build = identifier.free_run(u[3000 - window :], y[3000 - window :], window)
-    assert report["rmse_free_run"] < 0.5 * float(np.sqrt(np.mean((from_build - y_test) ** 2)))
-    assert "note: the test part is a record of its own" in format_report(report)
+    assert result.rmse_free_run < 0.5 * float(np.sqrt(np.mean((from_build - y_test) ** 2)))
+    assert "note: the test part is a record of its own" in format_report(result)
     # the same plant recorded on: the build part's last samples seed the free run, every test sample is scored
     u, y = cubic_plant(4000, 0)
-    report = fit(Data(u, y, "one record"), 3001, refine=False)["report"]
-    assert report["free_run"]["test_record_of_its_own"] == ""
-    assert report["free_run"]["not_simulated"] == 0
-    assert report["free_run"]["starts_from"] == "measured outputs before sample 3001"
+    result = fit(Data(u, y, "one record"), 3001, refine=False)
+    assert result.free_run["test_record_of_its_own"] == ""
+    assert result.free_run["not_simulated"] == 0
+    assert result.free_run["starts_from"] == "measured outputs before sample 3001"
     # several outputs: the same rule over each output's view, one seed for the joint free run
     u2, y2 = cubic_plant(4000, 50)
     u = np.c_[np.r_[u_build, u_test], u2]
     y = np.c_[np.r_[y_build, y_test], y2 + 0.3 * np.r_[y_build, y_test]]
-    report = fit(Data(u, y, "joined, two outputs"), 3001, refine=False)["report"]
-    assert "record of its own" in report["free_run"]["test_record_of_its_own"]
-    window = report["free_run"]["not_simulated"]
-    assert window > 0 and np.all(np.isnan(report["y_free_test"][:window]))
-    assert all(part["rmse_free_run"] < 0.01 for part in report["per_output"])
+    result = fit(Data(u, y, "joined, two outputs"), 3001, refine=False)
+    assert "record of its own" in result.free_run["test_record_of_its_own"]
+    window = result.free_run["not_simulated"]
+    assert window > 0 and np.all(np.isnan(result.y_free_test[:window]))
+    assert all(part.rmse_free_run < 0.01 for part in result.per_output)
 
 
 def test_only_the_leader_is_refined_on_all_samples_and_a_leader_that_loses_its_lead_is_replaced(monkeypatch) -> None:
     """Every target's blocks are refined, but only the candidate that then leads is refined on all its samples;
     if that refinement raises its score (iterations undone as unsound), the choice is made again."""
-    from lenn_ros.fit import build
-    from lenn_ros.fit.build import format_report
+    from lenn_ros.fit import schedule
+    from lenn_ros.fit.report import format_report
 
     u, y = cubic_plant(3000, 0)
-    report = fit(Data(u, y, "lazy"), 2001)["report"]
-    listed = report["choices"]["candidates"]
-    chosen = listed[report["choices"]["chosen"]]
+    report = fit(Data(u, y, "lazy"), 2001)
+    listed = report.choices["candidates"]
+    chosen = listed[report.choices["chosen"]]
     targets = [c for c in listed if c.get("refinement")]
-    assert len(targets) == build.REFINED_CANDIDATES
+    assert len(targets) == schedule.REFINED_CANDIDATES
     assert chosen["refinement"]["applied"] is True and np.isfinite(chosen["refinement"]["rmse_training_after"])
     others = [c for c in targets if c is not chosen]
     assert others and all(c["refinement"]["applied"] is False for c in others)
     assert "not applied: not chosen" in format_report(report)
 
-    real, finalised = build.refine_on_folds, []
+    real, finalised = schedule.refine_on_folds, []
 
     def first_one_undone(candidate, record, histories):
         result = real(candidate, record, histories)
@@ -1055,10 +1046,10 @@ def test_only_the_leader_is_refined_on_all_samples_and_a_leader_that_loses_its_l
             result.rmse_blocks_after *= 10.0
         return result
 
-    monkeypatch.setattr(build, "refine_on_folds", first_one_undone)
-    report = fit(Data(u, y, "lazy"), 2001)["report"]
-    listed = report["choices"]["candidates"]
-    chosen = listed[report["choices"]["chosen"]]
+    monkeypatch.setattr(schedule, "refine_on_folds", first_one_undone)
+    report = fit(Data(u, y, "lazy"), 2001)
+    listed = report.choices["candidates"]
+    chosen = listed[report.choices["chosen"]]
     assert len(finalised) == 2 and finalised[0] != finalised[1]
     assert (chosen["family"], chosen["y_lags"], chosen["degree"]) == finalised[1]
     assert [c["refinement"]["applied"] for c in listed if c.get("refinement")].count(True) == 2
@@ -1087,9 +1078,9 @@ def test_the_views_of_several_outputs_wait_only_for_what_they_need_and_are_told_
     import functools
     import threading
 
-    from lenn_ros.fit import build
+    from lenn_ros.fit import schedule
 
-    monkeypatch.setattr(build, "cores", lambda: workers)
+    monkeypatch.setattr(schedule, "cores", lambda: workers)
     events: list[tuple[str, int]] = []
     lock = threading.Lock()
     own_done: set[int] = set()
@@ -1127,7 +1118,7 @@ def test_the_views_of_several_outputs_wait_only_for_what_they_need_and_are_told_
         return [(key, functools.partial(job, key)) for key in range(50)]
 
     told: list[str] = []
-    fits, scores, ahead = build._views_side_by_side(4, view, together, told.append, spare)
+    fits, scores, ahead = schedule.views_side_by_side(4, view, together, told.append, spare)
     assert fits == {"own": [("own", j) for j in range(4)], "coupled": [("coupled", j) for j in range(4)]}
     assert told == [f"{kind} {j}" for j in range(4) for kind in ("own", "coupled")]
     assert set(scores) == {"own", "coupled"}
@@ -1262,30 +1253,30 @@ def test_fit_finds_a_dead_time_and_simulates_behind_it_as_without_it(tmp_path: P
     the three newest input lags read inputs that have not acted yet (-30.9 dB on this seed, -30.1 over three);
     with it, the free run is that of the same plant without a dead time (-38.6 dB). The report says it, and the
     params file starts an identifier that runs the same free run."""
-    from lenn_ros.fit.build import format_report
+    from lenn_ros.fit.report import format_report
 
     u, y = _plant_study().PLANTS["hammerstein-dead-time"](0)
     start = len(y) * 2 // 3
     data = Data(u, y, "hammerstein behind a dead time")
     result = fit(data, start + 1)
-    report = result["report"]
-    assert report["choices"]["dead_time"] == {"u": 8} and report["warnings"] == []
-    assert report["nmse_free_run_db"] < -37.5
-    assert "dead time: u 8 samples (the newest lags that add nothing" in format_report(report)
+    assert result.choices["dead_time"] == {"u": 8} and result.warnings == []
+    assert result.nmse_free_run_db < -37.5
+    assert "dead time: u 8 samples (the newest lags that add nothing" in format_report(result)
     y_free = _identifier_from_params(tmp_path, result, data)[1].free_run(u, y, start)
-    assert float(np.sqrt(np.mean((y_free - y[start:]) ** 2))) == pytest.approx(report["rmse_free_run"], rel=1e-6)
+    assert float(np.sqrt(np.mean((y_free - y[start:]) ** 2))) == pytest.approx(result.rmse_free_run, rel=1e-6)
 
 
 def test_the_report_says_where_the_test_leaves_the_training_range_and_what_error_is_there() -> None:
     """Two tanks whose test part fills the lower tank higher than training ever did (to 9.2 against 7.7): the
     report counts the test samples beyond the training range, per signal, and the share of the free run's
     squared error they carry (measured 157 samples, 41 %); a test part inside the range gets no such line."""
-    from lenn_ros.fit.build import beyond_training_range, format_report
+    from lenn_ros.fit.report import format_report
+    from lenn_ros.fit.scoring import beyond_training_range
 
     u, y = _plant_study().tanks(0)
     start = len(y) * 2 // 3
-    report = fit(Data(u, y, "tanks"), start + 1)["report"]
-    beyond = report["beyond_training_range"]
+    report = fit(Data(u, y, "tanks"), start + 1)
+    beyond = report.beyond_training_range
     over = (y[start:] > y[:start].max()) | (y[start:] < y[:start].min())
     assert beyond["by_signal"]["y"] == int(over.sum()) > 100
     assert 0.3 < beyond["free_run_error_share"] < 0.6

@@ -24,7 +24,9 @@ from test_fit import _plant_study, cubic_plant  # noqa: E402
 
 from lenn_ros.config import build_identifier, read_params_file, resolve  # noqa: E402
 from lenn_ros.core.networks import OnlineRegressor  # noqa: E402
-from lenn_ros.fit.build import Data, fit, write_outputs  # noqa: E402
+from lenn_ros.fit.data import Data  # noqa: E402
+from lenn_ros.fit.export import write_outputs  # noqa: E402
+from lenn_ros.fit.procedure import fit  # noqa: E402
 
 
 class SeriesTalker(Talker):
@@ -76,9 +78,9 @@ PLANTS = {
 def test_node_starts_from_the_fitted_model_and_keeps_adapting(tmp_path: Path, domain: int, plant: str) -> None:
     u, y, start = PLANTS[plant]()
     result = fit(Data(u, y, "synthetic"), start + 1)
-    assert result["identifier"].structure.y_abs == (plant == "belt |speed|")
-    assert (result["report"]["model"]["family"] == "index") == (plant == "amplifier")
-    assert result["report"]["choices"]["dead_time"] == ({"u": 8} if plant == "transport delay" else {})
+    assert result.identifier.structure.y_abs == (plant == "belt |speed|")
+    assert (result.model["family"] == "index") == (plant == "amplifier")
+    assert result.choices["dead_time"] == ({"u": 8} if plant == "transport delay" else {})
     files = write_outputs(tmp_path / "model", result, Data(u, y, "fitted"))
     live_u, live_y = u[start:], y[start:]
     listener = Listener(domain)
@@ -107,7 +109,7 @@ def test_node_starts_from_the_fitted_model_and_keeps_adapting(tmp_path: Path, do
     assert (
         ("not learning until the sign of |y| settles" in err) == ("the sign of |y| has settled" in err) == bool(unsure)
     )
-    assert counters["learned"] == len(live_u) - result["identifier"].structure.warm_up - unsure
+    assert counters["learned"] == len(live_u) - result.identifier.structure.warm_up - unsure
     assert counters["clipped_inputs"] == 0  # the network inputs the Identifier clipped (none here)
     # offline: the same files, the same samples, stepped with learning on
     resolved, network = resolve(read_params_file(files["params"]))
@@ -124,4 +126,4 @@ def test_node_starts_from_the_fitted_model_and_keeps_adapting(tmp_path: Path, do
     assert not np.array_equal(fitted, after.weights_)
     offline.model.set_state(after.state())
     y_free = offline.free_run(u, y, start)
-    assert np.sqrt(np.mean((y_free - y[start:]) ** 2)) < 2.0 * result["report"]["rmse_free_run"] + 1e-3
+    assert np.sqrt(np.mean((y_free - y[start:]) ** 2)) < 2.0 * result.rmse_free_run + 1e-3

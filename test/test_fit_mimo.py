@@ -22,9 +22,11 @@ from lenn_ros.bag import BagError, import_csv, read_run
 from lenn_ros.config import build_identifier, read_params_file, resolve
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.networks import ModelFileError
-from lenn_ros.fit.build import fit, load_data, write_outputs
 from lenn_ros.fit.data import Data
-from lenn_ros.fit.selection import RIDGE
+from lenn_ros.fit.export import write_outputs
+from lenn_ros.fit.load import load_data
+from lenn_ros.fit.procedure import fit
+from lenn_ros.fit.regression import RIDGE
 from lenn_ros.paper.evaluation import simulate_mimo
 from lenn_ros.paper.plants import narendra_mimo_plant
 
@@ -66,18 +68,18 @@ def fitted(tmp_path_factory: pytest.TempPathFactory) -> dict:
 def test_mimo_fit_beats_one_siso_model_per_output_on_both_outputs(fitted: dict) -> None:
     """The plant couples its outputs: the fit reads the other outputs (chosen by the outputs' free runs
     together on the blocks) and simulates each far better than one model per output from its own input."""
-    report = fitted["result"]["report"]
-    assert report["samples"] == TEST and report["outputs"] == ["y1", "y2"]
-    assert report["warnings"] == [] and not report["free_run"]["diverged"]
-    coupling = report["model"]["coupling"]
+    report = fitted["result"]
+    assert report.samples == TEST and report.outputs == ["y1", "y2"]
+    assert report.warnings == [] and not report.free_run["diverged"]
+    coupling = report.model["coupling"]
     assert coupling["reads_other_outputs"]
     assert coupling["nmse_blocks"]["coupled"]["mean"] < 0.5 * coupling["nmse_blocks"]["own"]["mean"]
     data = fitted["data"]
-    for j, full in enumerate(report["per_output"]):
-        siso = fit(Data(data.u[:, j], data.y[:, j], f"output {j} from input {j}"), TRAIN + 1)["report"]
-        assert full["nmse_free_run_db"] < siso["nmse_free_run_db"] - 5.0, (full["nmse_free_run_db"], siso)
-        assert full["nmse_db"] < siso["nmse_db"] - 5.0
-        assert full["rmse_free_run"] < 0.5 * siso["rmse_free_run"]
+    for j, full in enumerate(report.per_output):
+        siso = fit(Data(data.u[:, j], data.y[:, j], f"output {j} from input {j}"), TRAIN + 1)
+        assert full.nmse_free_run_db < siso.nmse_free_run_db - 5.0, (full.nmse_free_run_db, siso.as_dict())
+        assert full.nmse_db < siso.nmse_db - 5.0
+        assert full.rmse_free_run < 0.5 * siso.rmse_free_run
 
 
 def test_params_and_weights_rebuild_the_fitted_model(fitted: dict) -> None:
@@ -98,9 +100,9 @@ def test_params_and_weights_rebuild_the_fitted_model(fitted: dict) -> None:
     assert read_params_file(fitted["files"]["params"]) == values
     identifier = identifier_from_params(values)
     identifier.load_state(values["weights_in"])
-    data, report = fitted["data"], fitted["result"]["report"]
-    np.testing.assert_array_equal(identifier.free_run(data.u, data.y, TRAIN), report["y_free_test"])
-    np.testing.assert_array_equal(identifier.run(data.u, data.y, learn=False)[TRAIN:], report["y_hat_test"])
+    data, report = fitted["data"], fitted["result"]
+    np.testing.assert_array_equal(identifier.free_run(data.u, data.y, TRAIN), report.y_free_test)
+    np.testing.assert_array_equal(identifier.run(data.u, data.y, learn=False)[TRAIN:], report.y_hat_test)
 
 
 def test_weights_of_another_shape_or_output_count_are_refused(fitted: dict, tmp_path: Path) -> None:
@@ -196,7 +198,7 @@ def test_load_model_runs_the_mimo_fit_as_fit_reported(fitted: dict) -> None:
     data, w = fitted["data"], model.history
     before = {"y_initial": data.y[TRAIN - w : TRAIN], "u_initial": data.u[TRAIN - w : TRAIN]}
     free = model.simulate(data.u[TRAIN:], **before)
-    np.testing.assert_array_equal(free, fitted["result"]["report"]["y_free_test"])
+    np.testing.assert_array_equal(free, fitted["result"].y_free_test)
     stepper = model.stepper(**before)
     np.testing.assert_array_equal(np.array([stepper.step(row) for row in data.u[TRAIN : TRAIN + 50]]), free[:50])
 
@@ -228,8 +230,8 @@ def test_a_gap_in_a_vector_record_is_a_break_of_the_mimo_fit() -> None:
 
     train = 1500
     result = fit(data, test_from=train + 1, refine=False)
-    report, identifier = result["report"], result["identifier"]
-    for output in result["outputs"]:  # each output's selected model over its view (columns of [y, u])
+    identifier = result.identifier
+    for output in result.fits:  # each output's selected model over its view (columns of [y, u])
         model, view = output.model, np.column_stack([y, u])[:, output.columns]
         # least squares with the gap = least squares on each run's own regressors stacked
         systems = [model.regression(view[a:b]) for a, b in ((0, cuts[0]), (cuts[0], train))]
@@ -241,14 +243,14 @@ def test_a_gap_in_a_vector_record_is_a_break_of_the_mimo_fit() -> None:
         np.testing.assert_allclose(model.weights, expected, rtol=1e-9, atol=1e-12 * np.abs(expected).max())
         joined = model.regression(view[:train])
         assert not np.allclose(np.linalg.lstsq(*joined, rcond=None)[0], expected, rtol=1e-3)  # joining would differ
-    assert report["per_output"][0]["choices"]["gaps"] == 1
+    assert result.per_output[0].choices["gaps"] == 1
     warm = identifier.structure.warm_up
-    y_free, gap = report["y_free_test"], cuts[1] - train
+    y_free, gap = result.y_free_test, cuts[1] - train
     assert np.isfinite(y_free[:gap]).all() and np.isnan(y_free[gap : gap + warm]).all()
     np.testing.assert_array_equal(y_free[gap + warm :], identifier.free_run(u[cuts[1] :], y[cuts[1] :], warm))
-    assert np.isnan(report["y_hat_test"][gap : gap + warm]).all()  # one step ahead: history restarts too
-    assert np.isfinite(report["y_hat_test"][gap + warm :]).all()
-    assert all(output["nmse_free_run_db"] < -27.0 for output in report["per_output"])
+    assert np.isnan(result.y_hat_test[gap : gap + warm]).all()  # one step ahead: history restarts too
+    assert np.isfinite(result.y_hat_test[gap + warm :]).all()
+    assert all(output.nmse_free_run_db < -27.0 for output in result.per_output)
 
 
 def test_an_integrating_output_is_passed_through_and_simulates_beyond_its_training_range(tmp_path: Path) -> None:
@@ -267,16 +269,16 @@ def test_an_integrating_output_is_passed_through_and_simulates_beyond_its_traini
     assert y[start:, 0].max() > 4 * y[:start, 0].max()  # far beyond what the network was trained on
     data = Data(u, y, "wheel", u_names=("u0", "u1"), y_names=("y0", "y1"))
     result = fit(data, start + 1)
-    wheel, joint = result["report"]["per_output"]
-    assert wheel["model"]["family"] == "increment"
+    wheel, joint = result.per_output
+    assert wheel.model["family"] == "increment"
     # measured: -95.8 dB (without the pass-through, +3.3 dB: the angle read clipped at the range's edge)
-    assert wheel["nmse_free_run_db"] < -80.0 and joint["nmse_free_run_db"] < -60.0, (wheel, joint)
+    assert wheel.nmse_free_run_db < -80.0 and joint.nmse_free_run_db < -60.0, (wheel, joint)
     files = write_outputs(tmp_path / "model", result, data)
     values = yaml.safe_load(Path(files["params"]).read_text())["/**"]["ros__parameters"]
     assert values["y_pass_through"] == [True, False]
     identifier = identifier_from_params(values)
     identifier.load_state(values["weights_in"])
-    np.testing.assert_array_equal(identifier.free_run(data.u, data.y, start), result["report"]["y_free_test"])
+    np.testing.assert_array_equal(identifier.free_run(data.u, data.y, start), result.y_free_test)
 
 
 def test_each_output_reads_an_input_from_its_dead_time(tmp_path: Path) -> None:
@@ -293,11 +295,10 @@ def test_each_output_reads_an_input_from_its_dead_time(tmp_path: Path) -> None:
         y[k + 1, 1] = 0.7 * y[k, 1] + 0.2 * u[k, 1] + 0.1 * y[k, 0]
     y += 0.005 * rng.standard_normal(y.shape)
     data = Data(u, y, "dead time", u_names=("a", "b"), y_names=("p", "q"))
-    result = fit(data, 4001)
-    report = result["report"]
-    assert [part["choices"]["dead_time"] for part in report["per_output"]] == [{"u0": 6}, {"u0": 7}]
-    assert report["per_output"][0]["nmse_free_run_db"] < -43.0 and report["per_output"][1]["nmse_free_run_db"] < -37.5
-    values = read_params_file(write_outputs(tmp_path / "model", result, data)["params"])
+    report = fit(data, 4001)
+    assert [part.choices["dead_time"] for part in report.per_output] == [{"u0": 6}, {"u0": 7}]
+    assert report.per_output[0].nmse_free_run_db < -43.0 and report.per_output[1].nmse_free_run_db < -37.5
+    values = read_params_file(write_outputs(tmp_path / "model", report, data)["params"])
     identifier = identifier_from_params(values)
     identifier.load_state(values["weights_in"])
-    np.testing.assert_array_equal(identifier.free_run(u, y, 4000), report["y_free_test"])
+    np.testing.assert_array_equal(identifier.free_run(u, y, 4000), report.y_free_test)

@@ -7,8 +7,10 @@ import pytest
 from test_rest import cubic
 
 from lenn_ros.fit import memory
-from lenn_ros.fit.build import Data, fit, format_report
+from lenn_ros.fit.data import Data
 from lenn_ros.fit.memory import LEAST_ROWS, MEMORY_SHARE, bytes_per_row, within_memory
+from lenn_ros.fit.procedure import fit
+from lenn_ros.fit.report import format_report
 
 
 def record(n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
@@ -47,13 +49,13 @@ def test_fit_on_a_log_longer_than_memory_builds_on_its_latest_part_and_says_so(
     part as the user does; the model is as good as one fitted to those rows alone."""
     u, y = record(36_000)
     monkeypatch.setattr(memory, "available_memory", lambda: room_for(LEAST_ROWS))
-    result = fit(Data(u, y, "long log"), 30_001, refine=False)
-    report = result["report"]
-    assert (report["test_from"], report["train_samples"]) == (30_001, 30_000)
-    assert report["memory"]["train_samples_used"] == LEAST_ROWS and report["memory"]["samples_left_out"] == 10_000
-    assert f"note: {report['memory']['text']}" in format_report(report)
-    assert report["free_run"]["starts_from"] == "measured outputs before sample 30001"
+    report = fit(Data(u, y, "long log"), 30_001, refine=False)
+    assert (report.test_from, report.train_samples) == (30_001, 30_000)
+    memory_note = report.left_out["memory"]
+    assert memory_note["train_samples_used"] == LEAST_ROWS and memory_note["samples_left_out"] == 10_000
+    assert f"note: {memory_note['text']}" in format_report(report)
+    assert report.free_run["starts_from"] == "measured outputs before sample 30001"
     monkeypatch.undo()
-    alone = fit(Data(u[10_000:], y[10_000:], "the latest part alone"), 20_001, refine=False)["report"]
-    assert report["rmse_free_run"] == pytest.approx(alone["rmse_free_run"], rel=1e-9)
-    assert report["nmse_free_run_db"] < -40.0
+    alone = fit(Data(u[10_000:], y[10_000:], "the latest part alone"), 20_001, refine=False)
+    assert report.rmse_free_run == pytest.approx(alone.rmse_free_run, rel=1e-9)
+    assert report.nmse_free_run_db < -40.0

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from lenn_ros.fit.build import Data, fit, format_report
+from lenn_ros.fit.data import Data
+from lenn_ros.fit.procedure import fit
+from lenn_ros.fit.report import format_report
 from lenn_ros.fit.rest import REST_HEAD, REST_TAIL, SMOOTHING, rest_stretches, without_rest
 
 
@@ -56,18 +58,17 @@ def test_fit_leaves_a_long_rest_out_and_simulates_a_plant_that_idled_before_it_m
     Left out, the rest keeps its first REST_HEAD and last REST_TAIL samples: -45.2 dB (all four seeds -45.2 to
     -45.4), as the same motion logged without the rest."""
     u, y = idle_then_moving(1)
-    result = fit(Data(u, y, "idle log"), 3601)
-    report = result["report"]
-    rest = report["rest"]
+    report = fit(Data(u, y, "idle log"), 3601)
+    rest = report.left_out["rest"]
     ((first, last),) = rest["stretches"]
     assert abs(last - 3000) <= SMOOTHING // 2 and rest["samples_left_out"] == last - first + 1 - (REST_HEAD + REST_TAIL)
-    assert report["test_from"] == 3601 and report["train_samples"] == 3600 and report["samples"] == 750
-    assert report["nmse_free_run_db"] < -42.0
+    assert report.test_from == 3601 and report.train_samples == 3600 and report.samples == 750
+    assert report.nmse_free_run_db < -42.0
     text = format_report(report)
     assert "note: the plant rests (every signal within 1% of its training range) in 1 stretch" in text
     assert "free run (from the measured outputs before sample 3601)" in text  # the user's numbering
-    moved = fit(Data(u[3000:], y[3000:], "moving only"), 601)["report"]
-    assert abs(report["nmse_free_run_db"] - moved["nmse_free_run_db"]) < 2.0
+    moved = fit(Data(u[3000:], y[3000:], "moving only"), 601)
+    assert abs(report.nmse_free_run_db - moved.nmse_free_run_db) < 2.0
 
 
 def test_rest_as_long_as_a_held_command_is_the_plants_own_and_stays() -> None:

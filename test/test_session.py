@@ -565,7 +565,9 @@ def test_a_sensor_read_as_its_absolute_value_is_replayed_offline_as_it_was_stepp
     import plant_study
 
     from lenn_ros.config import read_params_file
-    from lenn_ros.fit.build import Data, fit, write_outputs
+    from lenn_ros.fit.data import Data
+    from lenn_ros.fit.export import write_outputs
+    from lenn_ros.fit.procedure import fit
 
     u_all, y_all, _ = plant_study.belt_speed(0)
     files = write_outputs(tmp_path / "model", fit(Data(u_all, y_all, "belt"), 501), Data(u_all, y_all, "belt"))

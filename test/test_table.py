@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 from test_fit import cubic_plant
 
-from lenn_ros.fit.build import Data, FitError, fit, load_data
+from lenn_ros.fit.data import Data, FitError
+from lenn_ros.fit.load import load_data
+from lenn_ros.fit.procedure import fit
 from lenn_ros.table import TableError, read_table
 
 NUMBERS = [[0.5, -1.25], [1e-3, 2.0], [-3.0, 4.5e2]]
@@ -76,12 +78,12 @@ def test_fit_reads_missing_samples_as_gaps_and_counts_test_from_by_row(tmp_path:
     data = load_data(path)
     assert data.breaks == [300, 999] and len(data.y) == 1198
     assert "2 rows missing a sample (empty, NaN, inf or short; lines 302, 1002): gaps" in data.source
-    report = fit(data, _row_of(data, 801), refine=False)["report"]
+    report = fit(data, _row_of(data, 801), refine=False)
     kept = np.delete(np.arange(1200), [300, 1000])
-    alone = fit(Data(u[kept], y[kept], "x", breaks=[300, 999]), 800, refine=False)["report"]
-    assert report["train_samples"] == 799  # rows 1..800 less the missing one
-    assert report["nmse_free_run_db"] == alone["nmse_free_run_db"] < -30.0
-    assert report["free_run"]["segments"] == 2
+    alone = fit(Data(u[kept], y[kept], "x", breaks=[300, 999]), 800, refine=False)
+    assert report.train_samples == 799  # rows 1..800 less the missing one
+    assert report.nmse_free_run_db == alone.nmse_free_run_db < -30.0
+    assert report.free_run["segments"] == 2
     done = subprocess.run(
         [sys.executable, "-m", "lenn_ros.cli", "fit", str(path), "--test-from", "801", "--no-refine"],
         capture_output=True, text=True, timeout=300, check=True,
@@ -90,7 +92,7 @@ def test_fit_reads_missing_samples_as_gaps_and_counts_test_from_by_row(tmp_path:
 
 
 def _row_of(data: Data, given: int) -> int:
-    from lenn_ros.fit.build import test_row
+    from lenn_ros.fit.load import test_row
 
     return test_row(data.index, given, data.test_start)
 
@@ -111,9 +113,9 @@ def test_a_time_column_gives_the_sample_period_and_its_jumps_are_gaps(tmp_path: 
         data.source
     )
     assert "line 402): gaps, never fitted or scored across, 2 steps off it by more than 10%" in data.source
-    report = fit(data, 801, refine=False)["report"]
-    alone = fit(Data(u, y, "x", breaks=[400]), 801, refine=False)["report"]
-    assert report["nmse_free_run_db"] == alone["nmse_free_run_db"] < -30.0
+    report = fit(data, 801, refine=False)
+    alone = fit(Data(u, y, "x", breaks=[400]), 801, refine=False)
+    assert report.nmse_free_run_db == alone.nmse_free_run_db < -30.0
     done = subprocess.run(
         [sys.executable, "-m", "lenn_ros.cli", "fit", str(path), "--time", "t", "--test-from", "801", "--no-refine"],
         capture_output=True, text=True, timeout=300, check=True,

@@ -19,8 +19,9 @@ import yaml
 
 import lenn_ros
 from lenn_ros.core.fields import FieldError, compile_path, compile_vector, compose
-from lenn_ros.fit.build import fit, write_outputs
 from lenn_ros.fit.data import Data
+from lenn_ros.fit.export import write_outputs
+from lenn_ros.fit.procedure import fit
 from lenn_ros.model import ModelError
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "daisy_robot-arm.csv"
@@ -35,17 +36,17 @@ def fitted(tmp_path_factory: pytest.TempPathFactory) -> dict:
     test_from = len(y) * 2 // 3 + 1
     result = fit(Data(u, y, "robot-arm"), test_from)
     directory = tmp_path_factory.mktemp("model")
-    start = result["report"]["train_samples"]
+    start = result.train_samples
     files = write_outputs(directory, result, Data(u, y, "fitted"))
-    assert json.loads(Path(files["report"]).read_text())["intervals"] == result["report"]["intervals"]
-    return {"dir": directory, "u": u, "y": y, "start": start, "report": result["report"]}
+    assert json.loads(Path(files["report"]).read_text())["intervals"] == result.intervals
+    return {"dir": directory, "u": u, "y": y, "start": start, "result": result}
 
 
 def test_load_model_simulates_what_fit_reported(fitted: dict) -> None:
     model = lenn_ros.load_model(fitted["dir"])
     u, y, start, w = fitted["u"], fitted["y"], fitted["start"], model.history
     free = model.simulate(u[start:], y_initial=y[start - w : start], u_initial=u[start - w : start])
-    np.testing.assert_array_equal(free, fitted["report"]["y_free_test"])
+    np.testing.assert_array_equal(free, fitted["result"].y_free_test)
     # one sample at a time: the same run, bit for bit
     stepper = model.stepper(y_initial=y[start - w : start], u_initial=u[start - w : start])
     stepped = np.array([stepper.step(value)[0] for value in u[start:]])
@@ -177,7 +178,7 @@ def test_twin_publishes_fits_free_run_over_dds(fitted: dict, domain: int, tmp_pa
     received, err = _run_twin(fitted, domain, tmp_path)
     assert all(names == ["elbow"] for names, _ in received)
     published = np.array([value for _, value in received])
-    assert np.max(np.abs(published - fitted["report"]["y_free_test"])) <= 1e-9
+    assert np.max(np.abs(published - fitted["result"].y_free_test)) <= 1e-9
     assert "twin of" in err and "stepping on each command" in err and "is not finite: refused" in err
 
 
@@ -185,8 +186,8 @@ def test_twin_publishes_fits_free_run_over_dds(fitted: dict, domain: int, tmp_pa
 def test_twin_noise_has_the_fits_residual_std(fitted: dict, domain: int, tmp_path: Path) -> None:
     """noise:=true adds Gaussian noise of fit.json's one-step std to what is published, not to the model's state."""
     received, err = _run_twin(fitted, domain, tmp_path, "noise:=true", "seed:=3")
-    noise = np.array([value for _, value in received]) - fitted["report"]["y_free_test"]
-    std = fitted["report"]["intervals"]["one_step"]["std"]
+    noise = np.array([value for _, value in received]) - fitted["result"].y_free_test
+    std = fitted["result"].intervals["one_step"]["std"]
     # 341 draws: the sample std within 4 standard errors of the std, and no drift (the state is noise-free)
     assert abs(np.std(noise) - std) <= 4 * std / np.sqrt(2 * len(noise)), (np.std(noise), std)
     assert abs(np.mean(noise)) <= 4 * std / np.sqrt(len(noise))

@@ -135,7 +135,7 @@ class CompiledRun:
     """:func:`~lenn_ros.core.term_kernels.free_run`'s arguments for some outputs, packed once.
 
     The one place that packs them: an identifier's free run (:func:`free_run_outputs`) and
-    ``fit``'s term models (``selection.simulate_joint``, and a refinement's hundreds of free
+    ``fit``'s term models (``termmodel.simulate_joint``, and a refinement's hundreds of free
     runs of one model, where the packing costs as much as a 300-sample run) both build one.
     """
 

@@ -1,6 +1,6 @@
 """What ``fit`` reads, apart from how it reads it: the loaded record and the one error type.
 
-A module of its own so that the readers (CSV in :mod:`lenn_ros.fit.build`, bags in
+A module of its own so that the readers (CSV in :mod:`lenn_ros.fit.load`, bags in
 :mod:`lenn_ros.fit.bag`) share it without importing each other. One record type for
 any number of channels.
 """

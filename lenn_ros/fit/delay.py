@@ -2,12 +2,12 @@
 
 A heated pipe, a conveyor, a pump's long hose or a driver's command pipeline delay the
 input by several samples. The families' nonlinear terms read the three newest lags of
-each signal (``families.RECENT``), so behind a dead time of d samples they read inputs
+each signal (``families.base.RECENT``), so behind a dead time of d samples they read inputs
 that have not yet acted, and the newest input that has is out of their reach: measured on
 a Hammerstein plant, a dead time of 8 samples cost 7.5 dB of free run (-37.6 to -30.1).
 Every system-identification toolbox estimates it (the ``nk`` of an ARX); ``fit`` does too,
 and then builds each input's terms from its lags d, d + 1, ... (:func:`shifted`), and the
-model delivered reads them there (:meth:`~lenn_ros.fit.selection.TermModel.delayed`): the
+model delivered reads them there (:meth:`~lenn_ros.fit.termmodel.TermModel.delayed`): the
 node runs it as any other model of longer lags.
 
 The estimate is a test, not a guess: input c's dead time is the longest d for which its
@@ -31,8 +31,8 @@ import math
 
 import numpy as np
 
-from lenn_ros.fit.families import RECENT
-from lenn_ros.fit.selection import Record, runs
+from lenn_ros.fit.families.base import RECENT
+from lenn_ros.fit.record import Record, runs
 
 #: longest dead time looked for, in samples (shorter in a short record), the shortest that counts (one the
 #: families' RECENT newest lags would not reach), and the input lags the test reads beyond the longest (a third
@@ -177,3 +177,8 @@ def shifted(
         at += len(piece)
     rows = np.vstack(pieces) if pieces else np.empty((0, values.shape[1]))
     return rows, starts[1:]
+
+
+def delays_text(delays: tuple[int, ...], names: tuple[str, ...]) -> str:
+    """``u 5 samples`` (the columns with one): what the report says of the inputs' dead times."""
+    return ", ".join(f"{name} {d} samples" for name, d in zip(names, delays, strict=True) if d)

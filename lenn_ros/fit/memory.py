@@ -23,7 +23,7 @@ import numpy as np
 
 from lenn_ros.core.threads import cores
 from lenn_ros.fit.data import Data
-from lenn_ros.fit.families import LONG_SPANS
+from lenn_ros.fit.families import LONGEST_LAGS
 
 #: share of the memory available when ``fit`` starts that its training rows may take
 MEMORY_SHARE = 0.5
@@ -53,7 +53,7 @@ def available_memory() -> int | None:
 
 def bytes_per_row(n_columns: int, workers: int) -> int:
     """The estimated peak bytes ``fit`` takes per training row, for a widest view of ``n_columns`` columns."""
-    return workers * (BYTES_PER_INPUT * max(LONG_SPANS) * n_columns + BYTES_PER_CORE)
+    return workers * (BYTES_PER_INPUT * LONGEST_LAGS * n_columns + BYTES_PER_CORE)
 
 
 def within_memory(

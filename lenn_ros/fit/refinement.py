@@ -9,7 +9,7 @@ that carries the outputs' sensitivities to the weights along (forward sensitivit
 Refining on the training samples always lowers the training simulation error, and on
 a small record it fits the noise as surely (a 680-sample robot arm refined 20 times
 simulated its test part worse). So the number of iterations is chosen like the
-structure: on every block of :func:`~lenn_ros.fit.selection.fold_blocks`, the weights
+structure: on every block of :func:`~lenn_ros.fit.record.fold_blocks`, the weights
 fitted without that block are refined on the others (at most MAX_FOLD_TRAINING of them,
 the nearest it) and the block's own free run is scored after every iteration; the count
 with the lowest pooled score over all blocks wins, and zero, no refinement, is one of
@@ -28,22 +28,13 @@ import numpy as np
 
 from lenn_ros.core import term_kernels as kernels
 from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND
-from lenn_ros.fit.selection import (
-    Candidate,
-    Record,
-    TermModel,
-    fold_blocks,
-    level_free,
-    output_rows,
-    runs,
-    soundness_problem,
-)
+from lenn_ros.fit.record import Record, fold_blocks, runs
+from lenn_ros.fit.selection import Candidate
+from lenn_ros.fit.soundness import level_free, output_rows, soundness_problem
+from lenn_ros.fit.termmodel import TermModel
 
 #: most Levenberg-Marquardt iterations tried per fold (and then on all samples)
 ITERATIONS = 15
-#: most iterations for a family whose least-squares start is known to lie far from its simulation-error fit
-#: (``stick``: least squares sets the stick threshold by noise, and the blocks still chose the last of 15)
-FAR_ITERATIONS = {"stick": 40}
 #: a fold stops once its held-out error has not improved for this many iterations
 PATIENCE = 6
 #: the held-out blocks of a long record are simulated on at most this many samples each
@@ -126,7 +117,7 @@ def levenberg_marquardt(
 
 
 def pass_through(model: TermModel) -> np.ndarray:
-    """Mask of the weights the refinement leaves alone: a :func:`~lenn_ros.fit.selection.level_free` model's
+    """Mask of the weights the refinement leaves alone: a :func:`~lenn_ros.fit.soundness.level_free` model's
     ``y1`` at exactly the output's scale. Refined, it would leak or run away by a hair and the model would
     no longer integrate exactly, which the selection chose it for (and judged it as)."""
     if not level_free(model):
@@ -138,7 +129,7 @@ def jacobian(
     model: TermModel, record: Record, pieces: list[tuple[int, int]], weights: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray] | None:
     """(measured - simulated, d simulated / d w) over the pieces, by forward sensitivity in one compiled
-    pass per run (:func:`~lenn_ros.core.kernels.free_run_jacobian`); None if a run diverges."""
+    pass per run (:func:`~lenn_ros.core.term_kernels.free_run_jacobian`); None if a run diverges."""
     warm = model.warm_up
     source, lag, offset, scale = model.layout.arrays()
     residual_parts, slope_parts = [], []
@@ -205,8 +196,9 @@ def _training_pieces(blocks: list[tuple[int, int]], fold: int, n: int) -> list[t
 
 
 def iterations_for(candidate: Candidate) -> int:
-    """Most iterations tried for ``candidate``: ITERATIONS, or its family's FAR_ITERATIONS."""
-    return FAR_ITERATIONS.get(candidate.spec.family, ITERATIONS)
+    """Most iterations tried for ``candidate``: ITERATIONS, or its family's own where its least-squares start is
+    known to lie far from its simulation-error fit (its registry entry's ``iterations``)."""
+    return candidate.spec.registered.iterations or ITERATIONS
 
 
 def cross_validated_refinement(candidate: Candidate, record: Record, iterations: int | None = None) -> Refinement:
@@ -307,7 +299,7 @@ def blocks_choice(histories: list[tuple[np.ndarray, int]]) -> Refinement:
 
 def _soundest(model: TermModel, record: Record, steps: list[np.ndarray]) -> tuple[int, np.ndarray, str]:
     """(iterations, weights, why more were refused) of the most refined weights that still pass the selection's
-    :func:`~lenn_ros.fit.selection.soundness_problem`.
+    :func:`~lenn_ros.fit.soundness.soundness_problem`.
 
     The blocks vouch for the refinement's fit, not for its stability: an iteration can lower
     every block's error and leave a model that runs away on the training input shuffled (seen on

@@ -3,7 +3,7 @@
 A robot's log starts with its driver up and its controller not yet running, or stands
 still for minutes between tasks: the inputs held, the outputs settled. Such a stretch
 repeats one equation (the equilibrium) thousands of times and carries nothing else. It
-does harm where it fills whole blocks of the selection (:func:`~lenn_ros.fit.selection.fold_blocks`):
+does harm where it fills whole blocks of the selection (:func:`~lenn_ros.fit.record.fold_blocks`):
 a block at rest cannot tell candidates apart (its mean predicts it to the noise, so any
 model's equilibrium error fails it), and a block that holds the only motion is simulated
 by weights fitted to rest alone. On a record that rests for its first 3 000 samples and
@@ -25,13 +25,13 @@ from typing import Any
 import numpy as np
 
 from lenn_ros.fit.data import Data
-from lenn_ros.fit.families import LONG_SPANS
-from lenn_ros.fit.selection import MAX_FOLDS, runs
+from lenn_ros.fit.families import LONGEST_LAGS
+from lenn_ros.fit.record import MAX_FOLDS, runs
 
 #: every signal within this share of its training range over the stretch: the plant rests
 REST_BAND = 0.01
 #: the longest lag span a candidate reads
-SPAN = max(LONG_SPANS)
+SPAN = LONGEST_LAGS
 #: samples kept at the start of a rest stretch (its equilibrium as rows, past any candidate's lags) and at its
 #: end (the lags of the first samples that move again)
 REST_HEAD = 2 * SPAN

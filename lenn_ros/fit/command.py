@@ -1,0 +1,47 @@
+"""``lenn-ros fit``: the command line's front-end, read, fit, write (``-o``), plot and report.
+
+Thin on purpose: what each step does lives in its module (:mod:`~lenn_ros.fit.load`,
+:mod:`~lenn_ros.fit.procedure`, :mod:`~lenn_ros.fit.export`, :mod:`~lenn_ros.fit.report`);
+here are only the flags that say how the data become samples and the order of the steps.
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+from lenn_ros.fit.data import FitError
+from lenn_ros.fit.export import write_outputs
+from lenn_ros.fit.load import load_data, test_row
+from lenn_ros.fit.procedure import fit
+from lenn_ros.fit.report import format_report, plot
+
+#: the command line's flags that say how the data become samples: a bag's topics (fit_bag.load_bag), a CSV's times
+BAG_FLAGS = ("u_field", "y_field", "u_names", "y_names", "sample_period", "pairing", "time")
+
+
+def bag_flags(args: Any) -> dict[str, Any]:
+    return {key: getattr(args, key, None) for key in BAG_FLAGS}
+
+
+def main(args: Any) -> int:
+    """``lenn-ros fit``: read, fit, write (``-o``), plot and report."""
+    data = load_data(args.data, args.u, args.y, bag_flags(args))
+    dt = args.dt or data.sample_period
+    if args.dt and data.sample_period and abs(args.dt - data.sample_period) > 0.01 * data.sample_period:
+        raise FitError(f"--dt {args.dt:g} s disagrees with the time column's sample period {data.sample_period:g} s")
+    progress = None if args.json else (lambda text: print(text, file=sys.stderr, flush=True))
+    network = getattr(args, "network", "lenn") or "lenn"
+    test_from = test_row(data.index, args.test_from, data.test_start)
+    solver = getattr(args, "solver", "ls") or "ls"
+    result = fit(data, test_from, refine=not args.no_refine, network=network, solver=solver, progress=progress)
+    if args.output:
+        result.files = write_outputs(args.output, result, data)
+    if args.plot:
+        plot(args.plot, result, Path(args.data).name)
+    if args.json:
+        print(result.to_json())
+        return 0
+    print(format_report(result, dt))
+    return 0

@@ -27,10 +27,10 @@ from peer_narx import splits
 
 from lenn_ros.config import build_identifier, resolve
 from lenn_ros.core.metrics import coverage
-from lenn_ros.core.session import Session, SessionConfig
 from lenn_ros.core.spread import Z95
 from lenn_ros.paper.evaluation import simulate
 from lenn_ros.paper.examples import get_example
+from lenn_ros.session import Session, SessionConfig
 
 
 def stepped(values: dict, u: np.ndarray, y: np.ndarray, test_from: int) -> tuple[float, float]:

@@ -22,9 +22,9 @@ from typing import Any
 import numpy as np
 
 from lenn_ros.config import NODE_PARAMETERS, build_identifier, resolve
-from lenn_ros.core.session import Session, SessionConfig
 from lenn_ros.paper.physical import FrictionJoint
 from lenn_ros.paper.signals import Excitation
+from lenn_ros.session import Session, SessionConfig
 
 
 def joint(period: float, seconds: float, seed: int = 1, change_at: float | None = None) -> tuple[np.ndarray, ...]:

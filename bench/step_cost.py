@@ -50,7 +50,7 @@ import json, sys, time
 import numpy as np
 from lenn_ros import config
 from lenn_ros.core.pairing import U, Y
-from lenn_ros.core.session import Session, SessionConfig
+from lenn_ros.session import Session, SessionConfig
 
 overrides, samples = json.loads(sys.argv[1]), int(sys.argv[2])
 example = overrides.get("example", 0)

@@ -12,9 +12,9 @@ import pytest
 from lenn_ros.core.alignment import MAX_QUEUE
 from lenn_ros.core.merging import TopicMerger
 from lenn_ros.core.pairing import U, Y
-from lenn_ros.core.session import MAX_HELD, Session, SessionConfig
 from lenn_ros.core.structure import Identifier
 from lenn_ros.paper.examples import EXAMPLES
+from lenn_ros.session import MAX_HELD, Session, SessionConfig
 
 RATE = 1000.0
 
@@ -77,7 +77,7 @@ def test_pairing_goes_on_after_the_silent_input_starts(pairing: str) -> None:
 
 def test_held_pairs_are_capped_while_the_outputs_have_no_readers() -> None:
     live = session("sample")
-    live.holding = True
+    live.hold.holding = True
     for k in range(3 * MAX_HELD):
         t = 1000.0 + k / RATE
         live.offer(U, 0.2, t, received=t + 0.001)

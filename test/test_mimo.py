@@ -105,7 +105,7 @@ def test_a_nan_sample_is_skipped_by_every_output_and_never_learnt() -> None:
 
 def test_a_session_pairs_vector_halves_screens_each_channel_and_scores_per_channel() -> None:
     from lenn_ros.core.pairing import U, Y
-    from lenn_ros.core.session import Session, SessionConfig
+    from lenn_ros.session import Session, SessionConfig
 
     series = simulate_mimo(narendra_mimo_plant(), -30.0, seed=1, train_samples=600, test_samples=100)
     session = Session(_identifier(), SessionConfig(pairing="sequence", y_limit=100.0))
@@ -189,7 +189,7 @@ def test_a_side_on_several_topics_merges_by_sequence_stamp_or_hold() -> None:
 
 def test_a_session_learns_from_a_side_split_over_topics_and_says_a_silent_one() -> None:
     from lenn_ros.core.pairing import U, Y
-    from lenn_ros.core.session import Session, SessionConfig
+    from lenn_ros.session import Session, SessionConfig
 
     series = simulate_mimo(narendra_mimo_plant(), -30.0, seed=2, train_samples=400, test_samples=0)
     config = SessionConfig(pairing="sequence", u_parts=(1, 1), u_parts_names=("/cmd0", "/cmd1"))

@@ -13,9 +13,9 @@ from lenn_ros.config import build_identifier, resolve
 from lenn_ros.core.alignment import GridSampler, StampAligner
 from lenn_ros.core.fields import FieldError, check_path, compile_path, stamp_seconds
 from lenn_ros.core.pairing import U, Y
-from lenn_ros.core.session import Session, SessionConfig
 from lenn_ros.paper.evaluation import simulate
 from lenn_ros.paper.examples import get_example
+from lenn_ros.session import Session, SessionConfig
 
 # -- field paths ------------------------------------------------------------------------------
 
@@ -518,7 +518,7 @@ def test_sequence_mode_says_stale_and_repeated_halves_but_not_a_restart(series) 
         live.offer(U, series.u[k], 1.0 + k * 0.01, sequence=k)
         live.offer(Y, series.y[k], 1.0 + k * 0.01, sequence=k)
     assert not [notice for notice in live.take_notices() if notice.kind == "stale"]
-    assert live.pairer.counters["restarts"] == 1
+    assert live.stream.pairer.counters["restarts"] == 1
 
 
 def test_bad_values_never_reach_the_model(series) -> None:
@@ -700,4 +700,4 @@ def test_a_test_start_that_comes_after_its_sample_is_said_and_counted_once(serie
     notices = [n for n in live.take_notices() if n.kind == "test_start_late"]
     assert live.counters["test_start_late"] == 1 and len(notices) == 1
     assert "samples 150..200 were learnt from" in notices[0].text
-    assert not live._learns(201)  # frozen from now on
+    assert not live.learner.learns(201)  # frozen from now on

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from lenn_ros.config import build_identifier, resolve
-from lenn_ros.core.session import Session, SessionConfig
 from lenn_ros.core.spread import Z95
 from lenn_ros.paper.evaluation import simulate
 from lenn_ros.paper.examples import get_example
+from lenn_ros.session import Session, SessionConfig
 
 
 def stepped(preset: int, series, samples: int) -> tuple[Session, list]:
@@ -36,7 +36,7 @@ def test_the_compiled_leverage_is_phi_p_phi_of_the_pending_pattern(series) -> No
     phi = plan.state.phi[0]
     expected = float(phi @ identifier.model.covariance_ @ phi)
     assert results[-1].leverage == pytest.approx(expected, rel=1e-12) and expected > 0
-    spread = live.spread
+    spread = live.monitors.outputs[0].spread
     assert results[-1].y_hat_next_std == pytest.approx(np.sqrt(spread.s2 * (1 + expected)), rel=1e-15)
 
 

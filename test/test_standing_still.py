@@ -13,10 +13,10 @@ import pytest
 from lenn_ros.config import build_identifier, resolve
 from lenn_ros.core import jit
 from lenn_ros.core.pairing import U, Y
-from lenn_ros.core.session import Session, SessionConfig
 from lenn_ros.core.structure import Identifier
 from lenn_ros.paper.evaluation import simulate
 from lenn_ros.paper.examples import EXAMPLES, get_example
+from lenn_ros.session import Session, SessionConfig
 
 README_ROBOT = {
     "example": 0, "y_lags": 2, "u_lags": 2, "solver": "rls", "output": "linear", "y_scale": 3.2, "u_scale": 3.2,
@@ -209,4 +209,5 @@ def test_standing_still_then_moving_is_not_a_plant_change(rest: int) -> None:  #
     batched.run_samples(np.arange(1, len(u) + 1), u, y, np.ones(len(u), dtype=bool))
     for session in (stepped, batched):
         assert session.counters["change_alarms"] == 0, [n.text for n in session.take_notices() if n.kind == "change"]
-        assert session.change is not None and session.change.gate.moving_samples < len(u) - rest + 300
+        change = session.monitors.outputs[0].change
+        assert change.gate.moving_samples < len(u) - rest + 300

@@ -15,11 +15,11 @@ from lenn_ros.config import (
     rls_forgetting,
     unlearnt_mimo_scales,
 )
-from lenn_ros.core import session as session_module
 from lenn_ros.core.pairing import U, Y
-from lenn_ros.core.session import Session, SessionConfig
 from lenn_ros.paper.physical import FrictionJoint
 from lenn_ros.paper.signals import Excitation
+from lenn_ros.session import Session, SessionConfig
+from lenn_ros.session import learner as learner_module
 
 PERIOD = 0.01
 
@@ -85,7 +85,7 @@ def test_offline_run_reaches_the_same_scales_and_predictions() -> None:
 
 def test_a_plant_at_rest_is_not_taken_for_its_range(monkeypatch: pytest.MonkeyPatch) -> None:
     """Signals that do not move give no range: held up to MAX_WARM_UP, discarded (counted, said), started over."""
-    monkeypatch.setattr(session_module, "MAX_WARM_UP", 800)
+    monkeypatch.setattr(learner_module, "MAX_WARM_UP", 800)
     u, y = joint(30.0)
     u[:1000], y[:1000] = 0.0, 0.0  # the robot stands still for its first 10 s
     live, offline = defaults_session(scale_warm_up=5.0), defaults_session(scale_warm_up=5.0)  # 500 samples

@@ -39,7 +39,7 @@ threshold, about x2.8 per +3, and the table in bench/RESULTS.md extrapolates it 
 37), and no alarm is raised in 10^6 samples of an unchanged, online-identified plant per
 seed (same bench): bursts of large residuals, not white noise, set the threshold.
 
-Nothing here knows ROS: :class:`~lenn_ros.core.session.Session` owns a detector and
+Nothing here knows ROS: :class:`~lenn_ros.session.Session` owns a detector and
 feeds it every scored a-priori error, live and offline alike.
 """
 

@@ -13,7 +13,7 @@ A live session holds the pairs it forms until two things are true:
 
 Nothing here reads the graph: the node hands over what it saw (publishers per input,
 matched readers per output) and the monotonic time, so every decision is tested
-without DDS. The decisions end in :class:`~lenn_ros.core.session.Session` (release,
+without DDS. The decisions end in :class:`~lenn_ros.session.Session` (release,
 refusal, notices), which owns one :class:`HoldGate` while it holds.
 """
 

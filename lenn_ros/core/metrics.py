@@ -125,6 +125,8 @@ class ChannelsNMSE:
 
     @property
     def nmse_db(self) -> float:
+        if len(self.channels) == 1:  # (one channel's own figure, not back and forth through dB)
+            return self.channels[0].nmse_db
         values = [10.0 ** (db / 10.0) for db in self.channels_db.values()]
         if not values or any(not np.isfinite(value) for value in values):
             return float("nan")
@@ -133,6 +135,8 @@ class ChannelsNMSE:
 
     @property
     def rmse(self) -> float:
+        if len(self.channels) == 1:
+            return self.channels[0].rmse
         return float(np.sqrt(np.mean([channel.rmse**2 for channel in self.channels])))
 
 

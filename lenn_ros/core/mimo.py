@@ -17,9 +17,10 @@ output is fed the *model's* other outputs: :meth:`MimoIdentifier.free_run`.
 
 from __future__ import annotations
 
+import functools
 import os
 import re
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -173,7 +174,8 @@ class MimoStructure:
 
 @dataclass
 class MimoStepResult:
-    """What one paired vector sample produced: per-output arrays (None before the warm-up)."""
+    """What one paired vector sample produced: per-output arrays (None before the warm-up), and each output's
+    own :class:`StepResult` (``outputs``: what the session's monitors watch, output by output)."""
 
     index: int
     y_hat_next: np.ndarray | None = None
@@ -181,6 +183,14 @@ class MimoStepResult:
     y_hat: np.ndarray | None = None
     learned: bool = False
     event: str = ""  # "diverged" if any output diverged, else the first non-empty one (gap, duplicate)
+    outputs: list[StepResult] = field(default_factory=list)
+    y_hat_next_std: np.ndarray | None = None  # one-step std of each output's y_hat_next (the monitors' band)
+    y_hat_std: np.ndarray | None = None  # ... of each output's y_hat
+
+    def gather_stds(self) -> None:
+        """The outputs' stds (filled in by the monitors) as vectors, published beside y^."""
+        self.y_hat_next_std = _stack([out.y_hat_next_std for out in self.outputs])
+        self.y_hat_std = _stack([out.y_hat_std for out in self.outputs])
 
 
 def _stack(values: list[float | None]) -> np.ndarray | None:
@@ -196,7 +206,7 @@ THREADED_RUN_SAMPLES = 1000
 class MimoIdentifier:
     """One :class:`Identifier` per output, stepped together on vector samples.
 
-    Offers the interface a :class:`~lenn_ros.core.session.Session` drives (``step``,
+    Offers the interface a :class:`~lenn_ros.session.Session` drives (``step``,
     ``skip``, ``restart_stream``, ``run``, ``counters``, ``diverged``), so the node,
     ``evaluate`` and replay handle a MIMO plant with the session code they use for one
     output. ``counters`` adds up the outputs' counters except ``samples`` and the
@@ -309,6 +319,7 @@ class MimoIdentifier:
             y_hat=_stack([result.y_hat for result in results]),
             learned=any(result.learned for result in results),
             event=event,
+            outputs=results,
         )
 
     def set_structure(self, structure: MimoStructure) -> None:
@@ -325,17 +336,29 @@ class MimoIdentifier:
         for identifier in self.outputs:
             identifier.restart_stream()
 
-    def run(self, u: np.ndarray, y: np.ndarray, learn: np.ndarray | bool = True) -> np.ndarray:
+    def run(
+        self,
+        u: np.ndarray,
+        y: np.ndarray,
+        learn: np.ndarray | bool = True,
+        changes: Sequence[tuple[int, Callable[[int], None]]] = (),
+    ) -> np.ndarray:
         """Series-parallel pass over paired (N, n_u) / (N, n_y) series; returns y^ (N, n_y), nan where none.
 
         The outputs' identifiers share nothing, so they run side by side on the cores (a six-joint
         robot's 40 000 samples over 455 inputs: 2.0 s on one, 0.7 s on two), each exactly as alone.
+        ``changes``: (position, apply) as :meth:`Identifier.run` takes them; ``apply(j)`` is called for
+        output j's model at that position, since the outputs do not run in step.
         """
         u = np.asarray(u, dtype=np.float64).reshape(len(y), self.structure.n_u)
         y = np.asarray(y, dtype=np.float64).reshape(len(y), self.structure.n_y)
         workers = cores() if len(y) >= THREADED_RUN_SAMPLES else 1
-        columns = list(side_by_side(lambda j: self.outputs[j].run(self.structure.other_values(j, u, y), y[:, j], learn),
-                                    range(len(self.outputs)), workers))  # fmt: skip
+
+        def output(j: int) -> np.ndarray:
+            cuts = [(position, functools.partial(apply, j)) for position, apply in changes]
+            return self.outputs[j].run(self.structure.other_values(j, u, y), y[:, j], learn, cuts)
+
+        columns = list(side_by_side(output, range(len(self.outputs)), workers))
         return np.stack(columns, axis=1) if columns else np.empty((len(y), 0))
 
     def free_run(self, u: np.ndarray, y: np.ndarray, start: int) -> np.ndarray:

@@ -12,7 +12,7 @@ std alone (README, "Prediction intervals"). The nominal 95 % band is y^ +- 1.96 
 its coverage on the shared real data sets and the paper's examples is measured by
 ``bench/one_step_coverage.py`` (bench/RESULTS.md).
 
-Nothing here knows ROS: :class:`~lenn_ros.core.session.Session` owns one and fills
+Nothing here knows ROS: :class:`~lenn_ros.session.Session` owns one and fills
 ``StepResult.y_hat_next_std`` / ``y_hat_std`` for the node to publish.
 """
 

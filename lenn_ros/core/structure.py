@@ -208,6 +208,14 @@ class StepResult:
     y_hat_next_std: float | None = None  # one-step std of y_hat_next (the session's core.spread fills it in)
     y_hat_std: float | None = None  # ... of y_hat, the prediction this sample scored
 
+    @property
+    def outputs(self) -> list[StepResult]:
+        """Per output (one): what a model of several outputs gives per output too (``MimoStepResult``)."""
+        return [self]
+
+    def gather_stds(self) -> None:
+        """The monitors filled the stds in: nothing to gather for one output."""
+
 
 @dataclass
 class Identifier:
@@ -252,6 +260,17 @@ class Identifier:
 
     #: The pause after a divergence grows at most to this many times ``resume_after`` blocks.
     MAX_BACKOFF: ClassVar[int] = 64
+    #: The output's name: a model of one output is the composite of one (``MimoIdentifier`` names several).
+    names: ClassVar[tuple[str, ...]] = ("y",)
+
+    @property
+    def outputs(self) -> list[Identifier]:
+        """The per-output identifiers: this one (a model of several outputs composes one per output)."""
+        return [self]
+
+    @property
+    def models(self) -> list[OnlineRegressor]:
+        return [self.model]
 
     def __post_init__(self) -> None:
         for name in (

@@ -6,7 +6,7 @@ what the identifier was told: types, fields, pairing and sample period. The reco
 keeps that in ``identifier_config`` (with the topics the node's inputs resolved to
 after remapping); without it, flags say the same (``--u TOPIC --u-field PATH --y TOPIC
 --y-field PATH --sample-period T``). The raw messages are then paired by the node's
-own :class:`~lenn_ros.core.session.Session` (:func:`lenn_ros.service.recording.pair_raw`: every
+own :class:`~lenn_ros.session.Session` (:func:`lenn_ros.service.recording.pair_raw`: every
 message of the recording, any storage), so ``fit`` learns from exactly the samples the node would
 have formed, numbered as the node numbers them (``--test-from K`` is one of those numbers). A
 sample index missing from the pairs (a lost message, a stalled driver, a refused value) is a gap

@@ -1,6 +1,6 @@
 """identifier: online series-parallel identification of the plant behind u and y_p.
 
-A thin adapter around :class:`lenn_ros.core.session.Session`: parameters in (declared
+A thin adapter around :class:`lenn_ros.session.Session`: parameters in (declared
 from :mod:`lenn_ros.config`), u / y_p in (any message type, one scalar each through a
 field path), samples formed by the chosen pairing mode, one model step per sample,
 and out:
@@ -69,10 +69,10 @@ from lenn_ros.core.holding import START_GRACE
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.networks import ModelFileError
 from lenn_ros.core.pairing import U, Y
-from lenn_ros.core.session import Notice, Sample, Session, SessionConfig, json_safe
 from lenn_ros.core.watchdog import InputWatchdog
 from lenn_ros.nodes import DRAIN_SECONDS, InputsNode, console, executor_choice, rclpy_internals, run_node
 from lenn_ros.nodes.identifier_outputs import OUTPUTS, IdentifierOutputs
+from lenn_ros.session import Notice, Sample, Session, SessionConfig, json_safe
 
 #: Parameters set by rclpy itself or by the QoS override mechanism: not unknown.
 _FOREIGN_PARAMETERS = ("use_sim_time", "start_type_description_service", "qos_overrides.")

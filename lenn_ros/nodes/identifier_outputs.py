@@ -26,7 +26,7 @@ from sensor_msgs.msg import JointState
 from std_msgs.msg import Float64, Float64MultiArray
 
 from lenn_ros import topics
-from lenn_ros.core.session import Sample
+from lenn_ros.session import Sample
 
 #: The outputs a ``wait_for_<output>_subscribers`` parameter can hold the first pairs back for.
 OUTPUTS = ("y_hat", "error", "samples")

@@ -19,10 +19,10 @@ from lenn_ros import topics
 from lenn_ros.bag.reader import iter_messages
 from lenn_ros.config import NODE_PARAMETERS, build_identifier, read_params_file, resolve
 from lenn_ros.core.mimo import MimoIdentifier
-from lenn_ros.core.session import ParameterChange, Session, SessionConfig
 from lenn_ros.core.structure import Identifier
 from lenn_ros.service import RecordingError
 from lenn_ros.service.reading import READING
+from lenn_ros.session import ParameterChange, Session, SessionConfig
 
 #: Every node parameter's default: what a value a params file or a recording leaves out means.
 NODE_DEFAULTS = {parameter.name: parameter.default for parameter in NODE_PARAMETERS}

@@ -1,6 +1,6 @@
 """A recording evaluated offline: the identifier's own computation over it, no ROS graph.
 
-The same :class:`~lenn_ros.core.session.Session` as the node:
+The same :class:`~lenn_ros.session.Session` as the node:
 
 - a bag recorded with the identifier running holds its ``samples`` topic (each sample's index,
   time, u, y_p and learn flag, as the node formed them): those samples are learnt again in one
@@ -34,13 +34,13 @@ from lenn_ros import topics
 from lenn_ros.bag.vectors import read_test_start
 from lenn_ros.core.evaluation import Evaluation
 from lenn_ros.core.mimo import MimoIdentifier
-from lenn_ros.core.runs import finite_rows, missing
-from lenn_ros.core.session import ParameterChange, Session, describe_gaps, json_safe
+from lenn_ros.core.runs import describe_gaps, finite_rows, missing
 from lenn_ros.service import RecordingError
 from lenn_ros.service.building import recorded_changes, weights_path
 from lenn_ros.service.reading import given
 from lenn_ros.service.recording import Reading, raw_losses, read_recording
 from lenn_ros.service.scoring import fit_band_coverage, one_step_band, score
+from lenn_ros.session import ParameterChange, Session, json_safe
 
 #: Without a recorded test phase or ``--test-from``: the last fifth of the samples is the test part.
 DEFAULT_TEST_SHARE = 0.2

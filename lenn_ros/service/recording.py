@@ -39,10 +39,10 @@ from lenn_ros.config import field_extractor, is_mimo
 from lenn_ros.core.alignment import Pair
 from lenn_ros.core.fields import FieldError, parse_path, split_paths, stamp_seconds
 from lenn_ros.core.pairing import U, sequence_streams
-from lenn_ros.core.session import Session
 from lenn_ros.progress import progress as progress_bar
 from lenn_ros.service import RecordingError
 from lenn_ros.service.reading import input_bag_topics
+from lenn_ros.session import Session
 
 #: Messages read before a progress bar is worth drawing.
 LONG_READ = 200_000
@@ -351,8 +351,7 @@ def raw_losses(path: str | Path) -> dict[str, int]:
 
 def samples_summary(path: str | Path, flags: dict[str, Any], progress: bool = False) -> dict[str, Any]:
     """The samples the identifier would form from the topics ``flags`` name (``bag-info`` with topics named)."""
-    from lenn_ros.core.runs import missing
-    from lenn_ros.core.session import describe_gaps
+    from lenn_ros.core.runs import describe_gaps, missing
 
     read = read_recording(path, flags, progress=progress)
     index, values = read.samples.index, read.values

@@ -18,10 +18,10 @@ import numpy as np
 from lenn_ros.core.evaluation import Evaluation, free_run_problems, free_run_segments
 from lenn_ros.core.metrics import coverage, nmse_db, rmse
 from lenn_ros.core.mimo import MimoIdentifier
-from lenn_ros.core.session import Session
 from lenn_ros.core.spread import Z95
 from lenn_ros.core.structure import Identifier
 from lenn_ros.fit.data import REPORT_FILE
+from lenn_ros.session import Session
 
 
 def score(

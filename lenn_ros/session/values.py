@@ -1,0 +1,70 @@
+"""The one place where a model of one channel and one of several differ: how a sample's values look.
+
+One output and one input carry plain floats (no numpy call per sample: the per-sample cost at
+kilohertz rates, issue 19); several channels carry a vector per side. Everything else in the
+session, the node and the offline path works per output over :meth:`Values.split` and never asks
+how many channels there are.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from lenn_ros.core.pairing import screen, screen_values
+
+
+class Values:
+    """One channel per side: floats."""
+
+    vector = False
+
+    @staticmethod
+    def screen(value: Any, limit: float, policy: str) -> tuple[Any, str]:
+        """(value to use, verdict) of one half: see :func:`lenn_ros.core.pairing.screen`."""
+        return screen(float(value), limit, policy)
+
+    @staticmethod
+    def refused(u: Any, y: Any) -> bool:
+        """Whether a pair is not a sample (a half screened to NaN)."""
+        return math.isnan(u) or math.isnan(y)
+
+    @staticmethod
+    def split(value: Any) -> list[Any]:
+        """Per output channel."""
+        return [value]
+
+    @staticmethod
+    def shown(raw: Any, screened: Any) -> Any:
+        """What a screening notice shows of a half: one channel's screened value."""
+        return screened
+
+
+class VectorValues(Values):
+    """Several channels: a vector per side, screened as one (a sample is learnt from every channel or none)."""
+
+    vector = True
+
+    @staticmethod
+    def screen(value: Any, limit: float, policy: str) -> tuple[Any, str]:
+        return screen_values(value, limit, policy)
+
+    @staticmethod
+    def refused(u: Any, y: Any) -> bool:
+        return bool(np.isnan(u).any() or np.isnan(y).any())
+
+    @staticmethod
+    def split(value: Any) -> list[Any]:
+        return [float(v) for v in np.ravel(value)]
+
+    @staticmethod
+    def shown(raw: Any, screened: Any) -> Any:
+        """Several channels' values as they came (the screened vector is all NaN)."""
+        return np.asarray(raw).tolist()
+
+
+def values_for(identifier: Any) -> type[Values]:
+    """The values a model's samples carry: vectors where it has several channels (its structure counts them)."""
+    return VectorValues if hasattr(identifier.structure, "n_y") else Values

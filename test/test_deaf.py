@@ -166,7 +166,7 @@ def test_an_input_that_stops_while_matched_is_said_counted_resubscribed_and_take
     finally:
         driver.close()
         err = finish(node)
-    assert said_after <= 2.0 + 1.5  # input_timeout, a status period and a check turn
+    assert said_after <= 2.0 + 3.0  # input_timeout, a status period, a check turn, a loaded machine (issue: 10 s)
     lines = [line for line in err.splitlines() if "nothing on /joint_states" in line]
     assert len(lines) >= 1 and "/watchdog_driver" in lines[0] and "resubscribed" in lines[0], err[-3000:]
     assert any("/joint_states delivers again" in line for line in err.splitlines()), err[-3000:]

@@ -47,7 +47,8 @@ class ConsoleGuard:
         os.dup2(write, 2)
         os.close(write)
         self._read = read
-        threading.Thread(target=self._drain, name="console-reader", daemon=True).start()
+        self._reader = threading.Thread(target=self._drain, name="console-reader", daemon=True)
+        self._reader.start()
         threading.Thread(target=self._pass_on, name="console-writer", daemon=True).start()
 
     def _drain(self) -> None:
@@ -57,7 +58,10 @@ class ConsoleGuard:
                 chunk = os.read(self._read, 65536)
             except OSError:
                 return
-            if not chunk:
+            if not chunk:  # every write end closed (close()): what was written is all in the queue
+                with self._lock:
+                    self._closed = True
+                    self._lock.notify()
                 return
             with self._lock:
                 self._queue.append(chunk)
@@ -99,14 +103,20 @@ class ConsoleGuard:
             "stderr for a while (a pipe its launcher does not drain); the node went on working\n"
         ).encode()
 
-    def flush(self, timeout: float) -> bool:
-        """Wait up to ``timeout`` s until what was written so far has reached the real stderr."""
+    def close(self, timeout: float) -> bool:
+        """The process ends: fd 2 becomes the real stderr again, and what was written before reaches it, waiting
+        at most ``timeout`` s (a reader that never reads gets nothing more; the exit does not wait for it)."""
+        import sys
+
+        sys.stderr.flush()
+        os.dup2(self._real, 2)  # the pipe's last write end closes: the reader drains it to the end
         end = time.monotonic() + timeout
+        self._reader.join(max(0.0, end - time.monotonic()))
         while time.monotonic() < end:
             with self._lock:
                 if not self._queue:
                     return True
-            time.sleep(0.01)
+            time.sleep(0.005)
         return False
 
 
@@ -137,6 +147,9 @@ def dropped_lines() -> int:
 
 
 def flush(timeout: float = 0.5) -> None:
-    """Before the process ends: let what was logged reach the real stderr, for at most ``timeout`` s."""
+    """Before the process ends: what was logged reaches the real stderr (at most ``timeout`` s), then stderr is the
+    real one again. Once per process (the exit path and ``atexit`` both call it)."""
+    global _GUARD
     if _GUARD is not None:
-        _GUARD.flush(timeout)
+        guard, _GUARD = _GUARD, None
+        guard.close(timeout)

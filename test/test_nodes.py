@@ -189,8 +189,8 @@ def run_to_failure(*ros_args: str) -> tuple[int, str]:
     [
         (["-p", "example:=7"], "example out of range"),
         (["-p", "network:=svm"], "network must be 'lenn' or 'mlp'"),
-        (["-p", "example:=1", "-p", "weights_in:=/nonexistent/w.npz"], "no such weights file"),
-        (["-p", "weights_in:=w.npz"], "w.npz: no such weights file"),  # (missing, not the scales it lacks)
+        (["-p", "example:=1", "-p", "weights_in:=/nonexistent/w.npz"], "does not exist"),
+        (["-p", "weights_in:=w.npz"], "w.npz (from the identifier's parameters) does not exist"),  # (missing, not the scales it lacks)
         (["-p", "y_lags:=0", "-p", "u_lags:=0"], "at least one input"),
     ],
 )

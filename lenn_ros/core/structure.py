@@ -11,6 +11,7 @@ arithmetic either way.
 from __future__ import annotations
 
 import dataclasses
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
@@ -271,6 +272,20 @@ class Identifier:
     @property
     def models(self) -> list[OnlineRegressor]:
         return [self.model]
+
+    #: The structure's scales and offsets a weights file keeps beside the weights.
+    SCALING: ClassVar[tuple[str, ...]] = ("y_scale", "u_scale", "y_offset", "u_offset")
+
+    def save_state(self, path: str | os.PathLike[str]) -> None:
+        """The network's weights (atomic, ``OnlineRegressor.save``) with the scaling its inputs had: a run that
+        learnt its scales restarts from this file alone (a model of several outputs: one file for all)."""
+        structure = self.structure
+        scaling = {key: getattr(structure, key) for key in self.SCALING} if structure.scaled else None
+        self.model.save(path, scaling=scaling)
+
+    def load_state(self, path: str | os.PathLike[str]) -> None:
+        """Start from a file of :meth:`save_state` (``ModelFileError`` with the reason, the model untouched)."""
+        self.model.load_state(path)
 
     def __post_init__(self) -> None:
         for name in (

@@ -49,7 +49,8 @@ class ConsoleGuard:
         self._read = read
         self._reader = threading.Thread(target=self._drain, name="console-reader", daemon=True)
         self._reader.start()
-        threading.Thread(target=self._pass_on, name="console-writer", daemon=True).start()
+        self._writer = threading.Thread(target=self._pass_on, name="console-writer", daemon=True)
+        self._writer.start()
 
     def _drain(self) -> None:
         """Read what the process writes to fd 2 at once, so no write there ever waits."""
@@ -112,12 +113,8 @@ class ConsoleGuard:
         os.dup2(self._real, 2)  # the pipe's last write end closes: the reader drains it to the end
         end = time.monotonic() + timeout
         self._reader.join(max(0.0, end - time.monotonic()))
-        while time.monotonic() < end:
-            with self._lock:
-                if not self._queue:
-                    return True
-            time.sleep(0.005)
-        return False
+        self._writer.join(max(0.0, end - time.monotonic()))  # (it ends once the queue is written out)
+        return not self._writer.is_alive()
 
 
 _GUARD: ConsoleGuard | None = None

@@ -74,7 +74,7 @@ def as_node_builds_it(
                 f"directory {Path.cwd()}, as the identifier node does): run from there, give an absolute path, "
                 "or set weights_in to '' for fresh weights"
             )
-        (identifier if isinstance(identifier, MimoIdentifier) else identifier.model).load_state(path)
+        identifier.load_state(path)
         identifier.mark_healthy()
     return identifier
 
@@ -145,3 +145,49 @@ def recorded_changes(path: str | Path) -> list[ParameterChange]:
 def make_session(identifier: Identifier | MimoIdentifier, values: dict[str, Any]) -> Session:
     """The node's session over a recording: its pairing, learning on (the phases are the recording's)."""
     return Session(identifier, SessionConfig.from_values(values, follow_test_start=False, learning=True))
+
+
+def loaded_text(identifier: Any, path: str, network: str, values: dict[str, Any]) -> str:
+    """One line at start for ``weights_in``: learning resumes from a file, not from fresh weights, and the user must
+    be able to see which file and which network (a stale path is otherwise silent)."""
+    from lenn_ros.session.values import values_for
+
+    models = identifier.models
+    model = models[0]
+    structural = {k: v for k, v in model.get_params().items() if k in model._structural_params and v is not None}
+    structure = identifier.structure
+    lags = f"y_lags {structure.y_lags}, u_lags {structure.u_lags}, " if hasattr(structure, "y_lags") else ""
+    outputs = f" for {len(models)} outputs" if len(models) > 1 else ""
+    seen = sum(int(getattr(each, "n_samples_seen_", 0)) for each in models)
+    # one output's scales left to be learnt: the file's (the run that saved it learnt them)
+    from_file = not values_for(identifier).vector and not (float(values["y_scale"]) and float(values["u_scale"]))
+    scales = (
+        "; scales from the file (the run that saved it learnt them): "
+        + ", ".join(f"{key} {getattr(structure, key):.6g}" for key in identifier.SCALING)
+        if from_file
+        else ""
+    )
+    return (
+        f"weights_in: loaded {sum(each.n_weights for each in models)} weights{outputs} from {path} "
+        f"(learnt from {seen} samples): {network}, {lags}"
+        + ", ".join(f"{key} {value}" for key, value in structural.items())
+        + scales
+    )
+
+
+def compile_ahead(identifier: Any) -> None:
+    """Step a throwaway copy of the model through its warm-up, before any input arrives.
+
+    On a machine whose numba cache is cold the first live sample would otherwise wait seconds
+    for the compiled step (4 s for an output of several inputs'), while a BEST_EFFORT queue
+    overflows; with the cache warm this takes milliseconds.
+    """
+    import copy
+
+    from lenn_ros.session.values import values_for
+
+    scratch = copy.deepcopy(identifier)
+    u, y = values_for(scratch).zeros(scratch)
+    window = max(output.structure.warm_up for output in scratch.outputs)
+    for k in range(window + 2):
+        scratch.step(k + 1, u, y, True)

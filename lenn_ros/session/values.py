@@ -8,6 +8,7 @@ how many channels there are.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -41,6 +42,14 @@ class Values:
         """What a screening notice shows of a half: one channel's screened value."""
         return screened
 
+    @staticmethod
+    def zeros(identifier: Any) -> tuple[Any, Any]:
+        """A sample of zeros the model can step (to compile it ahead); a model whose scales the warm-up is
+        to learn gets any (1) on the way: the scratch copy it is given is thrown away."""
+        if not identifier.structure.scaled:
+            identifier.set_structure(dataclasses.replace(identifier.structure, y_scale=1.0, u_scale=1.0))
+        return 0.0, 0.0
+
 
 class VectorValues(Values):
     """Several channels: a vector per side, screened as one (a sample is learnt from every channel or none)."""
@@ -63,6 +72,10 @@ class VectorValues(Values):
     def shown(raw: Any, screened: Any) -> Any:
         """Several channels' values as they came (the screened vector is all NaN)."""
         return np.asarray(raw).tolist()
+
+    @staticmethod
+    def zeros(identifier: Any) -> tuple[Any, Any]:
+        return np.zeros(identifier.structure.n_u), np.zeros(identifier.structure.n_y)
 
 
 def values_for(identifier: Any) -> type[Values]:

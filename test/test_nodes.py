@@ -190,7 +190,7 @@ def run_to_failure(*ros_args: str) -> tuple[int, str]:
         (["-p", "example:=7"], "example out of range"),
         (["-p", "network:=svm"], "network must be 'lenn' or 'mlp'"),
         (["-p", "example:=1", "-p", "weights_in:=/nonexistent/w.npz"], "does not exist"),
-        (["-p", "weights_in:=w.npz"], "w.npz (from the identifier's parameters) does not exist"),  # (missing, not the scales it lacks)
+        (["-p", "weights_in:=w.npz"], "w.npz (from the identifier's parameters) does not exist"),  # (missing)
         (["-p", "y_lags:=0", "-p", "u_lags:=0"], "at least one input"),
     ],
 )

@@ -76,6 +76,9 @@ def _figure_lines(result: BagEvaluation, d: dict[str, Any]) -> list[str]:
         cells = [scores[key] for key in ("nmse_db", "nmse_free_run_db", "rmse", "rmse_free_run")]
         shown = [f"{value:13.3f}" if math.isfinite(value) else f"{'nan':>13s}" for value in cells]
         lines.append(f"  {name:12s} " + "   ".join(shown))
+    for name, band in d["intervals"].get("one_step", {}).items():
+        width, covered = band["median_half_width"], band["coverage_test"]
+        lines.append(f"  {name}: one-step 95 % band (y_hat_std, median +-{width:.4g}): covers {covered:.1%}")
     for name, band in d["intervals"].get("free_run", {}).items():
         width, covered = band["half_width"], band["coverage_test"]
         lines.append(f"  {name}: free-run 95 % band of the fit (+-{width:.4g}): covers {covered:.1%} here")

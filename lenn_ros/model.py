@@ -56,16 +56,12 @@ class Model:
     source: str = ""
 
     @property
-    def mimo(self) -> bool:
-        return isinstance(self.identifier, MimoIdentifier)
-
-    @property
     def n_u(self) -> int:
-        return self.identifier.structure.n_u if self.mimo else 1
+        return self.identifier.n_u
 
     @property
     def n_y(self) -> int:
-        return self.identifier.structure.n_y if self.mimo else 1
+        return self.identifier.n_y
 
     @property
     def history(self) -> int:
@@ -82,11 +78,8 @@ class Model:
     def operating_point(self) -> tuple[np.ndarray, np.ndarray]:
         """(u, y) the scaling is centred on (the training mean): the history at rest by default."""
         s = self.identifier.structure
-        if self.mimo:
-            u0 = np.array(s.u_offset, dtype=np.float64) if s.u_offset else np.zeros(self.n_u)
-            y0 = np.array(s.y_offset, dtype=np.float64) if s.y_offset else np.zeros(self.n_y)
-            return u0, y0
-        return np.array([s.u_offset]), np.array([s.y_offset])
+        u0, y0 = (np.asarray(offset, dtype=np.float64).reshape(-1) for offset in (s.u_offset, s.y_offset))
+        return (u0 if u0.size else np.zeros(self.n_u)), (y0 if y0.size else np.zeros(self.n_y))
 
     def intervals(self) -> dict[str, Any]:
         """``fit``'s residual statistics: ``one_step_std`` and ``free_run_half_width`` (95 %), per output."""
@@ -112,14 +105,13 @@ class Model:
         window = self.history
         u_all = np.concatenate([u_before, u])
         y_all = np.concatenate([y_before, np.full((len(u), y_before.shape[1]), np.nan)])
-        if not self.mimo:
-            return self._read(self.identifier.free_run(u_all[:, 0], y_all[:, 0], window, seeds_signed=True))
-        return self.identifier.free_run(u_all, y_all, window)
+        # (one output: y_abs's history holds the signed outputs the run goes on from)
+        return self._read(self.identifier.free_run(u_all, y_all, window, seeds_signed=True))
 
     @property
     def _reads_abs(self) -> bool:
         """One output read as its absolute value (``y_abs``): its runs go on from signed outputs (:meth:`_history`)."""
-        return not self.mimo and self.identifier.structure.y_abs
+        return bool(getattr(self.identifier.structure, "y_abs", False))
 
     def _read(self, y: np.ndarray) -> np.ndarray:
         """The model's output as the sensor reads it: |y| where it :attr:`_reads_abs`."""
@@ -219,11 +211,8 @@ class Stepper:
         row = self.model._inputs(np.reshape(np.asarray(u, dtype=np.float64), (1, -1)), "u")[0]
         if self.diverged:
             return np.full(self.model.n_y, np.nan)
-        window, identifier = self.model.history, self.model.identifier
-        if self.model.mimo:
-            out = identifier.free_run(self._u, self._y, window)[0]
-        else:  # (y_abs: the history holds the signed outputs the run goes on from)
-            out = np.array([identifier.free_run(self._u[:, 0], self._y[:, 0], window, seeds_signed=True)[0]])
+        window, model = self.model.history, self.model
+        out = np.reshape(model.identifier.free_run(self._u, self._y, window, seeds_signed=True), (-1, model.n_y))[0]
         self.steps += 1
         if not np.all(np.isfinite(out)):
             self.diverged = True

@@ -218,6 +218,21 @@ class MimoIdentifier:
     names: tuple[str, ...] = ()
     _learning: bool = field(default=True, repr=False)
 
+    #: Its samples carry a vector per side (:mod:`lenn_ros.session.values`), even of one channel.
+    vector = True
+
+    @property
+    def n_u(self) -> int:
+        return self.structure.n_u
+
+    @property
+    def n_y(self) -> int:
+        return self.structure.n_y
+
+    @property
+    def SCALING(self) -> tuple[str, ...]:
+        return ("y_scale", "u_scale", "y_offset", "u_offset")
+
     def __post_init__(self) -> None:
         if len(self.outputs) != self.structure.n_y:
             raise ValueError(f"{len(self.outputs)} models for {self.structure.n_y} outputs")
@@ -361,12 +376,13 @@ class MimoIdentifier:
         columns = list(side_by_side(output, range(len(self.outputs)), workers))
         return np.stack(columns, axis=1) if columns else np.empty((len(y), 0))
 
-    def free_run(self, u: np.ndarray, y: np.ndarray, start: int) -> np.ndarray:
+    def free_run(self, u: np.ndarray, y: np.ndarray, start: int, seeds_signed: bool = False) -> np.ndarray:
         """Parallel model from ``start`` on: every output fed the model's own outputs (frozen weights).
 
         Inputs outside [-1, 1] are clipped (counted per output in ``clipped_free_run``);
         an output further than the SISO bound from its offset ends the run there
-        (``last_free_run['diverged_at']``), the rest is NaN.
+        (``last_free_run['diverged_at']``), the rest is NaN. ``seeds_signed``: as the single output's (no
+        output here is read as |y|, so its seeds are as they are).
         """
         structure = self.structure
         u = np.asarray(u, dtype=np.float64).reshape(-1, structure.n_u)

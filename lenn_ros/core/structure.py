@@ -263,6 +263,11 @@ class Identifier:
     MAX_BACKOFF: ClassVar[int] = 64
     #: The output's name: a model of one output is the composite of one (``MimoIdentifier`` names several).
     names: ClassVar[tuple[str, ...]] = ("y",)
+    #: As a model of its own: one input channel and one output channel, carried as plain floats (``vector`` False;
+    #: an output of a ``MimoIdentifier`` reads several channels, which its composite says).
+    n_u: ClassVar[int] = 1
+    n_y: ClassVar[int] = 1
+    vector: ClassVar[bool] = False
 
     @property
     def outputs(self) -> list[Identifier]:

@@ -37,7 +37,7 @@ from std_msgs.msg import String
 
 from lenn_ros import topics
 from lenn_ros.config import ConfigError, field_extractor, side_channels
-from lenn_ros.core.fields import FieldError, compose, has_header
+from lenn_ros.core.fields import FieldError, compose, has_header, is_vector
 from lenn_ros.model import ModelError, load_model
 from lenn_ros.nodes import run_node
 from lenn_ros.nodes.robot_controller import describe
@@ -179,7 +179,7 @@ class Twin(Node):
         if self.noise_std:
             out = out + self.rng.normal(0.0, self.noise_std, size=out.shape)
         message = self.y_class()
-        compose(message, self.y_field, out if self.model.mimo else out[0], self.y_names)
+        compose(message, self.y_field, out if is_vector(self.y_field) else out[0], self.y_names)
         if self.y_stamped:
             stamp = getattr(header, "stamp", None)
             message.header.stamp = stamp if stamp is not None else self.get_clock().now().to_msg()

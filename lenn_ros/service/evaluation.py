@@ -33,7 +33,6 @@ import numpy as np
 from lenn_ros import topics
 from lenn_ros.bag.vectors import read_test_start
 from lenn_ros.core.evaluation import Evaluation
-from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.runs import describe_gaps, finite_rows, missing
 from lenn_ros.service import RecordingError
 from lenn_ros.service.building import recorded_changes, weights_path
@@ -136,7 +135,7 @@ class BagEvaluation:
                           **common})  # fmt: skip
 
 
-def change_notes(changes: list[ParameterChange], source: str, mimo: bool) -> list[str]:
+def change_notes(changes: list[ParameterChange], source: str) -> list[str]:
     """One line per live change: applied at its sample, or why it is not (never silently ignored)."""
     notes = []
     for change in changes:
@@ -144,9 +143,7 @@ def change_notes(changes: list[ParameterChange], source: str, mimo: bool) -> lis
             what = f"parameter change: {name}={value!r} from sample {change.from_index} (set live)"
             if name in NODE_ONLY_PARAMETERS:
                 continue
-            if mimo:
-                notes.append(f"{what} NOT applied offline: a MIMO model is evaluated with the starting values")
-            elif name in PAIRING_PARAMETERS and source != "samples":
+            if name in PAIRING_PARAMETERS and source != "samples":
                 notes.append(f"{what} NOT applied offline: the raw u / y_p are paired with the starting value")
             else:
                 notes.append(f"{what}, applied offline at that sample")
@@ -175,10 +172,8 @@ def evaluate_bag(
     start, default = _test_part(path, index, read.learn, test_from, source)
     # raw inputs carry no learn flag: the learning parameter as it was set live, up to the test part
     learn = (index < start) & (_learning_switch(index, values, changes) if read.learn is None else read.learn)
-    mimo = isinstance(identifier, MimoIdentifier)
-    names = list(identifier.names) if mimo else ["y"]
-    y_hat = session.run_samples(index, u, y, learn, () if mimo else changes)
-    evaluations = dict(zip(names, score(identifier, index, u, y, y_hat, start), strict=True))
+    y_hat = session.run_samples(index, u, y, learn, changes)
+    evaluations = dict(zip(identifier.names, score(identifier, index, u, y, y_hat, start), strict=True))
     return _result(path, session, values, evaluations, (index, u, y, y_hat), start, source, changes, default)
 
 
@@ -195,11 +190,10 @@ def _result(
 ) -> BagEvaluation:
     """The scores with what the session counted and said, the gaps and the bands."""
     index, u, y, y_hat = series
-    mimo = len(evaluations) > 1 or isinstance(session.identifier, MimoIdentifier)
     first = next(iter(evaluations.values()))
     counters = session.all_counters()
     notices = sorted({f"{n.kind}: {n.text}" for n in session.take_notices() if n.kind != "phase"})
-    notices += change_notes(changes, source, mimo)
+    notices += change_notes(changes, source)
     for topic, lost in raw_losses(path).items():
         notices.append(f"recording: {lost} {topic} messages missing (gaps in their sequence numbers)")
     if first.free_run.get("segments", 1) > 1:
@@ -213,8 +207,8 @@ def _result(
     unpaired = sum(counters.get(name, 0) for name in ("unpaired", "dropped_u", "dropped_y"))
     weights_in = str(weights_path(values["weights_in"])) if values.get("weights_in") else ""
     gaps = describe_gaps(index, session.config.pairing, session.config.sample_period)
-    bands = fit_band_coverage(weights_in, evaluations)
-    intervals = {**bands, **one_step_band(index >= start, y, y_hat, session)} if not mimo else bands
+    one_step = one_step_band(index >= start, y, y_hat, session.last_y_hat_std, list(evaluations))
+    intervals = {**fit_band_coverage(weights_in, evaluations), **one_step}
     return BagEvaluation(
         evaluations, len(index), unpaired, rejected, int(start), source, absent, counters, notices, weights_in, gaps,
         intervals, default,

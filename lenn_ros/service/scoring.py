@@ -21,7 +21,6 @@ from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.spread import Z95
 from lenn_ros.core.structure import Identifier
 from lenn_ros.fit.data import REPORT_FILE
-from lenn_ros.session import Session
 
 
 def score(
@@ -71,27 +70,33 @@ def _score_output(
     )
 
 
-def one_step_band(test: np.ndarray, y: np.ndarray, y_hat: np.ndarray, session: Session) -> dict[str, Any]:
-    """The node's nominal 95 % one-step band (``y_hat_std``, as published live) and what it covers of the test part.
+def one_step_band(
+    test: np.ndarray, y: np.ndarray, y_hat: np.ndarray, std: np.ndarray, names: list[str]
+) -> dict[str, Any]:
+    """The node's nominal 95 % one-step band (``y_hat_std``, as published live) and what it covers of the test
+    part, per output (one output's at the top level, several by name, as :func:`fit_band_coverage` has them).
 
-    ``run_samples`` gives every prediction the std the node published with it (RLS
-    covariance and innovation variance, ``core.spread``), so this is the band live users saw.
+    ``run_samples`` gives every prediction the std the node published with it (RLS covariance and
+    innovation variance, ``core.spread``), so this is the band live users saw.
     """
-    std = session.last_y_hat_std
-    if len(std) != len(y):
+    if np.shape(std) != np.shape(y):
         return {}
-    scored = test & np.isfinite(y_hat) & np.isfinite(std)
-    if not scored.any():
-        return {}
-    half = Z95 * std[scored]
-    return {
-        "level": 0.95,
-        "one_step": {
+    columns = [np.reshape(a, (len(y), -1)) for a in (y, y_hat, std)]
+    bands = {}
+    for j, name in enumerate(names):
+        measured, predicted, spread = (column[:, j] for column in columns)
+        scored = test & np.isfinite(predicted) & np.isfinite(spread)
+        if not scored.any():
+            continue
+        half = Z95 * spread[scored]
+        bands[name] = {
             "median_half_width": float(np.median(half)),
             "from": "the node's y_hat_std (RLS covariance and innovation variance), as published live",
-            "coverage_test": float(np.mean(np.abs(y[scored] - y_hat[scored]) <= half)),
-        },
-    }
+            "coverage_test": float(np.mean(np.abs(measured[scored] - predicted[scored]) <= half)),
+        }
+    if not bands:
+        return {}
+    return {"level": 0.95, "one_step": bands[names[0]] if len(names) == 1 else bands}
 
 
 def fit_band_coverage(weights_in: str, evaluations: dict[str, Evaluation]) -> dict[str, Any]:

@@ -79,5 +79,5 @@ class VectorValues(Values):
 
 
 def values_for(identifier: Any) -> type[Values]:
-    """The values a model's samples carry: vectors where it has several channels (its structure counts them)."""
-    return VectorValues if hasattr(identifier.structure, "n_y") else Values
+    """The values a model's samples carry: vectors where the model says so (several channels)."""
+    return VectorValues if identifier.vector else Values

@@ -105,14 +105,14 @@ class PlantSimulator(Node):
 
         self.plant = self._make_plant()
         p = self.get_parameter
-        self.mimo = isinstance(self.plant, MimoPlant)
+        self.channels = _Channels.of(self.plant)
         self._make_excitations()
         self.k = 0
         self.input_gain = 1.0  # change_input_gain from change_step on
         self.acknowledged = 0
         self._last_acknowledged = 0
         self._stalled_since = time.monotonic()
-        value_type = Float64MultiArray if self.mimo else Float64
+        value_type = self.channels.message_type
         self.u_publisher = self.create_publisher(value_type, topics.U, topics.data_qos())
         self.y_publisher = self.create_publisher(value_type, topics.Y_P, topics.data_qos())
         self.test_start_publisher = self.create_publisher(Int64, topics.TEST_START, topics.latched_qos())
@@ -141,12 +141,9 @@ class PlantSimulator(Node):
                 p("test_noise").value,
                 channel=channel,
             )
-            for channel in range(self.plant.n_u if self.mimo else 1)
+            for channel in range(self.channels.n_u)
         ]
         self.excitation = self.excitations[0]
-        if self.mimo:  # channels labelled u1, u2.. / y1, y2.. (the plant's own names), built once
-            self._u_layout = topics.vector_layout([f"u{i + 1}" for i in range(self.plant.n_u)])
-            self._y_layout = topics.vector_layout([f"y{i + 1}" for i in range(self.plant.n_y)])
 
     def _make_plant(self) -> Plant | MimoPlant:
         p = self.get_parameter
@@ -248,13 +245,13 @@ class PlantSimulator(Node):
             return False
         if self.k and self.k == self.get_parameter("change_step").value:
             self._change_plant()
-        if self.mimo:
-            return self._step_vectors()
-        u, noise = self.excitation.sample(self.k)
-        self.u_publisher.publish(Float64(data=u))
-        self.y_publisher.publish(Float64(data=self.plant.output))
+        drawn = [excitation.sample(self.k) for excitation in self.excitations]
+        u = np.array([value for value, _ in drawn])
+        noise = np.array([value for _, value in drawn])
+        self.u_publisher.publish(self.channels.message(u, "u"))
+        self.y_publisher.publish(self.channels.message(np.ravel(self.plant.output), "y"))
         try:
-            self.plant.step(self.input_gain * u + noise)
+            self.channels.step(self.plant, self.input_gain * u + noise)
         except ExpressionError as error:
             # A formula can pass every check and still fail at some state (u1/y1 at rest). Raised
             # from this timer callback it would be a traceback; run_node prints this one line, exit 2.
@@ -262,34 +259,20 @@ class PlantSimulator(Node):
         self.k += 1
         return True
 
-    def _step_vectors(self) -> bool:
-        """:meth:`_step` for a MIMO plant: u(k) and y_p(k) as one vector message each, channels labelled."""
-        drawn = [excitation.sample(self.k) for excitation in self.excitations]
-        u = np.array([value for value, _ in drawn])
-        noise = np.array([value for _, value in drawn])
-        self.u_publisher.publish(Float64MultiArray(layout=self._u_layout, data=u.tolist()))
-        self.y_publisher.publish(Float64MultiArray(layout=self._y_layout, data=self.plant.output.tolist()))
-        self.plant.step(u + noise)
-        self.k += 1
-        return True
-
     def _change_plant(self) -> None:
         """Tracking scenario: the unknown part's gain jumps, or the actuator's; the plant's state carries over."""
         input_gain = self.get_parameter("change_input_gain").value
         if input_gain != 1.0:
-            if self.mimo:
-                self.get_logger().warning("change_input_gain applies to SISO plants only; ignored")
-            else:
-                self.input_gain = input_gain
-                self.get_logger().info(
-                    f"step {self.k}: plant changed (actuator gain x{input_gain:g}: it now receives "
-                    f"{input_gain:g} u + noise)"
-                )
+            self.input_gain = input_gain
+            self.get_logger().info(
+                f"step {self.k}: plant changed (actuator gain x{input_gain:g}: it now receives {input_gain:g} u "
+                "+ noise)"
+            )
         if self.get_parameter("change_gain").value == 1.0:
             return
         example = self.get_parameter("example").value
-        if not example or self.mimo:
-            self.get_logger().warning("change_step applies to the paper's (SISO) examples only; ignored")
+        if not example or self.get_parameter("mimo_plant").value:
+            self.get_logger().warning("change_gain applies to the paper's examples only; ignored")
             return
         changed = get_example(example).plant(gain=self.get_parameter("change_gain").value)
         changed.y_past, changed.u_past = self.plant.y_past, self.plant.u_past
@@ -325,6 +308,32 @@ class PlantSimulator(Node):
                     "more means it lost some)"
                 )
             raise SystemExit(0)
+
+
+class _Channels:
+    """How a plant's u(k) and y_p(k) go out: a plant of one input and one output as Float64 messages (what the
+    identifier reads by default), a plant of several as one Float64MultiArray each, channels labelled u1, u2.. /
+    y1, y2.. (the plant's own names). Chosen once, for the plant the node simulates."""
+
+    def __init__(self, n_u: int, n_y: int, vector: bool) -> None:
+        self.n_u, self.vector = n_u, vector
+        self.message_type = Float64MultiArray if vector else Float64
+        self.layouts = {
+            side: topics.vector_layout([f"{side}{i + 1}" for i in range(count)])
+            for side, count in (("u", n_u), ("y", n_y))
+        }
+
+    @classmethod
+    def of(cls, plant: Plant | MimoPlant) -> _Channels:
+        return cls(plant.n_u, plant.n_y, True) if isinstance(plant, MimoPlant) else cls(1, 1, False)
+
+    def message(self, values: np.ndarray, side: str) -> Float64 | Float64MultiArray:
+        if self.vector:
+            return Float64MultiArray(layout=self.layouts[side], data=values.tolist())
+        return Float64(data=float(values[0]))
+
+    def step(self, plant: Plant | MimoPlant, applied: np.ndarray) -> None:
+        plant.step(applied if self.vector else float(applied[0]))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -30,8 +30,6 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from lenn_ros import topics
 from lenn_ros.bag.reader import topic_types
 from lenn_ros.bag.vectors import read_test_start
@@ -80,7 +78,6 @@ def load_bag(path: Path, flags: dict[str, Any], progress: bool = False) -> Data:
         f"{_side_source(values, resolved, 'y', topics.Y_P)}, paired by "
         f"{'order' if samples.by_order else values['pairing']}"
     )
-    recorded_start = read_test_start(path)
     interpretation = {key: values[key] for key in INTERPRETATION if key in values}
     names: dict[str, tuple[str, ...]] = {}
     if u.ndim > 1 or y.ndim > 1:
@@ -90,7 +87,7 @@ def load_bag(path: Path, flags: dict[str, Any], progress: bool = False) -> Data:
         u,
         y,
         source,
-        test_start=_row(index, recorded_start) if recorded_start else None,
+        test_start=read_test_start(path),  # a sample number, as --test-from is
         breaks=[int(b) for b in breaks(index)],
         index=index,
         interpretation=interpretation,
@@ -120,8 +117,3 @@ def has_identifier_config(path: Path) -> bool:
 
 def _short_names(types: dict[str, str]) -> set[str]:
     return {topic.rstrip("/").rsplit("/", 1)[-1] for topic in types}
-
-
-def _row(index: np.ndarray, sample: int) -> int:
-    """1-based row of the first sample whose index is ``sample`` or later (a recorded test start is an index)."""
-    return int(np.searchsorted(index, sample)) + 1

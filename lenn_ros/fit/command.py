@@ -13,7 +13,7 @@ from typing import Any
 
 from lenn_ros.fit.data import FitError
 from lenn_ros.fit.export import write_outputs
-from lenn_ros.fit.load import load_data, test_row
+from lenn_ros.fit.load import load_data
 from lenn_ros.fit.procedure import fit
 from lenn_ros.fit.report import format_report, plot
 
@@ -33,9 +33,12 @@ def main(args: Any) -> int:
         raise FitError(f"--dt {args.dt:g} s disagrees with the time column's sample period {data.sample_period:g} s")
     progress = None if args.json else (lambda text: print(text, file=sys.stderr, flush=True))
     network = getattr(args, "network", "lenn") or "lenn"
-    test_from = test_row(data.index, args.test_from, data.test_start)
+    # the first test sample by number, as asked, else as the bag recorded it (the node's test_start)
+    recorded = args.test_from is None and data.test_start is not None
+    test_from = data.test_start if recorded else args.test_from
     solver = getattr(args, "solver", "ls") or "ls"
-    result = fit(data, test_from, refine=not args.no_refine, network=network, solver=solver, progress=progress)
+    result = fit(data, test_from, refine=not args.no_refine, network=network, solver=solver, progress=progress,
+                 recorded=recorded)  # fmt: skip
     if args.output:
         result.files = write_outputs(args.output, result, data)
     if args.plot:

@@ -187,11 +187,3 @@ def _channel(names: tuple[str, ...], column: str, path: Path, topic: str) -> int
     if column.isdigit() and int(column) < len(names):
         return int(column)
     raise FitError(f"{path}: no {topic} channel {column!r}; channels are {', '.join(names)}")
-
-
-def test_row(index: np.ndarray | None, given: int | None, recorded: int | None) -> int | None:
-    """The 1-based row ``--test-from`` means: a bag's is a sample index, as the node counts (the row it
-    starts), a CSV's a row; without it, the bag's recorded test start (a row already)."""
-    if given is None:
-        return recorded
-    return given if index is None else int(np.searchsorted(index, given)) + 1

@@ -197,42 +197,12 @@ def _add_fit(commands: Any) -> None:
     p.add_argument(
         "data",
         help="CSV file (columns by name or 0-based index; commas, semicolons, tabs or whitespace; # and %% comment "
-        "lines; a row with a cell empty, NaN or inf is a gap) or a bag: its u / y_p topics as the identifier read "
-        "them (identifier_config: types, fields, pairing, remapped topics), or the topics named by --u/--y",
+        "lines; a row with a cell empty, NaN or inf is a gap) or a rosbag2 bag (a directory of MCAP or sqlite3 "
+        "files, one or split; a .mcap file; a .db3 file beside its metadata.yaml): its u / y_p topics as the "
+        "identifier read them (identifier_config: types, fields, pairing, remapped topics), or the topics named "
+        "by --u/--y; of a bag of plain Float64MultiArray u / y_p (import-csv's), --u/--y may name channels by label",
     )
-    p.add_argument(
-        "--u",
-        action="append",
-        help="CSV column of the plant input (default: 'u', or the first of two columns); repeat for several "
-        "inputs (MIMO: one model per output over every channel, compared with one SISO model per output). "
-        "For a bag: the input topic (e.g. /arm/cmd), read with --u-field",
-    )
-    p.add_argument(
-        "--y",
-        action="append",
-        help="CSV column of the plant output (default: 'y', or the second of two columns); repeat for several outputs. "
-        "For a bag: the output topic (e.g. /joint_states), read with --y-field",
-    )
-    p.add_argument("--u-field", metavar="PATH", help="bag: field of the input message, e.g. data[0] (node's u_field)")
-    p.add_argument(
-        "--y-field", metavar="PATH", help="bag: field of the output message, e.g. position[elbow] (node's y_field)"
-    )
-    p.add_argument(
-        "--u-names",
-        metavar="A,B",
-        help="bag: the input channels' names, comma-separated (node's u_names): how many a field such as "
-        "data[*] holds, and which joints of a JointState position[*], in this order",
-    )
-    p.add_argument("--y-names", metavar="A,B", help="bag: the output channels' names (node's y_names), as --u-names")
-    p.add_argument(
-        "--sample-period",
-        type=float,
-        metavar="T",
-        help="bag: seconds between samples; pairs the topics on that grid (the node's pairing: sample)",
-    )
-    p.add_argument(
-        "--pairing", choices=["sequence", "stamp", "sample"], help="bag: how the topics become samples (node's pairing)"
-    )
+    add_reading_flags(p, csv=True)
     p.add_argument("--dt", type=float, help="sample time in seconds (reported only)")
     p.add_argument(
         "--time",
@@ -244,9 +214,10 @@ def _add_fit(commands: Any) -> None:
         "--test-from",
         type=int,
         metavar="K",
-        help="1-based index of the first test sample: samples 1..K-1 build the model, K.. score it "
-        "(row K of the data, not counting a header; the same meaning as in evaluate and import-csv; in a bag "
-        "the sample index as the identifier counts it). Required for a CSV; a bag's recorded test start is the default",
+        help="the number of the first test sample: samples numbered below K build the model, K.. score it. A "
+        "sample's number is the node's: in a bag its sample index, in a CSV its data row from 1 (a header not "
+        "counted; a row missing a cell keeps its number). The same meaning as in evaluate, import-csv and "
+        "bag-info; honoured exactly or refused. Required for a CSV; a bag's recorded test start is the default",
     )
     p.add_argument("--json", action="store_true", help="print the report as a JSON object")
     p.add_argument("--plot", metavar="FILE", help="write plant vs model (one-step and free run) on the test part")
@@ -282,7 +253,13 @@ def _add_import_csv(commands: Any) -> None:
     )
     p.add_argument("--y", required=True, action="append", help="column of the plant output; repeat for several outputs")
     p.add_argument("--dt", type=float, required=True, help="sample time in seconds")
-    p.add_argument("--test-from", type=int, help="first test sample index (1-based), stored in the bag")
+    p.add_argument(
+        "--test-from",
+        type=int,
+        metavar="K",
+        help="the number of the first test sample (its data row from 1; row k is the bag's sample k), stored in "
+        "the bag as test_start: fit and evaluate of the bag split there",
+    )
     p.add_argument("-o", "--output", required=True, help="bag directory to create")
     p.set_defaults(handler=_import_csv)
 

@@ -123,6 +123,9 @@ def test_fit_reads_a_robot_bag_as_the_node_pairs_it_and_writes_params_that_read_
     node_values = {**NODE_DEFAULTS, **values, topics.RESOLVED_TOPICS: {"u": "/arm/cmd", "y_p": "/arm/joint_states"}}
     index = pair_raw(str(bag), make_session(identifier, node_values), node_values).index
     assert len(index) == report["train_samples"] + report["samples"]
+    # by the node's numbers: every sample numbered below 6001 built the model, the lost ones among them not counted
+    assert report["test_from"] == 6001 and report["train_samples"] == int(np.count_nonzero(index < 6001))
+    assert report["sample_numbers"]["train"] == [int(index[0]), int(index[index < 6001][-1])]
     gaps = np.flatnonzero(np.diff(index) != 1)
     assert len(gaps) >= 1 and index[gaps[0] + 1] - index[gaps[0]] >= len(LOST)
 

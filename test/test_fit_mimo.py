@@ -229,7 +229,9 @@ def test_a_gap_in_a_vector_record_is_a_break_of_the_mimo_fit() -> None:
     data = Data(u, y, "two gaps", breaks=breaks, index=index, u_names=("u1", "u2"), y_names=("y1", "y2"))
 
     train = 1500
-    result = fit(data, test_from=train + 1, refine=False)
+    result = fit(data, test_from=int(index[train]), refine=False)  # by number: the first test sample's index
+    assert result.train_samples == train and result.numbers == {"train": [1, int(index[train - 1])],
+                                                                "first_test": int(index[train])}  # fmt: skip
     identifier = result.identifier
     for output in result.fits:  # each output's selected model over its view (columns of [y, u])
         model, view = output.model, np.column_stack([y, u])[:, output.columns]

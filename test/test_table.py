@@ -65,7 +65,7 @@ def test_a_missing_sample_is_nan_with_its_line_and_text_is_an_error_naming_line_
         table.values([0, 1])  # the first in file order, though column u's comes first
 
 
-def test_fit_reads_missing_samples_as_gaps_and_counts_test_from_by_row(tmp_path: Path) -> None:
+def test_fit_reads_missing_samples_as_gaps_and_counts_test_from_by_data_row(tmp_path: Path) -> None:
     """A row with no number in a column used is a gap: dropped, the record broken there (the same fit as the
     kept rows with that break given), ``--test-from`` still counting it, its line named in the report's data
     line, and the test part's free run restarted after one in it."""
@@ -78,7 +78,7 @@ def test_fit_reads_missing_samples_as_gaps_and_counts_test_from_by_row(tmp_path:
     data = load_data(path)
     assert data.breaks == [300, 999] and len(data.y) == 1198
     assert "2 rows missing a sample (empty, NaN, inf or short; lines 302, 1002): gaps" in data.source
-    report = fit(data, _row_of(data, 801), refine=False)
+    report = fit(data, 801, refine=False)  # by number: the data rows, the missing one counted
     kept = np.delete(np.arange(1200), [300, 1000])
     alone = fit(Data(u[kept], y[kept], "x", breaks=[300, 999]), 800, refine=False)
     assert report.train_samples == 799  # rows 1..800 less the missing one
@@ -88,13 +88,8 @@ def test_fit_reads_missing_samples_as_gaps_and_counts_test_from_by_row(tmp_path:
         [sys.executable, "-m", "lenn_ros.cli", "fit", str(path), "--test-from", "801", "--no-refine"],
         capture_output=True, text=True, timeout=300, check=True,
     )  # fmt: skip
-    assert "lines 302, 1002" in done.stdout and "799" in done.stdout
-
-
-def _row_of(data: Data, given: int) -> int:
-    from lenn_ros.fit.load import test_row
-
-    return test_row(data.index, given, data.test_start)
+    assert "lines 302, 1002" in done.stdout
+    assert "built on 799 samples numbered 1..800, tested on 399 samples from 801" in done.stdout
 
 
 def test_a_time_column_gives_the_sample_period_and_its_jumps_are_gaps(tmp_path: Path) -> None:

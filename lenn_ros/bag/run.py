@@ -3,8 +3,8 @@
 Both functions use the fast path of :mod:`lenn_ros.bag.scalars`. Topic lookup works under
 a namespace: ``u`` finds ``/u`` or ``/id3/u`` (``namespace=`` picks one of several).
 
-:func:`pair_raw` turns a recording's u and y_p into samples by their recorded indices,
-so every consumer (replay, evaluate) pairs a damaged bag the same way.
+Pairing a recording's raw topics into samples is not done here: the one pairing, the node's
+own session over any recording, is :func:`lenn_ros.service.recording.pair_raw`.
 """
 
 from __future__ import annotations
@@ -19,9 +19,8 @@ from lenn_ros import topics
 from lenn_ros.bag.errors import BagError
 from lenn_ros.bag.reader import find_topic, topic_types
 from lenn_ros.bag.scalars import Series, topic_series
-from lenn_ros.core.pairing import sequence_streams
 
-__all__ = ["RawPairs", "RunData", "SampleSeries", "pair_raw", "read_run", "read_samples"]
+__all__ = ["RunData", "SampleSeries", "read_run", "read_samples"]
 
 _SPECS = {spec.name: spec for spec in topics.RUN_TOPICS}
 _RUN_SERIES = (topics.U, topics.Y_P, topics.Y_HAT, topics.ERROR, topics.TEST_START)
@@ -170,108 +169,4 @@ def read_samples(path: str | Path, namespace: str | None = None, n_u: int = 1, n
         learn=values[:, width - 1] != 0 if values.shape[1] == width else None,
         log_time_ns=series.log_time_ns,
         topic=topic,
-    )
-
-
-@dataclass(frozen=True)
-class RawPairs:
-    """u / y_p matched by sample index: one row per sample, sorted by (stream, index).
-
-    A missing half is NaN with its ``has_*`` flag False, so a consumer can tell "not in
-    the recording" from a recorded NaN (a sample the identifier refused).
-    """
-
-    index: np.ndarray  # int64, 1-based sample index within its stream (the DDS publication sequence number)
-    stream: np.ndarray  # int64, 0 for the first publisher run, +1 at each restart of the sequence at 1
-    u: np.ndarray  # float64, NaN where has_u is False
-    y_p: np.ndarray
-    has_u: np.ndarray  # bool: the recording holds this sample's u
-    has_y_p: np.ndarray
-    time_ns: np.ndarray  # int64 log time of u, else of y_p, else the nearest earlier row's (0: no times given)
-    by_order: bool  # no sequence numbers recorded: paired by position (counts were equal)
-    duplicates: int = 0  # repeated (stream, index) messages dropped; the first recorded is kept, as live
-    unindexed: int = 0  # messages without a sequence number in a recording that has them: dropped
-
-    @property
-    def incomplete(self) -> int:
-        """Samples with at least one half missing from the recording."""
-        return int(np.count_nonzero(~(self.has_u & self.has_y_p)))
-
-
-def pair_raw(
-    u: np.ndarray,
-    y_p: np.ndarray,
-    u_sequence: np.ndarray | None,
-    y_p_sequence: np.ndarray | None,
-    *,
-    u_t: np.ndarray | None = None,
-    y_p_t: np.ndarray | None = None,
-    fill: bool = False,
-) -> RawPairs:
-    """Pair a recording's u and y_p values (each in recorded order) by their sequence numbers.
-
-    Why not by position: one lost or reordered message would shift every later pair,
-    u(k+1) with y_p(k). Index k is the sequence number; a restart of the sequence at 1
-    begins a new stream (numbered by ``stream``); within one the rows are sorted by
-    index, so reordering in the recording is undone. A sample only one topic recorded
-    gets NaN for the other half. ``fill=True`` also adds the indices that neither topic
-    recorded (1 up to the stream's highest), both halves NaN: what a publisher of sample
-    indices (replay) needs so its k-th message is sample k.
-
-    Without sequence numbers (sequence None or all 0 on either topic: an import, an old
-    recorder) the values are paired by position, and only when both counts are equal;
-    else :class:`BagError`, since there is no telling where a message was lost.
-    """
-    u = np.asarray(u, dtype=np.float64)
-    y_p = np.asarray(y_p, dtype=np.float64)
-    u_t = np.zeros(u.size, np.int64) if u_t is None else np.asarray(u_t, dtype=np.int64)
-    y_p_t = np.zeros(y_p.size, np.int64) if y_p_t is None else np.asarray(y_p_t, dtype=np.int64)
-    sequences = [np.asarray(s if s is not None else [], dtype=np.int64) for s in (u_sequence, y_p_sequence)]
-    if not all(s.size and np.any(s > 0) for s in sequences):
-        if u.size != y_p.size:
-            raise BagError(
-                f"no sequence numbers recorded and u has {u.size} messages, y_p {y_p.size}: pairing by order would "
-                "shift every later pair; record with lenn_ros's recorder (it stores indices)"
-            )
-        every = np.ones(u.size, dtype=bool)
-        return RawPairs(np.arange(1, u.size + 1), np.zeros(u.size, np.int64), u, y_p, every, every.copy(), u_t, True)
-    keyed, unindexed = [], 0
-    for values, times, sequence in ((u, u_t, sequences[0]), (y_p, y_p_t, sequences[1])):
-        known = sequence > 0
-        unindexed += int(np.count_nonzero(~known))
-        values, times, sequence = values[known], times[known], sequence[known]
-        key = (sequence_streams(sequence) << 32) | sequence  # sequence numbers are stored mod 2**32
-        unique, first = np.unique(key, return_index=True)  # first occurrence: the pairer keeps the first
-        keyed.append((unique, values[first], times[first], key.size - unique.size))
-    keys = np.sort(np.concatenate([keyed[0][0], keyed[1][0]]))  # np.union1d hashes: 10x slower on 10^6
-    keys = keys[np.r_[True, np.diff(keys) != 0]] if keys.size else keys
-    if fill and keys.size:
-        streams, highest = keys >> 32, keys & 0xFFFFFFFF
-        ends = np.r_[np.flatnonzero(np.diff(streams)), keys.size - 1]
-        keys = np.concatenate([(streams[end] << 32) + np.arange(1, highest[end] + 1) for end in ends])
-    halves, present, times = [], [], np.full(keys.size, -1, dtype=np.int64)
-    for unique, values, half_times, _ in reversed(keyed):  # y_p first: u's log time wins where both exist
-        where = np.searchsorted(keys, unique)
-        half = np.full(keys.size, np.nan)
-        half[where] = values
-        has = np.zeros(keys.size, dtype=bool)
-        has[where] = True
-        times[where] = half_times
-        halves.insert(0, half)
-        present.insert(0, has)
-    known_rows = np.flatnonzero(times >= 0)
-    if known_rows.size:  # a filled row takes the time of the row before it (the first: the next known)
-        nearest = np.maximum.accumulate(np.where(times >= 0, np.arange(keys.size), known_rows[0]))
-        times = times[nearest]
-    return RawPairs(
-        index=keys & 0xFFFFFFFF,
-        stream=keys >> 32,
-        u=halves[0],
-        y_p=halves[1],
-        has_u=present[0],
-        has_y_p=present[1],
-        time_ns=times,
-        by_order=False,
-        duplicates=keyed[0][3] + keyed[1][3],
-        unindexed=unindexed,
     )

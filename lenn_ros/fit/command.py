@@ -13,29 +13,34 @@ from typing import Any
 
 from lenn_ros.fit.data import FitError
 from lenn_ros.fit.export import write_outputs
-from lenn_ros.fit.load import load_data, test_row
+from lenn_ros.fit.load import load_data
 from lenn_ros.fit.procedure import fit
 from lenn_ros.fit.report import format_report, plot
-
-#: the command line's flags that say how the data become samples: a bag's topics (fit_bag.load_bag), a CSV's times
-BAG_FLAGS = ("u_field", "y_field", "u_names", "y_names", "sample_period", "pairing", "time")
+from lenn_ros.service.reading import flags_of
 
 
-def bag_flags(args: Any) -> dict[str, Any]:
-    return {key: getattr(args, key, None) for key in BAG_FLAGS}
+def reading_flags(args: Any) -> dict[str, Any]:
+    """What says how the data become samples, besides ``--u`` / ``--y``: a bag's reading flags (the same for
+    fit, evaluate and bag-info: :mod:`lenn_ros.service.reading`), a CSV's time column."""
+    flags = {key: value for key, value in flags_of(args).items() if key not in ("u", "y")}
+    return {**flags, "time": getattr(args, "time", None)}
 
 
 def main(args: Any) -> int:
     """``lenn-ros fit``: read, fit, write (``-o``), plot and report."""
-    data = load_data(args.data, args.u, args.y, bag_flags(args))
+    shown = sys.stderr.isatty() and not args.json  # a bar while a long recording is read
+    data = load_data(args.data, args.u, args.y, reading_flags(args), progress=shown)
     dt = args.dt or data.sample_period
     if args.dt and data.sample_period and abs(args.dt - data.sample_period) > 0.01 * data.sample_period:
         raise FitError(f"--dt {args.dt:g} s disagrees with the time column's sample period {data.sample_period:g} s")
     progress = None if args.json else (lambda text: print(text, file=sys.stderr, flush=True))
     network = getattr(args, "network", "lenn") or "lenn"
-    test_from = test_row(data.index, args.test_from, data.test_start)
+    # the first test sample by number, as asked, else as the bag recorded it (the node's test_start)
+    recorded = args.test_from is None and data.test_start is not None
+    test_from = data.test_start if recorded else args.test_from
     solver = getattr(args, "solver", "ls") or "ls"
-    result = fit(data, test_from, refine=not args.no_refine, network=network, solver=solver, progress=progress)
+    result = fit(data, test_from, refine=not args.no_refine, network=network, solver=solver, progress=progress,
+                 recorded=recorded)  # fmt: skip
     if args.output:
         result.files = write_outputs(args.output, result, data)
     if args.plot:

@@ -27,10 +27,12 @@ class Data:
     """Paired samples of any number of channels: ``u`` (N,) or (N, n_u), ``y`` (N,) or (N, n_y).
 
     ``breaks``: 0-based rows that start a new contiguous run (gaps in a bag's record, never
-    joined across by the fit). ``index``: a bag's sample indices as the node counts them
-    (``--test-from`` is one). ``interpretation``: the node values that say how the bag's
-    topics became these samples (types, fields, names, pairing, sample period), written
-    into the params file; empty for a CSV or an ``import-csv`` bag. ``u_names`` /
+    joined across by the fit). ``index``: each row's sample number where it is not the row
+    (:mod:`~lenn_ros.fit.numbering`): a bag's sample indices as the node counts them, a CSV's
+    data rows once a row missing a cell was dropped; ``--test-from`` is one of these numbers,
+    and so is ``test_start``, the one a bag recorded (its ``test_start`` topic). ``interpretation``:
+    the node values that say how the bag's topics became these samples (types, fields, names,
+    pairing, sample period), written into the params file; empty for a CSV. ``u_names`` /
     ``y_names``: the channels' names (default ``u``, ``y``, or ``u0``, ``u1``...). ``sample_period``: seconds
     between samples where the data say it (a CSV's time column), else None.
     """
@@ -38,7 +40,7 @@ class Data:
     u: np.ndarray
     y: np.ndarray
     source: str  # what was read, for the report
-    test_start: int | None = None  # 1-based, recorded in a bag (its test_start topic)
+    test_start: int | None = None  # the first test sample's number, recorded in a bag (its test_start topic)
     breaks: list[int] = dataclasses.field(default_factory=list)
     index: np.ndarray | None = None
     interpretation: dict[str, Any] = dataclasses.field(default_factory=dict)

@@ -1,9 +1,10 @@
 """What ``fit`` reads: a CSV file's columns or a bag's channels, as one :class:`~lenn_ros.fit.data.Data` record.
 
 A CSV file is read by :mod:`lenn_ros.table` (any delimiter; a row missing a sample and a
-jump of its time column are gaps); an ``import-csv`` bag of Float64MultiArray samples by
-message order, its channels picked by label; any other bag by the identifier node's own
-session (:mod:`lenn_ros.fit.bag`). A module apart from the procedure, which sees the record
+jump of its time column are gaps; each sample numbered by its data row, from 1); any rosbag2
+bag by the identifier node's own session (:mod:`lenn_ros.fit.bag`, through
+:func:`lenn_ros.service.recording.read_recording`, as every offline command reads one), each
+sample numbered as the node numbers it. A module apart from the procedure, which sees the record
 only: how the samples were read never changes how a model is built.
 """
 
@@ -24,13 +25,13 @@ def load_data(
     u_columns: str | list[str] | None = None,
     y_columns: str | list[str] | None = None,
     flags: dict[str, Any] | None = None,
+    progress: bool = False,
 ) -> Data:
-    """u and y from a bag (directory or .mcap) or a CSV file (columns by name or index), any number of each.
+    """u and y from a bag (:func:`is_bag`) or a CSV file (columns by name or index), any number of each.
 
-    A bag the identifier was recorded beside (its ``identifier_config``), or whose topics the
-    flags name, is paired by the node's session (:func:`lenn_ros.fit.bag.load_bag`: ``--u`` /
-    ``--y`` are topics); an ``import-csv`` bag of Float64MultiArray samples (no configuration)
-    is read by message order, ``--u`` / ``--y`` picking its channels by label.
+    A bag is read as the node reads it (:func:`lenn_ros.fit.bag.load_bag`: its ``identifier_config``, the
+    topics the flags name, or its plain ``u`` / ``y_p``, whose channels ``--u`` / ``--y`` may pick by label);
+    ``progress``: a bar on stderr while a long recording is read.
     """
     path = Path(path)
     u_columns, y_columns = columns(u_columns), columns(y_columns)
@@ -38,20 +39,23 @@ def load_data(
     time_column = flags.pop("time", None)  # a CSV's; every other flag is a bag's
     if not path.exists():
         raise FitError(f"{path} does not exist (expected a CSV file or a bag directory)")
-    if path.is_dir() or path.suffix == ".mcap":
+    if is_bag(path):
         if time_column:
             raise FitError("--time: for a CSV file; a bag's samples carry their stamps (--sample-period sets a grid)")
-        flags = {**flags, "u": u_columns or None, "y": y_columns or None}
-        if is_vector_bag(path) and not _configured(path, flags):
-            return _load_vector_bag(path, u_columns, y_columns)
         from lenn_ros.fit.bag import load_bag
 
-        return load_bag(path, {key: value[0] if isinstance(value, list) and len(value) == 1 else value
-                               for key, value in flags.items()})  # fmt: skip
-    bag_only = sorted(key for key, value in flags.items() if value)
+        return load_bag(path, {**flags, "u": u_columns or None, "y": y_columns or None}, progress)
+    bag_only = sorted(key for key, value in flags.items() if value not in (None, [], "") and key not in ("u", "y"))
     if bag_only:
         raise FitError(f"{', '.join('--' + k.replace('_', '-') for k in bag_only)}: for a bag, not a CSV file")
     return _load_csv(path, u_columns, y_columns, time_column)
+
+
+def is_bag(path: Path) -> bool:
+    """Whether ``fit`` reads ``path`` as a rosbag2 recording: what :func:`~lenn_ros.bag.reader.open_bag` takes (a
+    directory of MCAP or sqlite3 files, one or split; a ``.mcap`` file; a ``.db3`` file beside its metadata.yaml),
+    which says in one line what is wrong with one it cannot read. Anything else is a data file."""
+    return path.is_dir() or path.suffix in (".mcap", ".db3")
 
 
 def columns(given: str | list[str] | None) -> list[str]:
@@ -59,23 +63,6 @@ def columns(given: str | list[str] | None) -> list[str]:
     if given is None:
         return []
     return [given] if isinstance(given, str) else list(given)
-
-
-def is_vector_bag(path: str | Path) -> bool:
-    """A bag whose u holds Float64MultiArray samples (``import-csv`` with several columns)."""
-    path = Path(path)
-    if not (path.is_dir() or path.suffix == ".mcap") or not path.exists():
-        return False
-    from lenn_ros.bag.vectors import is_vector_run
-
-    return is_vector_run(path)
-
-
-def _configured(path: Path, flags: dict[str, Any]) -> bool:
-    """Whether a bag is read by the node's session: an identifier_config, or bag flags that say how."""
-    from lenn_ros.fit.bag import has_identifier_config
-
-    return has_identifier_config(path) or any(value for key, value in flags.items() if key not in ("u", "y"))
 
 
 def _load_csv(path: Path, u_columns: list[str], y_columns: list[str], time_column: str | None = None) -> Data:
@@ -166,32 +153,3 @@ def _time_gaps(times: np.ndarray, lines: list[int], where: str) -> tuple[float, 
     if irregular:
         text += f", {irregular} step{'s' if irregular > 1 else ''} off it by more than {JITTER:.0%}"
     return period, late, text
-
-
-def _load_vector_bag(path: Path, u_columns: list[str], y_columns: list[str]) -> Data:
-    """An ``import-csv`` bag of labelled Float64MultiArray samples, its channels picked by label or index."""
-    from lenn_ros.bag.vectors import read_vector_run
-
-    run = read_vector_run(path)
-    iu = [_channel(run.u_names, c, path, "u") for c in u_columns] or list(range(len(run.u_names)))
-    iy = [_channel(run.y_names, c, path, "y_p") for c in y_columns] or list(range(len(run.y_names)))
-    u_names, y_names = tuple(run.u_names[i] for i in iu), tuple(run.y_names[i] for i in iy)
-    source = f"bag {path}: u = {', '.join(u_names)}; y_p = {', '.join(y_names)}"
-    return Data(run.u[:, iu], run.y[:, iy], source, test_start=run.test_start, u_names=u_names, y_names=y_names)
-
-
-def _channel(names: tuple[str, ...], column: str, path: Path, topic: str) -> int:
-    """A bag channel by its label or 0-based index, as a CSV column is found."""
-    if column in names:
-        return names.index(column)
-    if column.isdigit() and int(column) < len(names):
-        return int(column)
-    raise FitError(f"{path}: no {topic} channel {column!r}; channels are {', '.join(names)}")
-
-
-def test_row(index: np.ndarray | None, given: int | None, recorded: int | None) -> int | None:
-    """The 1-based row ``--test-from`` means: a bag's is a sample index, as the node counts (the row it
-    starts), a CSV's a row; without it, the bag's recorded test start (a row already)."""
-    if given is None:
-        return recorded
-    return given if index is None else int(np.searchsorted(index, given)) + 1

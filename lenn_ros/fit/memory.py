@@ -24,6 +24,7 @@ import numpy as np
 from lenn_ros.core.threads import cores
 from lenn_ros.fit.data import Data
 from lenn_ros.fit.families import LONGEST_LAGS
+from lenn_ros.fit.numbering import span
 
 #: share of the memory available when ``fit`` starts that its training rows may take
 MEMORY_SHARE = 0.5
@@ -73,13 +74,10 @@ def within_memory(
     keep = np.ones(len(data.y), dtype=bool)
     keep[: start - rows] = False
     gib = 2.0**30
-    first, last = (
-        (start - rows + 1, start) if data.index is None else (int(data.index[start - rows]), int(data.index[start - 1]))
-    )
     text = (
         f"the {start} training samples would need about {start * per_row / gib:.1f} GiB to fit, more than "
         f"{MEMORY_SHARE:.0%} of the {available / gib:.1f} GiB available: the model is built on the last {rows} "
-        f"(samples {first}..{last}); the {start - rows} before them are left out"
+        f"(samples {span(data, start - rows, start - 1)}); the {start - rows} before them are left out"
     )
     info = {"train_samples_used": rows, "samples_left_out": start - rows, "bytes_per_row": per_row, "text": text}
     return data.kept(keep), rows + 1, info

@@ -3,8 +3,9 @@
 One procedure for any number of inputs and outputs (a single channel is the 1 x 1 case),
 each step reported:
 1. reads u and y from a CSV file (one ``--u`` / ``--y`` column each, or several) or a
-   bag (:mod:`lenn_ros.fit.load`); samples 1..K-1 (1-based) build the model, samples K..
-   only score it; gaps in a bag's record stay gaps (nothing is fitted or simulated across them);
+   bag (:mod:`lenn_ros.fit.load`); samples numbered below K build the model, samples K..
+   only score it (:mod:`lenn_ros.fit.numbering`: a bag's sample indices, a CSV's data rows); gaps
+   in the record stay gaps (nothing is fitted or simulated across them);
 2. takes offsets and scale factors of every channel from the training samples (with a
    margin: :func:`lenn_ros.core.scaling.ranges`);
 3. for each output, selects the family (:data:`lenn_ros.fit.families.FAMILIES`), the lags and
@@ -49,6 +50,7 @@ from lenn_ros.fit.delay import delays_text, input_delays, shifted
 from lenn_ros.fit.export import describe_mimo, describe_model, identifiers, live_forgetting
 from lenn_ros.fit.families import candidate_specs
 from lenn_ros.fit.memory import within_memory
+from lenn_ros.fit.numbering import first_test_row, number, span, split_numbers
 from lenn_ros.fit.record import Record, fold_blocks
 from lenn_ros.fit.rest import without_rest
 from lenn_ros.fit.result import FitResult, OutputFit
@@ -59,31 +61,32 @@ from lenn_ros.fit.signs import recover_signs
 from lenn_ros.fit.termmodel import Layout
 
 
-def check_split(n: int, test_from: int) -> int:
-    """0-based index of the first test sample from the 1-based ``--test-from``."""
-    if test_from is None:
-        raise FitError(
-            "pass --test-from K: the 1-based index of the first test sample (samples 1..K-1 build the model)"
-        )
-    if not 2 <= test_from <= n:
-        raise FitError(f"--test-from {test_from} is outside the data's samples 2..{n} (1-based)")
-    start = test_from - 1
+def check_split(data: Data, test_from: int | None, recorded: bool = False) -> int:
+    """0-based row of the first test sample: the first numbered ``test_from`` or above
+    (:func:`~lenn_ros.fit.numbering.first_test_row`), with enough samples before it to build on."""
+    start = first_test_row(data, test_from, recorded)
     if start < 100:
-        raise FitError(f"only {start} samples before --test-from {test_from}; a model needs at least 100 to build on")
+        asked = "the recorded test start" if recorded else "--test-from"
+        raise FitError(f"only {start} samples before {asked} {test_from}; a model needs at least 100 to build on")
     return start
 
 
 def fit(
     data: Data,
-    test_from: int,
+    test_from: int | None,
     *,
     refine: bool = True,
     network: str = "lenn",
     solver: str = "ls",
     progress: Any = None,
+    recorded: bool = False,
 ) -> FitResult:
     """The whole procedure; returns its result: the report's figures (:meth:`FitResult.as_dict` is what
     ``--json`` prints), the identifier and the models.
+
+    ``test_from``: the number of the first test sample (:mod:`~lenn_ros.fit.numbering`: a bag's sample index, a
+    CSV's data row): samples numbered below it build the model, the others score it; ``recorded``: it is the
+    bag's recorded test start (said so where refused).
 
     Each output's structure is chosen on blocks of the training samples (each simulated by
     the weights of the others), the weights delivered are those of all training samples,
@@ -97,16 +100,18 @@ def fit(
     # the selection's linear algebra is thousands of small products: BLAS threads only
     # contend for the cores (a 2666 x 40 Gram took 1.8 ms threaded, 0.34 ms on one thread)
     with threadpool_limits(limits=1, user_api="blas"):
-        part, part_test_from, said = data, check_split(len(data.y), test_from) + 1, {}
+        start = check_split(data, test_from, recorded)
+        part, part_test_from, said = data, start + 1, {}
         for key, rule in LEFT_OUT.items():  # each rule on what the ones before left
             part, part_test_from, done = rule(part, part_test_from)
             if done:
                 said[key] = done
                 if progress:
                     progress(f"note: {done['text']}")
-        result = _fit(part, part_test_from, refine, network, solver, progress, test_from - part_test_from)
-    if said:  # the report counts samples as the user does
-        result.test_from, result.train_samples, result.left_out = test_from, test_from - 1, said
+        result = _fit(part, part_test_from - 1, refine, network, solver, progress)
+    # the report counts samples as the user does: by number, the rows the rules left out included
+    result.test_from, result.train_samples, result.left_out = int(test_from), start, said
+    result.numbers = split_numbers(data, start, int(test_from))
     return result
 
 
@@ -114,17 +119,14 @@ def fit(
 LEFT_OUT = {"rest": without_rest, "memory": within_memory}
 
 
-def _fit(
-    data: Data, test_from: int, refine: bool, network: str, solver: str, progress: Any, left_out: int = 0
-) -> FitResult:
-    """The procedure on the rows the rules of LEFT_OUT left, counted as ``data`` counts them (``left_out``: the
-    rows they took before the test part, added to the sample numbers the report names)."""
+def _fit(data: Data, start: int, refine: bool, network: str, solver: str, progress: Any) -> FitResult:
+    """The procedure on the rows the rules of LEFT_OUT left, the test part from 0-based row ``start``; the samples
+    it names are numbered as ``data`` numbers them (its rows left out keep their numbers: :meth:`Data.kept`)."""
     began = time.perf_counter()
     say = progress or (lambda text: None)
     u, y = data.matrices()
     _check_channels(data, u, y, network, solver)
     single = data.n_u == 1 and data.n_y == 1
-    start = check_split(len(y), test_from)
     breaks = [b for b in data.breaks if 0 < b < start]
     try:
         u_offsets, u_scales = ranges(u[:start], data.u_names)
@@ -133,8 +135,8 @@ def _fit(
         raise FitError(str(error)) from None
     blocks = fold_blocks(start, 1)
     say(
-        f"selecting a structure on samples 1..{start}: {len(blocks)} blocks, each simulated by the weights "
-        f"of the others{f', {len(breaks)} gaps in the record' if breaks else ''}"
+        f"selecting a structure on samples {span(data, 0, start - 1)}: {len(blocks)} blocks, each simulated by the "
+        f"weights of the others{f', {len(breaks)} gaps in the record' if breaks else ''}"
     )
     lenn_ls = network == "lenn" and solver == "ls"
     outputs, coupling = _fit_outputs(data, u[:start], y[:start], breaks, (y_offsets, y_scales, u_offsets, u_scales),
@@ -143,13 +145,13 @@ def _fit(
         outputs = _signed_view(data, u[:start], y[:start], breaks, (u_offsets, u_scales), outputs, refine, say)
     forgetting = live_forgetting(start)
     identifier, described, models = identifiers(outputs, data, u[:start], y[:start], network, solver, forgetting, say)
-    scored = score(identifier, data, start, models, [fitted.columns for fitted in outputs], left_out)
-    made = (described, forgetting, len(blocks), len(breaks))
+    scored = score(identifier, data, start, models, [fitted.columns for fitted in outputs])
+    made = (described, forgetting, len(blocks), len(breaks), span(data, 0, start - 1))
     _complete(scored, outputs, identifier if single else None, lenn_ls, made)
     coupled = {"coupling": coupling} if coupling else {}
     model = described if single else {**describe_mimo(models, forgetting), **coupled}
     return FitResult(
-        data=data.source, test_from=test_from, train_samples=start, per_output=scored.outputs,
+        data=data.source, test_from=number(data, start), train_samples=start, per_output=scored.outputs,
         free_run=scored.free_run, model=model, inputs=list(data.u_names), outputs=list(data.y_names),
         seconds=round(time.perf_counter() - began, 2), identifier=identifier, models=models, fits=outputs,
     )  # fmt: skip
@@ -174,8 +176,8 @@ def _complete(
     """Each output's report beyond its test figures: its warnings first, its 95 % bands (each output's its own:
     on the cores side by side), its model and how it was chosen. ``identifier``: one input's and one output's
     (its in-sample bands when not ``held_out``); ``made``: (the single output's model description, the live
-    forgetting, the blocks, the gaps)."""
-    described, forgetting, blocks, gaps = made
+    forgetting, the blocks, the gaps, the training samples' numbers)."""
+    described, forgetting, blocks, gaps, trained = made
     bands = side_by_side(
         lambda j: fit_intervals(scored.outputs[j], scored.y_hat_train[j], identifier, outputs[j], held_out),
         range(len(outputs)),
@@ -185,7 +187,7 @@ def _complete(
         part.warnings = fitted.warnings + part.warnings
         part.intervals = intervals
         part.model = described if described is not None else describe_model(fitted.model, fitted.chosen, forgetting)
-        part.choices = _choices(fitted, blocks, gaps)
+        part.choices = _choices(fitted, blocks, gaps, trained)
 
 
 def _fit_outputs(
@@ -371,10 +373,10 @@ def _fit_output(
     return fitted
 
 
-def _choices(fitted: OutputFit, blocks: int, gaps: int) -> dict[str, Any]:
-    """How one output's model was chosen, as the report gives it."""
+def _choices(fitted: OutputFit, blocks: int, gaps: int, trained: str) -> dict[str, Any]:
+    """How one output's model was chosen, as the report gives it (``trained``: the training samples' numbers)."""
     layout = fitted.layout
-    scaling: dict[str, Any] = {"from": f"training samples 1..{fitted.record.n}", "margin": DEFAULT_MARGIN}
+    scaling: dict[str, Any] = {"from": f"training samples {trained}", "margin": DEFAULT_MARGIN}
     if layout.n_columns == 2:  # one output of one input: y_offset, y_scale, u_offset, u_scale
         for name, offset, scale in zip(("y", "u"), layout.offsets, layout.scales, strict=True):
             scaling.update({f"{name}_offset": offset, f"{name}_scale": scale})

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from lenn_ros.fit.delay import delays_text
+from lenn_ros.fit.numbering import split_line
 from lenn_ros.fit.result import FitResult, OutputReport
 
 
@@ -31,10 +32,7 @@ def plot(path: str | Path, result: FitResult, name: str) -> Path:
 
 def format_report(result: FitResult, dt: float | None = None) -> str:
     """The text report: how each output's model was chosen, then its test figures."""
-    lines = [
-        f"{result.data}: built on samples 1..{result.train_samples}, "
-        f"tested on {result.samples} samples from {result.test_from}",
-    ]
+    lines = [f"{result.data}: {split_line(result.test_from, result.train_samples, result.samples, result.numbers)}"]
     lines += [f"  note: {done['text']}" for done in result.left_out.values()]
     if result.free_run.get("test_record_of_its_own"):
         lines.append(f"  note: {result.free_run['test_record_of_its_own']}")

@@ -26,6 +26,7 @@ import numpy as np
 
 from lenn_ros.fit.data import Data
 from lenn_ros.fit.families import LONGEST_LAGS
+from lenn_ros.fit.numbering import number
 from lenn_ros.fit.record import MAX_FOLDS, runs
 
 #: every signal within this share of its training range over the stretch: the plant rests
@@ -106,5 +107,6 @@ def without_rest(data: Data, test_from: int) -> tuple[Data, int, dict[str, Any]]
         f"{dropped} samples in their middles are left out of the fit (gaps), each keeping its first {REST_HEAD} "
         f"and last {REST_TAIL}, so that every block holds motion"
     )
-    info = {"stretches": [[a + 1, b] for a, b in found], "samples_left_out": dropped, "text": text}
+    stretches = [[number(data, a), number(data, b - 1)] for a, b in found]  # by number, as the user counts
+    info = {"stretches": stretches, "samples_left_out": dropped, "text": text}
     return trimmed, int(np.count_nonzero(keep[:start])) + 1, info

@@ -92,8 +92,10 @@ def _the_output(name: str) -> property:
 class FitResult:
     """What ``fit`` returns: the report's figures as attributes, and the model it made.
 
-    ``data``: what was read. ``test_from``, ``train_samples``: the split, 1-based, counted as
-    the user counts samples (rows a rule left out included). ``per_output``: each output's
+    ``data``: what was read. ``test_from``: the number of the first test sample as asked (the
+    node's numbering: :mod:`~lenn_ros.fit.numbering`); ``train_samples``: how many samples are numbered
+    below it (rows a rule left out included); ``numbers``: the training samples' numbers and the first
+    test sample's, where they are not 1..train_samples and ``test_from`` (else {}). ``per_output``: each output's
     figures, bands, model and choices. ``free_run``: the test part's free run, of all outputs
     together. ``model``: the model as the report describes it (one output's; of several, the
     whole, each output's own in its ``per_output`` entry). ``inputs``, ``outputs``: the
@@ -118,6 +120,7 @@ class FitResult:
     fits: list[OutputFit] = field(repr=False)
     left_out: dict[str, dict[str, Any]] = field(default_factory=dict)
     files: dict[str, str] | None = None
+    numbers: dict[str, Any] = field(default_factory=dict)
 
     rmse = _the_output("rmse")
     nmse_db = _the_output("nmse_db")
@@ -181,6 +184,8 @@ class FitResult:
         Then the time taken, what the rules that leave rows out did, and the files written.
         """
         head = {"data": self.data, "test_from": self.test_from, "train_samples": self.train_samples}
+        if self.numbers:  # (a record whose rows are its numbers reads as it always did)
+            head["sample_numbers"] = self.numbers
         figures = self.only.entry(alone=True) if self.alone else self._several()
         files = {} if self.files is None else {"files": self.files}
         return _plain({**head, **figures, "seconds": self.seconds, **self.left_out, **files})

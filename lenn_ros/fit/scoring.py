@@ -24,6 +24,7 @@ from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.structure import Identifier
 from lenn_ros.core.threads import cores, side_by_side
 from lenn_ros.fit.data import Data
+from lenn_ros.fit.numbering import number, span
 from lenn_ros.fit.record import Record
 from lenn_ros.fit.result import OutputFit, OutputReport
 from lenn_ros.fit.selection import out_of_fold_residuals
@@ -47,7 +48,6 @@ def score(
     start: int,
     models: list[TermModel],
     columns: list[list[int]],
-    left_out: int = 0,
 ) -> TestPart:
     """Test-part figures of the frozen model, per output: one-step and free run from sample ``start``.
 
@@ -57,9 +57,8 @@ def score(
     that seed them are not scored. Several outputs run their free run together, each fed the
     model's outputs. ``models``: each output's terms as the identifier runs them, over the
     ``columns`` of [y, u] of its view (clipped inputs and the training range are counted there).
-    ``left_out``: training rows left out before the test part (long rest, :func:`~lenn_ros.fit.rest.without_rest`;
-    the earliest rows beyond memory, :func:`~lenn_ros.fit.memory.within_memory`), added to the sample numbers the
-    report names.
+    The samples the free run's description names are numbered as ``data`` numbers them
+    (:mod:`~lenn_ros.fit.numbering`), whatever rows were left out before the test part.
     """
     u, y = data.matrices()
     single = isinstance(identifier, Identifier)
@@ -79,13 +78,12 @@ def score(
         cuts = sorted([*cuts, start])
     index = np.arange(len(y)) + np.searchsorted(cuts, np.arange(len(y)), side="right")  # one lost per break
     y_free, info = free_run_segments(identifier, index, run_u, run_y, start)
-    first = start + left_out  # the test's first sample as the user counts (rows left out before it)
     y_free = y_free.reshape(len(y) - start, -1)
     info = {
         **info,
-        "starts_from": f"measured outputs of samples {first + 1}..{first + window}, not scored"
+        "starts_from": f"measured outputs of samples {span(data, start, min(start + window, len(y)) - 1)}, not scored"
         if start in cuts
-        else f"measured outputs before sample {first + 1}",
+        else f"measured outputs before sample {number(data, start)}",
         "test_record_of_its_own": record_of_its_own,
     }
     healthy = not info["diverged"]

@@ -51,17 +51,26 @@ CHANNELS = ("u_type", "y_type", "u_field", "y_field", "u_names", "y_names", "u_t
 
 
 def add_flags(parser: argparse.ArgumentParser, csv: bool = False) -> None:
-    """The flags of :data:`FLAGS` (``csv``: ``--u`` / ``--y`` also name a data file's columns, as fit's do)."""
-    column = " For a CSV: its column (name or 0-based index); repeat for several channels." if csv else ""
+    """The flags of :data:`FLAGS` (``csv``: ``--u`` / ``--y`` also name a data file's columns, as fit's do, and the
+    channels of a bag of plain Float64MultiArray ``u`` / ``y_p``, by label)."""
+    column = {
+        side: f"; for a CSV: the plant {what}'s column (name or 0-based index; default '{side}', or the {which} of two "
+        f"columns); repeat for several {what}s (one model per output over every channel). For a bag of plain "
+        f"Float64MultiArray u / y_p (import-csv's): a channel's label or 0-based index"
+        if csv
+        else ""
+        for side, what, which in (("u", "input", "first"), ("y", "output", "second"))
+    }
+    metavar = "TOPIC|COL" if csv else "TOPIC"
     parser.add_argument(
         "--u",
         action="append",
-        metavar="TOPIC",
+        metavar=metavar,
         help="the input topic as recorded (the node's -r u:=TOPIC; repeated: one topic per part of the side, "
-        "u_topics)" + column,
+        "u_topics)" + column["u"],
     )
     parser.add_argument(
-        "--y", action="append", metavar="TOPIC", help="the output topic as recorded (-r y_p:=TOPIC)" + column
+        "--y", action="append", metavar=metavar, help="the output topic as recorded (-r y_p:=TOPIC)" + column["y"]
     )
     parser.add_argument("--u-field", metavar="PATH", help="field of the input message, e.g. data[1] (u_field)")
     parser.add_argument("--y-field", metavar="PATH", help="field of the output message, e.g. position[elbow] (y_field)")

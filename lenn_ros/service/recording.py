@@ -413,11 +413,12 @@ def plain_values(path: str | Path, types: dict[str, str], values: dict[str, Any]
         if types[topic] == topics.FLOAT64_ARRAY and values.get(f"{side}_field", "data") == "data":
             names = labelled_names(path, topic)
             values[f"{side}_field"] = "data[*]"
-            values[f"{side}_names"] = names or [f"{side}{i}" for i in range(_array_width(path, topic))]
+            values[f"{side}_names"] = names or [f"{side}{i}" for i in range(array_width(path, topic))]
     return values
 
 
-def _array_width(path: str | Path, topic: str) -> int:
+def array_width(path: str | Path, topic: str) -> int:
+    """Elements of a Float64MultiArray topic's first message (its channels, where no label names them)."""
     first = next(iter_messages(path, [topic]), None)
     return len(first.message.data) if first is not None else 1
 

@@ -66,8 +66,8 @@ def test_the_first_test_row_is_the_first_sample_numbered_k_or_above_and_k_outsid
         "built on samples 1..120, tested on 80 samples from 121"
     )
     for k in (1, 0, -5, 201, 10**6):
-        refused = rf"^--test-from {k} is outside the data's samples, numbered 1\.\.200: K must be in 2\.\.200 \("
-        with pytest.raises(FitError, match=refused + r"samples numbered below K build the model, K\.\. score it\)$"):
+        refused = rf"^--test-from {k} is outside the samples, numbered 1\.\.200: K must be in 2\.\.200 \("
+        with pytest.raises(FitError, match=refused + r"samples numbered below K are learnt from, K\.\. scored\)$"):
             first_test_row(plain, k)
     with pytest.raises(FitError, match=r"the recorded test start 500 is outside .*; pass --test-from K$"):
         first_test_row(plain, 500, recorded=True)
@@ -202,7 +202,7 @@ def test_a_test_start_outside_the_numbers_is_refused_in_one_line(tmp_path: Path,
     done = lenn_ros("fit", str(csv), "--test-from", k)
     assert done.returncode == 2 and done.stdout == "", done.stderr
     assert done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
-    assert f"--test-from {k} is outside the data's samples, numbered 1..1200: K must be in 2..1200" in done.stderr
+    assert f"--test-from {k} is outside the samples, numbered 1..1200: K must be in 2..1200" in done.stderr
 
 
 def test_a_bags_test_start_outside_its_numbers_is_refused_in_one_line(tmp_path: Path) -> None:
@@ -212,7 +212,7 @@ def test_a_bags_test_start_outside_its_numbers_is_refused_in_one_line(tmp_path: 
                     "-o", str(bag)).returncode == 0  # fmt: skip
     done = lenn_ros("fit", str(bag), "--test-from", "501")
     assert done.returncode == 2 and done.stderr.count("\n") == 1 and "Traceback" not in done.stderr
-    assert "--test-from 501 is outside the data's samples, numbered 1..500: K must be in 2..500" in done.stderr
+    assert "--test-from 501 is outside the samples, numbered 1..500: K must be in 2..500" in done.stderr
 
 
 def test_a_csv_with_rows_missing_a_cell_is_reported_by_its_row_numbers(tmp_path: Path) -> None:

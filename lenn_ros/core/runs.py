@@ -80,3 +80,29 @@ def describe_gaps(index: np.ndarray, pairing: str, sample_period: float = 0.0) -
             f"the longest {gap_text(pairing, longest, seconds)}"
         )
     return lines
+
+
+def split_row(numbered: np.ndarray, k: int) -> int:
+    """The split of a record at sample number ``k``: the 0-based row of the first sample numbered ``k`` or above,
+    every row before it numbered below ``k`` (``--test-from K`` in fit and evaluate alike).
+
+    ``ValueError`` with the reason, in words a message can follow with its fix, when no sample would come before
+    ``k`` or none from it, and when the numbering starts again (a publisher's restart) so that samples numbered
+    below ``k`` follow it: no split honours ``k`` then, and it is never moved.
+    """
+    numbered = np.asarray(numbered, dtype=np.int64)
+    first, last = int(numbered.min()), int(numbered.max())
+    if not first < k <= last:
+        raise ValueError(
+            f"is outside the samples, numbered {first}..{last}: K must be in {first + 1}..{last} "
+            "(samples numbered below K are learnt from, K.. scored)"
+        )
+    row = int(np.argmax(numbered >= k))
+    later = np.flatnonzero(numbered[row:] < k)
+    if later.size:
+        again = row + int(later[0])
+        raise ValueError(
+            f"the numbering starts again after sample {int(numbered[again - 1])} (a restart), so samples numbered "
+            f"below K follow sample {int(numbered[row])}: no split honours it"
+        )
+    return row

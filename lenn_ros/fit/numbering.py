@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from lenn_ros.core.runs import split_row
 from lenn_ros.fit.data import Data, FitError
 
 
@@ -49,23 +50,12 @@ def first_test_row(data: Data, test_from: int | None, recorded: bool = False) ->
         raise FitError("pass --test-from K: the number of the first test sample (samples numbered below K build the "
                        "model; a CSV's are its data rows from 1, a bag's the node's sample indices)")  # fmt: skip
     asked = f"the recorded test start {test_from}" if recorded else f"--test-from {test_from}"
-    fix = "; pass --test-from K" if recorded else ""
-    numbered = numbers(data)
-    first, last = int(numbered.min()), int(numbered.max())
-    if not first < test_from <= last:
-        raise FitError(
-            f"{asked} is outside the data's samples, numbered {first}..{last}: K must be in {first + 1}..{last} "
-            f"(samples numbered below K build the model, K.. score it){fix}"
-        )
-    row = int(np.argmax(numbered >= test_from))
-    later = np.flatnonzero(numbered[row:] < test_from)
-    if later.size:
-        again = row + int(later[0])
-        raise FitError(
-            f"{asked}: the numbering starts again after sample {number(data, again - 1)} (a restart), so samples "
-            f"numbered below K follow sample {number(data, row)}: no split honours it{fix or '; fit the runs apart'}"
-        )
-    return row
+    try:
+        return split_row(numbers(data), test_from)
+    except ValueError as reason:
+        fix = "; pass --test-from K" if recorded else ("; fit the runs apart" if "again" in str(reason) else "")
+        joined = " " if str(reason).startswith("is ") else ": "
+        raise FitError(f"{asked}{joined}{reason}{fix}") from None
 
 
 def split_numbers(data: Data, start: int, test_from: int) -> dict[str, Any]:

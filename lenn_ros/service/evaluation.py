@@ -33,7 +33,7 @@ import numpy as np
 from lenn_ros import topics
 from lenn_ros.bag.vectors import read_test_start
 from lenn_ros.core.evaluation import Evaluation
-from lenn_ros.core.runs import describe_gaps, finite_rows, missing
+from lenn_ros.core.runs import describe_gaps, finite_rows, missing, split_row
 from lenn_ros.service import RecordingError
 from lenn_ros.service.building import recorded_changes, weights_path
 from lenn_ros.service.reading import given
@@ -232,29 +232,30 @@ def _test_part(
     Asked for (``--test-from``): honoured exactly, or refused in one line when no sample would be learnt
     from or scored. Else the recording's (the frozen phase, the ``test_start`` topic), else the default.
     """
-    first, last = int(index[0]), int(index[-1])
     if test_from is not None:
-        if not first < test_from <= last:
-            raise RecordingError(
-                f"--test-from {test_from}: the recording's samples are {first}..{last} (the node's numbering), so "
-                f"K must be in {first + 1}..{last}: samples before K are learnt from, K.. scored"
-            )
+        _split(index, test_from, f"--test-from {test_from}", "")
         return int(test_from), ""
     start = _last_phase_start(index, learn) if learn is not None else None
     if start is None:
         start = read_test_start(path)
-    if start is not None and first < start <= last:
-        return int(start), ""
     if start is not None:
-        raise RecordingError(
-            f"{path}: its recorded test start {start} lies outside its samples {first}..{last}; pass --test-from K"
-        )
+        _split(index, start, f"{path}: its recorded test start {start}", "; pass --test-from K")
+        return int(start), ""
     row = min(len(index) - 1, max(1, round(len(index) * (1.0 - DEFAULT_TEST_SHARE))))
     start = int(index[row])
     return start, (
         f"no test phase recorded (no frozen phase, no test_start): the last {DEFAULT_TEST_SHARE:.0%} of the samples "
         f"are the test part, from sample {start} (--test-from K sets another)"
     )
+
+
+def _split(index: np.ndarray, k: int, asked: str, fix: str) -> None:
+    """The split at sample number ``k`` honoured, or refused in one line (the rule of :func:`core.runs.split_row`)."""
+    try:
+        split_row(index, k)
+    except ValueError as reason:
+        joined = " " if str(reason).startswith("is ") else ": "
+        raise RecordingError(f"{asked}{joined}{reason}{fix}") from None
 
 
 def _learning_switch(index: np.ndarray, values: dict[str, Any], changes: list[ParameterChange]) -> np.ndarray:

@@ -32,7 +32,7 @@ REPO = Path(__file__).resolve().parents[1]
 DATA = next(p / "shared" / "data" for p in REPO.parents if (p / "shared" / "data").is_dir())
 LENN = [sys.executable, "-m", "lenn_ros.cli"]
 #: Timings in text reports ("0.41 s", "took 12.3 s") and JSON keys that hold one.
-_SECONDS = re.compile(r"\b\d+(\.\d+)? s\b")
+_SECONDS = re.compile(r"\b\d+(\.\d+)? s\b|peak memory \d+ MiB")
 _TIME_KEYS = ("seconds", "time_s", "fit_seconds", "elapsed_s")
 
 

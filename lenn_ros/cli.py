@@ -341,10 +341,29 @@ def _positive_int(text: str) -> int:
     return value
 
 
+#: Commands whose closing line on stderr says how long they took and the memory they needed (a day-long log).
+MEASURED = ("fit", "evaluate", "bag-info")
+
+
+def _measured(command: str, started: float) -> None:
+    """One line on stderr: the command's wall time and its peak resident memory (``ru_maxrss``)."""
+    import resource
+    import time
+
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
+    print(f"lenn-ros {command}: {time.monotonic() - started:.1f} s, peak memory {peak:.0f} MiB", file=sys.stderr)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    import time
+
+    started = time.monotonic()
     args = build_parser().parse_args(argv)
     try:
-        return int(args.handler(args) or 0)
+        code = int(args.handler(args) or 0)
+        if args.command in MEASURED:
+            _measured(args.command, started)
+        return code
     except KeyboardInterrupt:
         return 130
     except Exception as error:

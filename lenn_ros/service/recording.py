@@ -35,7 +35,7 @@ import numpy as np
 from lenn_ros import topics
 from lenn_ros.bag.reader import iter_messages, open_bag, read_summary, topic_counts, topic_types
 from lenn_ros.bag.scalars import FLOAT64_ARRAY, SCALAR_TYPES, read_series
-from lenn_ros.config import field_extractor, is_mimo
+from lenn_ros.config import field_extractor, is_mimo, side_channels
 from lenn_ros.core.alignment import Pair
 from lenn_ros.core.fields import FieldError, parse_path, split_paths, stamp_seconds
 from lenn_ros.core.pairing import U, sequence_streams
@@ -124,15 +124,16 @@ class PairSink:
         return tuple(np.concatenate(column) for column in zip(*self._blocks, strict=True))  # type: ignore[return-value]
 
 
-def _bulk_columns(field: str, type_name: str, mimo: bool) -> list[int] | None:
+def _bulk_columns(field: str, type_name: str, vector: bool) -> list[int] | None:
     """The Float64MultiArray columns (or [0] for a number's ``data``) a field reads, where the MCAP fast path
-    reads them exactly as the field path would; None where only the general reader can."""
+    reads them exactly as the field path would; None where only the general reader can. ``vector``: the halves
+    are vectors (a model of several channels reads each field as a list of paths)."""
     if type_name in SCALAR_TYPES:
-        return [0] if field == "data" and not mimo else None
+        return [0] if field == "data" and not vector else None
     if type_name != FLOAT64_ARRAY or "[*]" in field:
         return None
     columns = []
-    for path in split_paths(field) if mimo else [field]:
+    for path in split_paths(field):
         steps = parse_path(path)
         if len(steps) != 1 or steps[0].attribute != "data" or not isinstance(steps[0].index, int):
             return None
@@ -140,7 +141,7 @@ def _bulk_columns(field: str, type_name: str, mimo: bool) -> list[int] | None:
     return columns
 
 
-def _fast_halves(path: Path, topic: str, side: str, part: int, columns: list[int], mimo: bool) -> Halves | None:
+def _fast_halves(path: Path, topic: str, side: str, part: int, columns: list[int], vector: bool) -> Halves | None:
     """A number topic's halves straight from the MCAP chunks (no message is deserialised); None: not possible."""
     found = open_bag(path)
     if found.single_mcap is None:
@@ -153,7 +154,7 @@ def _fast_halves(path: Path, topic: str, side: str, part: int, columns: list[int
     if values.ndim == 2:
         if values.shape[1] <= max(columns):
             return None  # (the general reader says which messages lack the element)
-        values = values[:, columns] if mimo else values[:, columns[0]]
+        values = values[:, columns] if vector else values[:, columns[0]]
     n = len(series.log_time_ns)
     source = series.publish_time_ns * 1e-9
     return Halves(
@@ -191,8 +192,8 @@ class _Columns:
         self.sequence.append(message.sequence)
         self.source.append(message.publish_time_ns)
 
-    def halves(self, topic: str, side: str, part: int, width: int) -> Halves:
-        if width > 1:
+    def halves(self, topic: str, side: str, part: int, width: int, vector: bool) -> Halves:
+        if vector:
             nan = np.full(width, np.nan)
             values = np.asarray([v if ok else nan for v, ok in zip(self.values, self.readable, strict=True)])
             values = values.reshape(len(self.values), width)
@@ -217,15 +218,15 @@ def read_halves(path: str | Path, values: dict[str, Any], progress: bool = False
     """
     path = Path(path)
     types = topic_types(path)
-    mimo = is_mimo(values)
+    vector = is_mimo(values)  # (the one place: the halves are vectors for a model of several channels)
     inputs = input_bag_topics(path, types, values)
-    width = {side: _width(values, side) for side in (U, "y")}
+    width = {side: len(side_channels(values, side)[0]) for side in (U, "y")}
     found: dict[str, Halves] = {}
     slow: dict[str, tuple[str, int, _Columns]] = {}
     for side, part, topic in inputs:
         field = str(values[f"{side}_field"])
-        columns = _bulk_columns(field, types[topic], mimo)
-        halves = _fast_halves(path, topic, side, part, columns, mimo) if columns is not None else None
+        columns = _bulk_columns(field, types[topic], vector)
+        halves = _fast_halves(path, topic, side, part, columns, vector) if columns is not None else None
         if halves is not None:
             found[topic] = halves
             continue
@@ -241,21 +242,12 @@ def read_halves(path: str | Path, values: dict[str, Any], progress: bool = False
         finally:
             bar.close()
         for topic, (side, part, columns) in slow.items():
-            found[topic] = columns.halves(topic, side, part, width[side] // max(1, _parts(values, side)))
+            found[topic] = columns.halves(topic, side, part, width[side] // max(1, _parts(values, side)), vector)
     return [found[topic] for _, _, topic in inputs]
 
 
 def _parts(values: dict[str, Any], side: str) -> int:
     return max(1, len([t for t in values.get(f"{side}_topics", [""]) if str(t).strip()]))
-
-
-def _width(values: dict[str, Any], side: str) -> int:
-    """Channels of a side's sample (1 for one channel)."""
-    if not is_mimo(values):
-        return 1
-    from lenn_ros.config import side_channels
-
-    return len(side_channels(values, side)[0])
 
 
 def pair_raw(path: str | Path, session: Session, values: dict[str, Any], progress: bool = False) -> Samples:
@@ -327,14 +319,13 @@ def _offer_all(session: Session, halves: list[Halves], by_order: bool, in_index_
 
 def recorded_samples(path: str | Path, n_u: int = 1, n_y: int = 1) -> tuple[np.ndarray, ...] | None:
     """The identifier's own ``samples`` (the pairs it formed live), sorted by index, a repeated index the first
-    (as live): (index, u, y, learn); None where the bag holds none."""
+    (as live): (index, time, u, y, learn); None where the bag holds none."""
     from lenn_ros.bag.run import read_samples
 
     samples = read_samples(path, None, n_u, n_y)
     if samples is None or samples.index.size == 0:
         return None
-    index, _time, u, y, learn = samples.ordered()
-    return index, u, y, learn
+    return samples.ordered()
 
 
 def raw_losses(path: str | Path) -> dict[str, int]:
@@ -461,12 +452,10 @@ def read_recording(
     identifier, values = configuration(path, params, node, model=model, adjust=adjust, defaults=allowed)
     session = make_session(identifier, values)
     if recorded and not named:
-        shape = (identifier.structure.n_u, identifier.structure.n_y) if is_mimo(values) else (1, 1)
-        found = recorded_samples(path, *shape)
+        found = recorded_samples(path, identifier.n_u, identifier.n_y)
         if found is not None:
-            index, u, y, learn = found
-            return Reading(identifier, values, session, Samples(index, np.full(len(index), np.nan), u, y, "samples"),
-                           learn)  # fmt: skip
+            index, time, u, y, learn = found
+            return Reading(identifier, values, session, Samples(index, time, u, y, "samples"), learn)
     samples = pair_raw(path, session, values, progress)
     if len(samples.index) == 0:
         raise RecordingError(f"{path}: no samples could be paired ({samples.source}); see the notices")

@@ -342,6 +342,27 @@ def markdown(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def wide(report: dict[str, Any]) -> str:
+    """The same, a row per bag (as bench/RESULTS.md holds it): messages/s (CPU s, RSS rise MB) per reader."""
+    bags = list(dict.fromkeys(row["bag"] for row in report["rows"]))
+    readers = list(dict.fromkeys(row["reader"] for row in report["rows"]))
+    lines = ["| bag (messages) | " + " | ".join(readers) + " |", "|---" * (len(readers) + 1) + "|"]
+    for bag in bags:
+        rows = {row["reader"]: row for row in report["rows"] if row["bag"] == bag}
+        counted = max((row["messages"] or 0) for row in rows.values())
+        cells = [
+            "-" if rows[r]["messages"] is None else
+            f"{_spaced(rows[r]['messages_per_s'])} ({rows[r]['seconds']:.2f} s, {rows[r]['rss_rise_mb']:+.0f} MB)"
+            for r in readers
+        ]  # fmt: skip
+        lines.append(f"| {bag} ({_spaced(counted)}) | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _spaced(number: float) -> str:
+    return f"{number:,.0f}".replace(",", " ")
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--samples", type=int, default=300_000, help="rows of the import-csv scalar bag")
@@ -351,6 +372,7 @@ def main() -> int:
     parser.add_argument("--in-process", action="store_true", help="every reader in this process (no peak RSS each)")
     parser.add_argument("--dir", type=Path, help="where to write the bags (default: the temporary directory)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--wide", action="store_true", help="a row per bag (bench/RESULTS.md's table)")
     args = parser.parse_args()
 
     def say(text: str) -> None:
@@ -363,7 +385,7 @@ def main() -> int:
     load = ", ".join(f"{x:.2f}" for x in report["load_average"])
     print(f"{report['date']}, commit {report['commit']}, load average {load} ({report['cpus']} CPUs)")
     print(f"scalar bag {args.samples} samples, robot bags {args.seconds:g} s; {report['versions']}\n")
-    print(markdown(report))
+    print(wide(report) if args.wide else markdown(report))
     return 0
 
 

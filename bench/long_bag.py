@@ -21,6 +21,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import json
+import math
 import os
 import shutil
 import subprocess
@@ -112,7 +113,8 @@ def run_bag(
             result, report = run_command(label, f"fit --test-from {test_from}", argv, work, say)
             if report:
                 result.samples = int(report["train_samples"]) + int(report["samples"])
-                result.nmse_free_run_db, result.nmse_db = report.get("nmse_free_run_db"), report.get("nmse_db")
+                result.nmse_free_run_db = _finite(report.get("nmse_free_run_db"))
+                result.nmse_db = _finite(report.get("nmse_db"))
                 result.detail = f"model {report['model'].get('family', '')}, {report['model'].get('n_terms')} terms"
         else:
             fitted = name == "evaluate-fitted"
@@ -124,7 +126,10 @@ def run_bag(
             result, report = run_command(label, shown, argv, work, say)
             if report:
                 result.samples = report.get("pairs")
-                result.nmse_free_run_db, result.nmse_db = report.get("nmse_free_run_db"), report.get("nmse_db")
+                result.nmse_free_run_db = _finite(report.get("nmse_free_run_db"))
+                result.nmse_db = _finite(report.get("nmse_db"))
+                diverged = [w for w in report.get("free_run_warnings", []) if "diverged" in w]
+                result.detail = diverged[0].split(":")[0] if diverged else ""
         results.append(result)
     return results
 
@@ -185,6 +190,11 @@ def machine() -> dict[str, Any]:
     }
 
 
+def _finite(value: float | None) -> float | None:
+    """A figure, None where the command reported none (NaN: a diverged free run)."""
+    return value if value is not None and math.isfinite(value) else None
+
+
 def _db(value: float | None) -> str:
     return "-" if value is None else f"{value:.1f}"
 
@@ -197,7 +207,7 @@ def markdown(report: dict[str, Any]) -> str:
     ]
     for row in report["results"]:
         samples = "-" if row["samples"] is None else f"{row['samples']:,}"
-        nmse = "-" if row["nmse_free_run_db"] is None else f"{_db(row['nmse_free_run_db'])} / {_db(row['nmse_db'])}"
+        nmse = "-" if row["nmse_db"] is None else f"{_free_run(row)} / {_db(row['nmse_db'])}"
         ok = (
             "yes"
             if row["within_limit"]
@@ -210,15 +220,58 @@ def markdown(report: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def _free_run(row: dict[str, Any]) -> str:
+    if row["nmse_free_run_db"] is None and "diverged" in row["detail"]:
+        return "diverged"
+    return _db(row["nmse_free_run_db"])
+
+
+#: wide(): a column per command
+COLUMNS = ("bag-info", "fit", "evaluate, default model", "evaluate, fit's model")
+
+
+def wide(report: dict[str, Any]) -> str:
+    """A row per bag (bench/RESULTS.md's table): each command's wall s (CPU s), peak RSS, NMSE free run / one-step."""
+    heads = list(COLUMNS)
+    lines = ["| bag (messages, MiB) | samples paired | " + " | ".join(heads) + " |", "|---" * (len(heads) + 2) + "|"]
+    for bag, info in report["bags"].items():
+        rows = [row for row in report["results"] if row["bag"] == bag]
+        cells = []
+        for name in COLUMNS:
+            row = next((r for r in rows if _column(r["command"]) == name), None)
+            if row is None:
+                cells.append("-")
+                continue
+            cell = f"{row['wall_s']:.0f} s ({row['cpu_s']:.0f} s CPU), {row['peak_rss_mb']:.0f} MB"
+            if row["nmse_db"] is not None:
+                cell += f", {_free_run(row)} / {_db(row['nmse_db'])} dB"
+            if not row["within_limit"]:
+                cell += f" **over 15 min or failed** ({row['detail']})"
+            cells.append(cell)
+        paired = {row["samples"] for row in rows} - {None}
+        samples = " / ".join(f"{n:,}".replace(",", " ") for n in sorted(paired)) or "-"
+        messages = f"{info['messages']:,}".replace(",", " ")
+        lines.append(f"| {bag} ({messages}, {info['bytes'] / 2**20:.0f}) | {samples} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _column(command: str) -> str:
+    if command.startswith("evaluate"):
+        return "evaluate, fit's model" if "fit's model" in command else "evaluate, default model"
+    return command.split()[0]
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=600.0, help="the robot bag's length (500 Hz, 3 joints)")
-    parser.add_argument("--storage", nargs="+", choices=("mcap", "sqlite3"), default=["mcap", "sqlite3"])
+    parser.add_argument("--storage", nargs="*", choices=("mcap", "sqlite3"), default=["mcap", "sqlite3"],
+                        help="the 10-minute bag's storages (none: only the hour's)")  # fmt: skip
     parser.add_argument("--hour", action="store_true", help="also bag-info + evaluate on an hour at 1 kHz, 6 joints")
     parser.add_argument("--hour-seconds", type=float, default=3600.0, help="that recording's length (default 3600)")
     parser.add_argument("--hour-storage", nargs="+", choices=("mcap", "sqlite3"), default=["mcap"])
     parser.add_argument("--dir", type=Path, help="where to write the bags (default: the temporary directory)")
     parser.add_argument("--json", action="store_true", help="print one JSON object")
+    parser.add_argument("--wide", action="store_true", help="a row per bag (bench/RESULTS.md's table)")
     args = parser.parse_args()
 
     def say(text: str) -> None:
@@ -227,11 +280,11 @@ def main() -> int:
     report = run(args.seconds, tuple(args.storage), args.hour, args.hour_seconds, tuple(args.hour_storage), args.dir,
                  say)  # fmt: skip
     if args.json:
-        print(json.dumps(report, indent=1))
+        print(json.dumps(report, indent=1, allow_nan=False))
         return 0
     load = ", ".join(f"{x:.2f}" for x in report["load_average"])
     print(f"{report['date']}, commit {report['commit']}, load average {load} ({report['cpus']} CPUs)\n")
-    print(markdown(report))
+    print(wide(report) if args.wide else markdown(report))
     return 0 if all(row["within_limit"] for row in report["results"]) else 1
 
 

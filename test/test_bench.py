@@ -143,3 +143,55 @@ def test_fleet_bench_runs_a_real_trial(domain: int) -> None:
     assert trial.passed, trial
     assert trial.sent == int((fleet.WARM_UP + 2.0) * fleet.RATE_HZ) and trial.counters["paired"] == 2 * trial.sent
     assert trial.cpu_us_per_sample > 0 and trial.rss_mb > 50
+
+
+def test_bag_read_bench_reads_the_same_messages_with_every_reader(tmp_path) -> None:
+    """bench/bag_read.py, small and in this process: every reader counts every message of each bag it can read
+    (mcap's readers none of sqlite3's), read_recording pairs them, and the table and JSON render."""
+    import bag_read
+
+    report = bag_read.run(samples=300, seconds=2.0, isolate=False, directory=tmp_path)
+    rows = report["rows"]
+    assert len(rows) == 3 * len(bag_read.READERS)
+    expected = {"scalar": 600, "robot mcap": 1200, "robot sqlite3": 1200}  # 2 s: 1000 JointState + 200 commands
+    for row in rows:
+        if row["bag"] == "robot sqlite3" and row["reader"].startswith("mcap"):
+            assert row["messages"] is None
+            continue
+        assert row["messages"] == expected[row["bag"]], row
+        assert row["seconds"] >= 0 and row["messages_per_s"] > 0
+    paired = {row["bag"]: row["pairs"] for row in rows if row["reader"].startswith("lenn_ros read_recording")}
+    assert paired["scalar"] == 300 and paired["robot mcap"] == paired["robot sqlite3"] > 990
+    table = bag_read.markdown(report)
+    assert table.count("\n") == len(rows) + 1 and "| robot sqlite3 | mcap make_reader (raw) | - |" in table
+    json.loads(json.dumps(report, default=str))
+
+
+def test_long_bag_bench_times_each_command_in_its_own_process(tmp_path) -> None:
+    """bench/long_bag.py: the rusage is the command's own (a child that holds 300 MB more than pytest shows it, the
+    next one does not inherit it), and bag-info and evaluate of a short robot bag report its samples."""
+    import resource
+    import sys
+
+    import long_bag
+    import robot_bag
+
+    # a child's peak starts from its parent's at the fork (pytest's, here): hold 300 MB above that
+    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+    size = int((own + 300) * 2**20 / 8)
+    hold = f"import numpy as np; a = np.ones({size}); print(int(a.sum()))"
+    code, _wall, cpu, rss, out, _err = long_bag.timed([sys.executable, "-c", hold], tmp_path)
+    assert code == 0 and int(out) == size and rss > own + 280 and cpu > 0
+    code, _wall, _cpu, small, _out, _err = long_bag.timed([sys.executable, "-c", "pass"], tmp_path)
+    assert code == 0 and small < own + 100  # not its sibling's 300 MB
+    # 12 s: past the default model's scale warm-up (5000 samples; a shorter bag fails evaluate's free run)
+    written = long_bag.write(tmp_path / "robot", 12.0, "sqlite3", 3, robot_bag.STATE_RATE, print)
+    assert written["messages"] == 7200 and written["bytes"] > 0
+    bag = tmp_path / "robot"
+    results = long_bag.run_bag("12 s", bag, robot_bag.flags(), 4801, ("bag-info", "evaluate"), tmp_path, print)
+    assert [r.command for r in results] == ["bag-info", "evaluate --test-from 4801 (default model)"]
+    assert all(r.returncode == 0 and r.within_limit and r.peak_rss_mb > 50 for r in results), results
+    assert results[0].samples == results[1].samples > 5990
+    assert results[1].nmse_free_run_db is not None
+    report = {"results": [dataclasses.asdict(r) | {"within_limit": r.within_limit} for r in results]}
+    assert long_bag.markdown(report).count("\n") == 3

@@ -304,7 +304,7 @@ BENCHMARKS = {
     "evaluate": ("evaluate_large.py", "`evaluate` of a 10^6-sample bag, read to result"),
     "fleet": ("fleet.py", "plants identified at 100 Hz with zero loss: one fleet process against a process per plant"),
     "soak": ("soak.py", "a long live run (10^6 samples) through simulator, identifier and recorder"),
-    "bag-read": ("bag_read.py", "bag reading speed against rosbags' AnyReader"),
+    "bag-read": ("bag_read.py", "bag reading speed (messages/s) beside rosbags' and mcap's own readers"),
     "peers": ("peer_narx.py", "against SysIdentPy's FROLS polynomial NARX on real data"),
     "mimo-live": ("mimo_live.py", "the 2x2 plant identified live over seeds: MIMO against one SISO model per output"),
 }

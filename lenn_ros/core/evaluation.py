@@ -62,6 +62,11 @@ def free_run_problems(y_test: np.ndarray, y_free: np.ndarray, info: dict | None 
     info = info or {}
     problems = []
     y_free = np.asarray(y_free, dtype=np.float64)
+    if info.get("unscaled"):
+        return [
+            "no free run: the model's scales were never learnt (the warm-up, scale_warm_up, needs more samples in "
+            "which the signals move than the training part held): give y_scale/u_scale, or a longer training part"
+        ]
     if info.get("diverged") or not np.all(np.isfinite(y_free)):
         where = f" at sample {info['diverged_at'] + 1}" if info.get("diverged_at") is not None else ""
         problems.append(
@@ -100,6 +105,9 @@ def free_run_segments(
     y_free = np.full((len(y) - first, *np.shape(y)[1:]), np.nan)
     info: dict[str, Any] = {"samples": 0, "clipped_inputs": 0, "diverged": False, "diverged_at": None}
     info["segments"] = 0
+    if not identifier.structure.scaled:  # the warm-up never learnt the scales: there is no model to run
+        info.update(unscaled=True, not_simulated=len(y_free))
+        return y_free, info
     for begin, end in zip(starts, stops, strict=True):
         simulate_from = max(first, begin + window)
         if end <= first or simulate_from >= end or not valid[begin]:

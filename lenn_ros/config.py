@@ -8,7 +8,8 @@ evaluation of a recording runs the very configuration the live node ran.
 Defaults are for "my own plant" (``example: 0``, the default): a LeNN on u(k), u(k-1),
 y(k), y(k-1) learnt by RLS with a memory of minutes, its scales and offsets learnt from
 the first seconds of data (:mod:`lenn_ros.core.warmup`). A paper example (``example``
-1-4) is a preset asked for by name: its known linear part, order and scale factors.
+1-4) is a preset asked for by name: its known linear part, order and scale factors, read
+as plain data from :mod:`lenn_ros.presets` (not from the paper harness, which simulates).
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ from lenn_ros.core.fields import FieldError, channel_names, compile_path, compil
 from lenn_ros.core.mimo import MimoIdentifier, MimoStructure, build_mimo_identifier, parse_couplings
 from lenn_ros.core.networks import OUTPUTS, SOLVERS
 from lenn_ros.core.structure import Identifier, ModelStructure
-from lenn_ros.paper.examples import PARAMETER_SETS, get_example
+from lenn_ros.presets import PARAMETER_SETS, example_preset, network_settings
 
 
 class ConfigError(ValueError):
@@ -189,9 +190,9 @@ NODE_PARAMETERS = [
 def identifier_parameters(example: int, network: str, parameters: str = "calibrated") -> list[Parameter]:
     """The identifier's parameters with defaults from the example preset."""
     if example:
-        preset = get_example(example)
-        structure = preset.structure
-        net = preset.network_params(network, parameters)
+        preset = example_preset(example)
+        structure = ModelStructure(**preset["structure"])
+        net = network_settings(preset, network, parameters)
     else:
         # my own plant: scales 0 = learnt from the warm-up; RLS (LeNN) with forgetting 0 = a memory of
         # RLS_MEMORY_S seconds; two lags each (a joint is second order: angle and velocity)
@@ -790,7 +791,7 @@ def resolve(values: dict[str, Any]) -> tuple[dict[str, Any], str]:
     if parameter_set not in PARAMETER_SETS:
         raise ConfigError(f"parameters must be one of {PARAMETER_SETS}, not {parameter_set!r}")
     if example:
-        get_example(example)
+        example_preset(example)
     table = {p.name: p for p in identifier_parameters(example, network, parameter_set)}
     check_known(values, set(table) | {p.name for p in NODE_PARAMETERS})
     result = {name: p.default for name, p in table.items()}

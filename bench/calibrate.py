@@ -5,7 +5,7 @@ its own implementation, whose feature and output scaling it does not state. This
 script repeats those trials for ours: a grid of alpha (the paper's value times
 2^-j) and beta (the paper's value, 0.5), full 50 000-sample runs, scored by the
 mean one-step test NMSE over calibration seeds 100-104, which are never used for
-the reported results (seeds 0..K-1). Its output is what examples.py records as
+the reported results (seeds 0..K-1). Its output is what lenn_ros/presets.py records as
 the "calibrated" parameter set.
 
     python bench/calibrate.py            # about 3 minutes on 2 cores

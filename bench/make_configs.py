@@ -1,4 +1,4 @@
-"""Write config/exampleN_{lenn,mlp}.yaml from the presets in lenn_ros/paper/examples.py,
+"""Write config/exampleN_{lenn,mlp}.yaml from the presets in lenn_ros/presets.py,
 and config/narendra2x2_lenn.yaml (the MIMO plant; ``bench/mimo_live.py`` runs it).
 
 The params files are generated, not hand-edited, so they cannot drift from the

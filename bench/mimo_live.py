@@ -30,10 +30,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from lenn_ros.config import build_identifier, identifier_parameters, read_params_file  # noqa: E402
+from lenn_ros.config import identifier_parameters  # noqa: E402
 from lenn_ros.core.metrics import nmse_db  # noqa: E402
 from lenn_ros.paper.evaluation import simulate_mimo  # noqa: E402
 from lenn_ros.paper.plants import narendra_mimo_plant  # noqa: E402
+from lenn_ros.service.building import build_identifier  # noqa: E402
+from lenn_ros.service.params import read_params_file  # noqa: E402
 
 NAMES = ("y1", "y2")
 #: The SISO-per-output identifier listens to the same topics from namespace /siso, and its

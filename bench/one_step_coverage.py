@@ -25,11 +25,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import peer_narx
 from peer_narx import splits
 
-from lenn_ros.config import build_identifier, resolve
+from lenn_ros.config import resolve
 from lenn_ros.core.metrics import coverage
 from lenn_ros.core.spread import Z95
 from lenn_ros.paper.evaluation import simulate
 from lenn_ros.paper.examples import get_example
+from lenn_ros.service.building import build_identifier
 from lenn_ros.session import Session, SessionConfig
 
 

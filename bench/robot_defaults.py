@@ -21,9 +21,10 @@ from typing import Any
 
 import numpy as np
 
-from lenn_ros.config import NODE_PARAMETERS, build_identifier, resolve
+from lenn_ros.config import NODE_PARAMETERS, resolve
 from lenn_ros.paper.physical import FrictionJoint
 from lenn_ros.paper.signals import Excitation
+from lenn_ros.service.building import build_identifier
 from lenn_ros.session import Session, SessionConfig
 
 

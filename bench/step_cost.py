@@ -51,6 +51,10 @@ import numpy as np
 from lenn_ros import config
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.session import Session, SessionConfig
+try:
+    from lenn_ros.service.building import build_identifier
+except ImportError:  # a reference commit from before the factory moved to the service layer
+    build_identifier = config.build_identifier
 
 overrides, samples = json.loads(sys.argv[1]), int(sys.argv[2])
 example = overrides.get("example", 0)
@@ -58,7 +62,7 @@ table = config.identifier_parameters(example, "lenn") + config.NODE_PARAMETERS
 values = {p.name: p.default for p in table}
 values.update({k: v for k, v in overrides.items() if k != "example"})
 values["example"] = example
-identifier = config.build_identifier(values, "lenn")
+identifier = build_identifier(values, "lenn")
 session = Session(identifier, SessionConfig.from_values(values, follow_test_start=False, learning=True))
 rng = np.random.default_rng(0)
 u = np.sin(2 * np.pi * np.arange(samples + 2000) / 250) + 0.3 * rng.uniform(-1, 1, samples + 2000)
@@ -80,7 +84,7 @@ for start in range(2000, 2000 + samples, 1000):
         session.offer(Y, float(y[k]), t, sequence=k + 1)
     blocks.append((time.perf_counter() - begin) / 1000 * 1e6)
 counters = session.status()["counters"]
-model_alone = config.build_identifier(values, "lenn")  # the model's own step, without the session (scales given)
+model_alone = build_identifier(values, "lenn")  # the model's own step, without the session (scales given)
 for k in range(2000):
     model_alone.step(k + 1, float(u[k]), float(y[k]), True)
 steps = []

@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from lenn_ros.errors import user_error_types
-from lenn_ros.paper.examples import PARAMETER_SETS, TRAIN_SAMPLES
+from lenn_ros.presets import PARAMETER_SETS, TRAIN_SAMPLES
 from lenn_ros.service.reading import add_flags as add_reading_flags
 
 

@@ -2,33 +2,31 @@
 
 The identifier node declares exactly these parameters (with their descriptions and
 ranges), ``lenn-ros evaluate --params FILE`` reads the same ``ros__parameters``
-YAML, and both build the model through :func:`build_identifier`: the offline
-evaluation of a recording runs the very configuration the live node ran.
+YAML (matched to the node by :mod:`lenn_ros.service.params`), and both build the model
+from the values checked here through :func:`lenn_ros.service.building.build_identifier`:
+the offline evaluation of a recording runs the very configuration the live node ran.
+This module is the table only (names, defaults, ranges, the checks of one value, which
+channels the values name), below the service layer that builds from it.
 
 Defaults are for "my own plant" (``example: 0``, the default): a LeNN on u(k), u(k-1),
 y(k), y(k-1) learnt by RLS with a memory of minutes, its scales and offsets learnt from
 the first seconds of data (:mod:`lenn_ros.core.warmup`). A paper example (``example``
-1-4) is a preset asked for by name: its known linear part, order and scale factors.
+1-4) is a preset asked for by name: its known linear part, order and scale factors, read
+as plain data from :mod:`lenn_ros.presets` (not from the paper harness, which simulates).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import difflib
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
-import yaml
-
 from lenn_ros.core.change import DEFAULT_THRESHOLD
-from lenn_ros.core.expansions import parse_terms, siso_channels
 from lenn_ros.core.fields import FieldError, channel_names, compile_path, compile_vector, is_vector
-from lenn_ros.core.mimo import MimoIdentifier, MimoStructure, build_mimo_identifier, parse_couplings
 from lenn_ros.core.networks import OUTPUTS, SOLVERS
-from lenn_ros.core.structure import Identifier, ModelStructure
-from lenn_ros.paper.examples import PARAMETER_SETS, get_example
+from lenn_ros.core.structure import ModelStructure
+from lenn_ros.presets import PARAMETER_SETS, example_preset, network_settings
 
 
 class ConfigError(ValueError):
@@ -189,9 +187,9 @@ NODE_PARAMETERS = [
 def identifier_parameters(example: int, network: str, parameters: str = "calibrated") -> list[Parameter]:
     """The identifier's parameters with defaults from the example preset."""
     if example:
-        preset = get_example(example)
-        structure = preset.structure
-        net = preset.network_params(network, parameters)
+        preset = example_preset(example)
+        structure = ModelStructure(**preset["structure"])
+        net = network_settings(preset, network, parameters)
     else:
         # my own plant: scales 0 = learnt from the warm-up; RLS (LeNN) with forgetting 0 = a memory of
         # RLS_MEMORY_S seconds; two lags each (a joint is second order: angle and velocity)
@@ -335,20 +333,6 @@ MIMO_PARAMETERS = [
 ]
 
 
-def build_identifier(values: dict[str, Any], network: str) -> Identifier | MimoIdentifier:
-    """An :class:`Identifier` from parameter values (node, params file or CLI).
-
-    The values are the user's, so what the model's own checks refuse (a term list that
-    does not parse, a solver that needs a linear output) is a :class:`ConfigError`.
-    """
-    try:
-        return _build_identifier(values, network)
-    except ConfigError:
-        raise
-    except ValueError as error:
-        raise ConfigError(str(error)) from error
-
-
 def is_mimo(values: dict[str, Any]) -> bool:
     """Whether the values name several u or y_p channels (then the model is a MimoIdentifier)."""
     several = any(len(_side_topics(values, side)) > 1 for side in ("u", "y"))
@@ -399,367 +383,6 @@ def field_extractor(values: dict[str, Any], side: str) -> Callable[[Any], Any]:
     return compile_vector(field) if parts else compile_vector(field, names)
 
 
-def _build_identifier(values: dict[str, Any], network: str) -> Identifier | MimoIdentifier:
-    if is_mimo(values):
-        return _build_mimo(values, network)
-    structure = ModelStructure(
-        y_lags=int(values["y_lags"]),
-        u_lags=int(values["u_lags"]),
-        known_a=_coefficients(values["known_a"]),
-        known_b=_coefficients(values["known_b"]),
-        y_scale=float(values["y_scale"]),
-        u_scale=float(values["u_scale"]),
-        separate=bool(values["separate"]),
-        y_offset=float(values.get("y_offset", 0.0)),
-        u_offset=float(values.get("u_offset", 0.0)),
-        output_offset=float(values.get("output_offset", 0.0)),
-        y_abs=bool(values.get("y_abs", False)),
-    )
-    if values.get("weights_in") and not structure.scaled:
-        structure = _scaling_of_weights(structure, str(values["weights_in"]))
-    terms = [str(t) for t in values.get("terms", [""]) if str(t).strip()]
-    selected = terms and network == "lenn"  # the MLP takes every input (terms are the LeNN's)
-    exponents = factors = None
-    if selected:
-        rows, factor_rows = parse_terms(terms, siso_channels(structure.y_lags, structure.u_lags))
-        exponents = rows.tolist()
-        factors = factor_rows.tolist() if factor_rows[:, 0].any() else None
-    if exponents is not None and structure.separate:
-        raise ConfigError("terms select one combiner over all inputs: set separate: false")
-    model = _make_model(values, network, structure.n_inputs, structure.branches(), exponents, factors)
-    return Identifier(structure, model)
-
-
-def _make_model(
-    values: dict[str, Any],
-    network: str,
-    n_inputs: int,
-    branches: list[list[int]] | None,
-    exponents: list | None,
-    factors: list | None = None,
-) -> Any:
-    """One network from the parameter values (the SISO model, or one output's of a MIMO model)."""
-    common = {
-        "n_inputs": n_inputs,
-        "branches": branches,
-        "output": values["output"],
-        "output_scale": float(values["output_scale"]),
-        "alpha": float(values["alpha"]),
-        "beta": float(values["beta"]),
-        "random_state": int(values["seed"]),
-    }
-    if network == "mlp":
-        from lenn_ros.core.networks import MLP
-
-        model = MLP(hidden=[int(h) for h in values["hidden"]], **common)
-    elif network == "lenn":
-        from lenn_ros.core.networks import FunctionalLinkNetwork
-
-        model = FunctionalLinkNetwork(
-            exponents=exponents,
-            factors=factors,
-            order=int(values["order"]),
-            basis=values["basis"],
-            cross_degree=int(values["cross_degree"]),
-            solver=values["solver"],
-            forgetting=rls_forgetting(values),
-            nlms_step=float(values["nlms_step"]),
-            **common,
-        )
-    else:
-        raise ConfigError(f"unknown network {network!r}; use 'lenn' or 'mlp'")
-    return model
-
-
-def _per_channel(values: dict[str, Any], name: str, count: int) -> tuple[float, ...]:
-    """``u_scales`` etc.: one value per channel, or the scalar parameter for all of them."""
-    listed = [float(value) for value in values.get(f"{name}s", [0.0])]
-    if len(listed) == count:
-        return tuple(listed)
-    if len(listed) == 1:
-        value = float(values.get(name, 1.0 if name.endswith("scale") else 0.0))
-        return (value,) * count  # (a scale left at 0: learnt per channel by the session's warm-up)
-    raise ConfigError(f"{name}s has {len(listed)} values for {count} channels: give one per channel, or one")
-
-
-def _pass_through(values: dict[str, Any], n_y: int) -> tuple[bool, ...]:
-    """``y_pass_through``: one flag per output, or the single default (none passed through)."""
-    flags = [bool(flag) for flag in values.get("y_pass_through", [False])]
-    if len(flags) == n_y:
-        return tuple(flags)
-    if flags == [False]:
-        return ()
-    raise ConfigError(f"y_pass_through has {len(flags)} values for {n_y} outputs: give one per output")
-
-
-def unlearnt_mimo_scales(values: dict[str, Any]) -> str | None:
-    """Several channels with scales left at 0 and ``weights_in``: what cannot work (None: nothing).
-
-    The warm-up learns such scales per channel, but weights saved on one scaling mean
-    something else on another: a MIMO weights file needs its scales given.
-    """
-    if not is_mimo(values) or not values.get("weights_in"):
-        return None
-    unset = [
-        side
-        for side in ("u", "y")
-        if float(values.get(f"{side}_scale", 1.0)) == UNSET_SCALE
-        and all(float(v) == UNSET_SCALE for v in values.get(f"{side}_scales", [0.0]))
-    ]
-    if not unset:
-        return None
-    names = " and ".join(f"{side}_scales" for side in unset)
-    return (
-        f"weights_in with several channels and {names} not given: the weights mean something only on the scaling "
-        f"they were learnt with; give {names} (one per channel; lenn-ros fit writes them)"
-    )
-
-
-def _scaling_of_weights(structure: ModelStructure, weights_in: str) -> ModelStructure:
-    """``structure`` with the scales the weights file was saved with, for ``weights_in`` without scales.
-
-    A network's weights mean something only on the scaling their inputs had; a run
-    that learnt its scales by the warm-up saves them with the weights (``weights_out``),
-    so restarting from that file with the same short command needs no scales either.
-    A file without them (an older save) cannot say: then the error names the fix.
-    """
-    import os
-
-    from lenn_ros.core.networks import ModelFileError, read_weights_file
-
-    path = os.path.abspath(os.path.expanduser(weights_in))
-    try:
-        header, _ = read_weights_file(path)
-    except (ModelFileError, OSError, ValueError):
-        return structure  # a missing or broken file: the load (node, evaluate) says so in its own line
-    scaling = header.get("scaling") if isinstance(header, dict) else None
-    if isinstance(scaling, dict) and all(isinstance(scaling.get(k), int | float) for k in SCALING_KEYS):
-        return dataclasses.replace(structure, **{k: float(scaling[k]) for k in SCALING_KEYS})
-    raise ConfigError(
-        "weights_in with y_scale/u_scale 0 (learnt from the warm-up), and the file holds no scales: weights mean "
-        "something only on the scaling they were learnt with; give y_scale, u_scale, y_offset, u_offset (the run "
-        "that saved them said its learnt ones in the line 'scales learnt from ...' and in status scaling; "
-        "lenn-ros fit writes them; a run of this version saves them with weights_out)"
-    )
-
-
-#: what a saved model records of its inputs' scaling (``OnlineRegressor.save(scaling=...)``)
-SCALING_KEYS = ("y_scale", "u_scale", "y_offset", "u_offset")
-
-
-def _build_mimo(values: dict[str, Any], network: str) -> MimoIdentifier:
-    """One network per output over the coupled channels; SISO-only structure options are refused."""
-    try:
-        u_names = side_channels(values, "u")[0]
-        y_names = side_channels(values, "y")[0]
-    except FieldError as error:
-        raise ConfigError(str(error)) from None
-    unsupported = [
-        name
-        for name, given in (
-            ("known_a", any(float(a) for a in values.get("known_a", [0.0]))),
-            ("known_b", any(float(b) for b in values.get("known_b", [0.0]))),
-        )
-        if given
-    ]
-    if values.get("y_abs", False):
-        raise ConfigError("y_abs: a sensor read as |y| is signed by one output's predictions, not supported with "
-                          "several channels (set y_abs: false)")  # fmt: skip
-    if unsupported:
-        raise ConfigError(
-            f"{', '.join(unsupported)}: a known linear part is a single-channel option (which of several inputs "
-            "would known_b weigh?), not supported with several channels (the paper's examples set them: "
-            "example:=0 for a model of your own plant)"
-        )
-    problem = unlearnt_mimo_scales(values)
-    if problem:
-        raise ConfigError(problem)
-    n_u, n_y = len(u_names), len(y_names)
-    separate = bool(values.get("separate", False))
-    structure = MimoStructure(
-        n_u=n_u,
-        n_y=n_y,
-        y_lags=int(values["y_lags"]),
-        u_lags=int(values["u_lags"]),
-        y_scale=_per_channel(values, "y_scale", n_y),
-        y_offset=_per_channel(values, "y_offset", n_y),
-        u_scale=_per_channel(values, "u_scale", n_u),
-        u_offset=_per_channel(values, "u_offset", n_u),
-        couplings=parse_couplings(str(values.get("couplings", "full")), n_u, n_y),
-        separate=separate,
-        y_pass_through=_pass_through(values, n_y),
-    )
-    selected = mimo_terms(values, structure) if network == "lenn" else [(None, None)] * n_y
-    if separate and any(rows is not None for rows, _ in selected):
-        raise ConfigError("terms select one combiner over all inputs: set separate: false")
-    try:
-        channels = [structure.channel(j) for j in range(n_y)]  # (each output's structure checks itself)
-    except ValueError as error:
-        why = " (separate: every output needs its own past and another channel in couplings)" if separate else ""
-        raise ConfigError(f"{error}{why}") from None
-    return build_mimo_identifier(
-        structure,
-        lambda n_inputs, output: _make_model(values, network, n_inputs, channels[output].branches(), *selected[output]),
-        y_names,
-    )
-
-
-def mimo_channels(structure: MimoStructure, output: int) -> list[tuple[str, int]]:
-    """Output ``output``'s network inputs as terms name them: its own lags (``y1_1``..), then each channel
-    it sees (``u0_1``.., ``y0_1``..), in the regressor's order (``MimoStructure.channel``'s input channels)."""
-    channel = structure.channel(output)
-    lags = [count for count, _, _ in channel.input_channels()[1:]]  # (reading no other channel: one u of no lags)
-    others = [(f"{kind}{index}", lags[c]) for c, (kind, index) in enumerate(structure.others(output))]
-    return [(f"y{output}", channel.y_lags), *others]
-
-
-def mimo_terms(values: dict[str, Any], structure: MimoStructure) -> list[tuple[list | None, list | None]]:
-    """(exponents, factors) of each output's selected terms, or (None, None) each: the full expansion.
-
-    With several outputs every entry of ``terms`` names its output first, ``y1: u0_2*y1_1``
-    (as ``lenn-ros fit`` writes them); every output needs at least one term.
-    """
-    terms = [str(t) for t in values.get("terms", [""]) if str(t).strip()]
-    if not terms:
-        return [(None, None)] * structure.n_y
-    outputs = [f"y{j}" for j in range(structure.n_y)]
-    groups: dict[str, list[str]] = {name: [] for name in outputs}
-    for text in terms:
-        prefix, colon, term = text.partition(":")
-        if not colon or prefix.strip() not in groups:
-            raise ConfigError(
-                f"terms entry {text!r}: with several outputs each term names its output first, e.g. "
-                f"'y0: u1_2*y0_1' (outputs {', '.join(outputs)})"
-            )
-        groups[prefix.strip()].append(term.strip())
-    empty = [name for name in outputs if not groups[name]]
-    if empty:
-        raise ConfigError(f"terms name no term for {', '.join(empty)}: give each output at least one ('y0: 1')")
-    selected = []
-    for j, name in enumerate(outputs):
-        try:
-            rows, factor_rows = parse_terms(groups[name], mimo_channels(structure, j))
-        except ValueError as error:
-            raise ConfigError(f"terms of {name}: {error}") from None
-        selected.append((rows.tolist(), factor_rows.tolist() if factor_rows[:, 0].any() else None))
-    return selected
-
-
-def _coefficients(values: Any) -> tuple[float, ...]:
-    coefficients = tuple(float(v) for v in values)
-    return () if all(c == 0.0 for c in coefficients) else coefficients
-
-
-def read_params_file(path: str | Path, node: str = "/identifier") -> dict[str, Any]:
-    """The ``ros__parameters`` a ROS 2 params file gives the node ``node``, by rcl's rules.
-
-    ``node`` is the fully qualified name (``/robot1/identifier``; a bare name is in the
-    root namespace). See :func:`read_params_files`: one file is the case of one.
-    """
-    return read_params_files([path], node)
-
-
-def read_params_files(paths: list[str | Path] | tuple[str | Path, ...], node: str = "/identifier") -> dict[str, Any]:
-    """The parameters rcl gives ``node`` from these files (``--params-file`` after ``--params-file``).
-
-    rcl's rules, as rclpy applies them (checked against rclpy in test_params_keys.py):
-    every section whose key matches the node (:func:`node_key_matches`: ``/**``,
-    ``/**/identifier``, ``/robot1/*``, ``identifier`` = the root namespace's) applies, in
-    the order the keys first appear over the files, a later one overriding an earlier one
-    name by name; a key repeated (in the file or a later file) is merged into its first
-    place. No "most specific wins": ``/**/identifier`` above ``/**`` is overridden by it.
-    ``/robot1/identifier`` and ``/robot2/identifier`` are two nodes, never merged.
-    """
-    name = "/" + str(node).strip().lstrip("/")
-    sections: dict[str, dict[str, Any]] = {}  # key as written -> its parameters, in first-appearance order
-    for path in paths:
-        for key, parameters in _params_sections(Path(path)).items():
-            sections.setdefault(key, {}).update(parameters)
-    matched = [key for key in sections if node_key_matches(key, name)]
-    if not matched:
-        shown = ", ".join(sections) or "none"
-        files = ", ".join(str(path) for path in paths)
-        raise ConfigError(
-            f"params file {files} has no section for the node {name} (its keys: {shown}): name a section '/**:' "
-            f"(any node), '/**/{name.rsplit('/', 1)[-1]}:' or '{name}:', each with 'ros__parameters:'"
-        )
-    merged: dict[str, Any] = {}
-    for key in matched:
-        merged.update(sections[key])
-    return merged
-
-
-def _params_sections(path: Path) -> dict[str, dict[str, Any]]:
-    """A params file's sections: key -> its flattened ``ros__parameters`` (a file ROS would refuse is an error)."""
-    try:
-        document = yaml.safe_load(path.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"params file {path} does not exist") from None
-    except IsADirectoryError:
-        raise ConfigError(f"params file {path} is a directory; pass the .yaml file in it") from None
-    except yaml.YAMLError as error:
-        raise ConfigError(f"params file {path} is not valid YAML: {str(error).splitlines()[0]}") from None
-    if not isinstance(document, dict):
-        raise ConfigError(f"params file {path} must map node names to {{ros__parameters: ...}}")
-    sections = {}
-    for key, section in document.items():
-        if isinstance(section, dict) and isinstance(section.get("ros__parameters"), dict):
-            sections[str(key).strip()] = _flatten(section["ros__parameters"])
-    return sections
-
-
-def node_key_matches(key: str, fully_qualified_name: str) -> bool:
-    """Whether a params-file key addresses a node, by rcl's rules: the one matcher of the package.
-
-    ``*`` stands for one name token, ``**`` for any number of them (none included); a
-    key without a leading ``/`` is taken from the root namespace.
-    """
-    pattern = [token for token in str(key).strip().split("/") if token]
-    name = [token for token in fully_qualified_name.split("/") if token]
-
-    def match(p: int, n: int) -> bool:
-        if p == len(pattern):
-            return n == len(name)
-        if pattern[p] == "**":
-            return any(match(p + 1, rest) for rest in range(n, len(name) + 1))
-        return n < len(name) and pattern[p] in ("*", name[n]) and match(p + 1, n + 1)
-
-    return match(0, 0)
-
-
-def params_files(argv: list[str]) -> list[str]:
-    """The ``--params-file`` paths in a command line, in order."""
-    return [argv[i + 1] for i, argument in enumerate(argv[:-1]) if argument == "--params-file"]
-
-
-def unmatched_params_files(argv: list[str], fully_qualified_name: str) -> list[tuple[str, list[str]]]:
-    """The ``--params-file`` files in ``argv`` with no section for this node, and their keys.
-
-    rclpy applies such a file to no node and says nothing: the node would run on its
-    defaults while the user believes their file is in force.
-    """
-    unmatched = []
-    for path in params_files(argv):
-        try:
-            keys = list(_params_sections(Path(path)))
-        except ConfigError:
-            continue  # rclpy itself refuses a file it cannot read, with its own message
-        if not any(node_key_matches(key, fully_qualified_name) for key in keys):
-            unmatched.append((path, keys))
-    return unmatched
-
-
-def _flatten(parameters: dict[str, Any], prefix: str = "") -> dict[str, Any]:
-    """Nested YAML maps are dotted names in ROS 2 (``qos_overrides: {/u: ...}``)."""
-    flat: dict[str, Any] = {}
-    for name, value in parameters.items():
-        if isinstance(value, dict):
-            flat.update(_flatten(value, f"{prefix}{name}."))
-        else:
-            flat[f"{prefix}{name}"] = value
-    return flat
-
-
 #: names ROS 2 itself gives every node, and prefixes of its per-topic settings
 FOREIGN_PARAMETERS = ("use_sim_time", "start_type_description_service", "qos_overrides.")
 PRESET_PARAMETERS = ("example", "network", "parameters")
@@ -790,7 +413,7 @@ def resolve(values: dict[str, Any]) -> tuple[dict[str, Any], str]:
     if parameter_set not in PARAMETER_SETS:
         raise ConfigError(f"parameters must be one of {PARAMETER_SETS}, not {parameter_set!r}")
     if example:
-        get_example(example)
+        example_preset(example)
     table = {p.name: p for p in identifier_parameters(example, network, parameter_set)}
     check_known(values, set(table) | {p.name for p in NODE_PARAMETERS})
     result = {name: p.default for name, p in table.items()}

@@ -14,9 +14,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lenn_ros.config import build_identifier, resolve
+from lenn_ros.config import resolve
 from lenn_ros.core.change import DEFAULT_THRESHOLD, RAISED, ChangeDetector
 from lenn_ros.paper.experiments.tracking import simulate_change
+from lenn_ros.service.building import build_identifier
 from lenn_ros.session import Session, SessionConfig
 
 RATE = 100.0  # Hz: "within 2 s at 100 Hz"

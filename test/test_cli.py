@@ -9,8 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from lenn_ros.config import read_params_file, resolve
+from lenn_ros.config import resolve
 from lenn_ros.paper.examples import EXAMPLES
+from lenn_ros.service.params import read_params_file
 
 REPO = Path(__file__).resolve().parents[1]
 

@@ -466,13 +466,14 @@ def test_one_output_free_run_is_the_several_output_path_compiled_or_not(example:
     from free_run_check import assert_same_divergence, assert_same_free_run
 
     from lenn_ros import config
+    from lenn_ros.service.building import build_identifier
 
     if not jit.JIT:
         pytest.skip("numba is not installed: there is no compiled free run")
     spec = get_example(example)
     series = simulate(spec.plant(), spec.noise_db, 3, 1500, 300)
     values, network = config.resolve({"example": example})
-    identifier = config.build_identifier(values, network)
+    identifier = build_identifier(values, network)
     identifier.run(series.u, series.y, np.arange(len(series.y)) < 1500)
     fast, _info = assert_same_free_run(identifier, series.u, series.y, 1500, monkeypatch)
     assert np.isfinite(fast).all()

@@ -21,13 +21,15 @@ from test_fit import cubic_plant
 
 from lenn_ros import topics
 from lenn_ros.bag.writer import BagWriter
-from lenn_ros.config import NODE_PARAMETERS, build_identifier, read_params_file, resolve
+from lenn_ros.config import NODE_PARAMETERS, resolve
 from lenn_ros.fit.data import Data
 from lenn_ros.fit.export import write_outputs
 from lenn_ros.fit.procedure import fit
 from lenn_ros.paper.evaluation import Series, train_and_test
 from lenn_ros.service import RecordingError
+from lenn_ros.service.building import build_identifier
 from lenn_ros.service.evaluation import evaluate_bag
+from lenn_ros.service.params import read_params_file
 
 REPO = Path(__file__).resolve().parents[1]
 TRAIN = 2000

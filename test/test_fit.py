@@ -18,7 +18,7 @@ import pytest
 import yaml
 
 import lenn_ros
-from lenn_ros.config import ConfigError, build_identifier, read_params_file, resolve
+from lenn_ros.config import ConfigError, resolve
 from lenn_ros.core import term_kernels
 from lenn_ros.core.evaluation import free_run_problems
 from lenn_ros.core.expansions import format_terms, parse_terms, siso_channels
@@ -55,6 +55,8 @@ from lenn_ros.fit.soundness import (
 )
 from lenn_ros.fit.termmodel import Layout, TermModel, siso_view
 from lenn_ros.paper.examples import get_example
+from lenn_ros.service.building import build_identifier
+from lenn_ros.service.params import read_params_file
 
 SILVERBOX = Path(__file__).resolve().parents[2] / "shared" / "data" / "silverbox_multisine.csv"
 BALL_AND_BEAM = SILVERBOX.parent / "daisy_ball-and-beam.csv"

@@ -22,10 +22,11 @@ import yaml
 from lenn_ros import topics
 from lenn_ros.bag.msgtypes import TYPESTORE
 from lenn_ros.bag.writer import BagWriter
-from lenn_ros.config import build_identifier, read_params_file, resolve
+from lenn_ros.config import resolve
 from lenn_ros.paper.physical import FrictionJoint
 from lenn_ros.paper.signals import Excitation
-from lenn_ros.service.building import NODE_DEFAULTS, make_session
+from lenn_ros.service.building import NODE_DEFAULTS, build_identifier, make_session
+from lenn_ros.service.params import read_params_file
 from lenn_ros.service.recording import pair_raw
 
 PERIOD, COMMAND_EVERY, SAMPLES = 0.005, 4, 8000  # 200 Hz driver, 50 Hz controller, 40 s

@@ -22,11 +22,13 @@ rclpy = pytest.importorskip("rclpy")
 from rosutil import Listener, Talker, final_status, start_node, stop  # noqa: E402
 from test_fit import _plant_study, cubic_plant  # noqa: E402
 
-from lenn_ros.config import build_identifier, read_params_file, resolve  # noqa: E402
+from lenn_ros.config import resolve  # noqa: E402
 from lenn_ros.core.networks import OnlineRegressor  # noqa: E402
 from lenn_ros.fit.data import Data  # noqa: E402
 from lenn_ros.fit.export import write_outputs  # noqa: E402
 from lenn_ros.fit.procedure import fit  # noqa: E402
+from lenn_ros.service.building import build_identifier  # noqa: E402
+from lenn_ros.service.params import read_params_file  # noqa: E402
 
 
 class SeriesTalker(Talker):

@@ -19,7 +19,7 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from lenn_ros.bag import BagError, import_csv, read_run
-from lenn_ros.config import build_identifier, read_params_file, resolve
+from lenn_ros.config import resolve
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.networks import ModelFileError
 from lenn_ros.fit.data import Data
@@ -29,6 +29,8 @@ from lenn_ros.fit.procedure import fit
 from lenn_ros.fit.regression import RIDGE
 from lenn_ros.paper.evaluation import simulate_mimo
 from lenn_ros.paper.plants import narendra_mimo_plant
+from lenn_ros.service.building import build_identifier
+from lenn_ros.service.params import read_params_file
 
 REPO = Path(__file__).resolve().parents[1]
 TRAIN, TEST = 2000, 400

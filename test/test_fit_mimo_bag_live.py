@@ -30,7 +30,7 @@ from rosutil import REPO, start_node, stop  # noqa: E402
 from test_fit_robot_live import StatusWatch  # noqa: E402
 from test_robot import finish  # noqa: E402
 
-from lenn_ros.config import read_params_file  # noqa: E402
+from lenn_ros.service.params import read_params_file  # noqa: E402
 
 pytestmark = [
     pytest.mark.ros,

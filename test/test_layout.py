@@ -129,6 +129,37 @@ def test_the_layers_import_downwards_only() -> None:
     assert result.stdout.split("\n")[:2] == ["core", "fit"], result.stdout
 
 
+#: single modules with a rule of their own: what each must not import (a prefix covers its submodules)
+_MODULE_RULES = {
+    # the one table of parameters: a preset's numbers are data (lenn_ros.presets), not the paper harness
+    # (simulators, networks); the service layer builds from the table, so the table is below it
+    "lenn_ros.config": ("lenn_ros.paper", "lenn_ros.service"),
+    # presets are data: the table and the paper harness both read them, so they import neither (nor numpy)
+    "lenn_ros.presets": ("lenn_ros.config", "lenn_ros.core", "lenn_ros.paper", "lenn_ros.service", "numpy"),
+}
+
+
+def test_config_reads_presets_as_data_not_the_paper_harness() -> None:
+    """config imports no lenn_ros.paper (nor the service layer above it) and presets import nothing heavy:
+    in the source (lazy imports too) and by what importing each pulls in, in a fresh interpreter."""
+    modules = _modules()
+    offenders = [
+        f"{modules[module].relative_to(REPO)} imports {name}"
+        for module, forbidden in _MODULE_RULES.items()
+        for name in sorted(_imported_modules(modules[module]))
+        if any(name == prefix or name.startswith(prefix + ".") for prefix in forbidden)
+    ]
+    assert not offenders, "\n".join(offenders)
+    for module, forbidden in _MODULE_RULES.items():
+        code = (
+            f"import importlib, sys; importlib.import_module({module!r})\n"
+            f"print(*sorted(m for m in sys.modules if any(m == f or m.startswith(f + '.') for f in {forbidden!r})))\n"
+        )
+        result = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120, cwd=REPO)
+        assert result.returncode == 0, result.stderr
+        assert result.stdout.strip() == "", f"importing {module} loads {result.stdout.strip()}"
+
+
 #: rclpy's non-public API as the code would spell it: the native module, the C handles, its private fields
 _RCLPY_INTERNALS = (
     "implementation_singleton",

@@ -244,7 +244,8 @@ def test_the_one_sample_expansion_with_cross_terms_equals_the_batch_bit_for_bit(
     ],
 )
 def test_a_mimo_configuration_that_cannot_work_is_one_clear_error(change: dict, said: str) -> None:
-    from lenn_ros.config import ConfigError, build_identifier, identifier_parameters
+    from lenn_ros.config import ConfigError, identifier_parameters
+    from lenn_ros.service.building import build_identifier
 
     values = {p.name: p.default for p in identifier_parameters(0, "lenn")}
     values.update({"u_field": "data[0], data[1]", "y_field": "position[a], position[b]", "u_topics": [""]})
@@ -334,8 +335,9 @@ def test_all_joints_are_picked_by_name_never_by_position() -> None:
 def test_separate_networks_work_with_several_channels(monkeypatch) -> None:
     """Model 3 per output (N1[own past] + N2[the channels it sees]): built from the parameters, two
     branches each, the compiled step and free run equal to the Python ones, and it learns the plant."""
-    from lenn_ros.config import build_identifier, identifier_parameters
+    from lenn_ros.config import identifier_parameters
     from lenn_ros.core import free_run, jit, structure
+    from lenn_ros.service.building import build_identifier
 
     if not jit.JIT:
         pytest.skip("numba is not installed: there is no compiled step")
@@ -369,7 +371,8 @@ def test_separate_networks_work_with_several_channels(monkeypatch) -> None:
 
 
 def test_an_output_passed_through_needs_its_own_past_and_one_flag_per_output() -> None:
-    from lenn_ros.config import ConfigError, build_identifier, resolve
+    from lenn_ros.config import ConfigError, resolve
+    from lenn_ros.service.building import build_identifier
 
     own = parse_couplings("y0 u0; y1 u0", 1, 2)
     structure = MimoStructure(n_u=1, n_y=2, couplings=own, y_pass_through=(True, False))

@@ -7,7 +7,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from lenn_ros.config import ConfigError, node_key_matches, read_params_file, read_params_files, unmatched_params_files
+from lenn_ros.config import ConfigError
+from lenn_ros.service.params import node_key_matches, read_params_file, read_params_files, unmatched_params_files
 
 
 @pytest.mark.parametrize(

@@ -30,11 +30,12 @@ from rclpy.qos import QoSProfile, ReliabilityPolicy  # noqa: E402
 from rosutil import final_status, start_node, stop  # noqa: E402
 
 from lenn_ros import topics  # noqa: E402
-from lenn_ros.config import build_identifier, resolve  # noqa: E402
+from lenn_ros.config import resolve  # noqa: E402
 from lenn_ros.core.alignment import U, Y  # noqa: E402
 from lenn_ros.paper.examples import get_example  # noqa: E402
 from lenn_ros.paper.robot import CommandHold, RobotLog, SimulatedRobot, lockstep_nmse  # noqa: E402
 from lenn_ros.paper.signals import Excitation  # noqa: E402
+from lenn_ros.service.building import build_identifier  # noqa: E402
 
 pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.timeout(240)]
 

@@ -9,12 +9,13 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from lenn_ros.config import build_identifier, resolve
+from lenn_ros.config import resolve
 from lenn_ros.core.alignment import GridSampler, StampAligner
 from lenn_ros.core.fields import FieldError, check_path, compile_path, stamp_seconds
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.paper.evaluation import simulate
 from lenn_ros.paper.examples import get_example
+from lenn_ros.service.building import build_identifier
 from lenn_ros.session import Session, SessionConfig
 
 # -- field paths ------------------------------------------------------------------------------
@@ -564,10 +565,10 @@ def test_a_sensor_read_as_its_absolute_value_is_replayed_offline_as_it_was_stepp
 
     import plant_study
 
-    from lenn_ros.config import read_params_file
     from lenn_ros.fit.data import Data
     from lenn_ros.fit.export import write_outputs
     from lenn_ros.fit.procedure import fit
+    from lenn_ros.service.params import read_params_file
 
     u_all, y_all, _ = plant_study.belt_speed(0)
     files = write_outputs(tmp_path / "model", fit(Data(u_all, y_all, "belt"), 501), Data(u_all, y_all, "belt"))

@@ -5,10 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lenn_ros.config import build_identifier, resolve
+from lenn_ros.config import resolve
 from lenn_ros.core.spread import Z95
 from lenn_ros.paper.evaluation import simulate
 from lenn_ros.paper.examples import get_example
+from lenn_ros.service.building import build_identifier
 from lenn_ros.session import Session, SessionConfig
 
 

@@ -10,12 +10,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from lenn_ros.config import build_identifier, resolve
+from lenn_ros.config import resolve
 from lenn_ros.core import jit
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.structure import Identifier
 from lenn_ros.paper.evaluation import simulate
 from lenn_ros.paper.examples import EXAMPLES, get_example
+from lenn_ros.service.building import build_identifier
 from lenn_ros.session import Session, SessionConfig
 
 README_ROBOT = {

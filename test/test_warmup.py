@@ -7,17 +7,11 @@ import math
 import numpy as np
 import pytest
 
-from lenn_ros.config import (
-    NODE_PARAMETERS,
-    ConfigError,
-    build_identifier,
-    resolve,
-    rls_forgetting,
-    unlearnt_mimo_scales,
-)
+from lenn_ros.config import NODE_PARAMETERS, ConfigError, resolve, rls_forgetting
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.paper.physical import FrictionJoint
 from lenn_ros.paper.signals import Excitation
+from lenn_ros.service.building import build_identifier, unlearnt_mimo_scales
 from lenn_ros.session import Session, SessionConfig
 from lenn_ros.session import learner as learner_module
 

@@ -201,11 +201,12 @@ def build_mimo_identifier(outputs: list[OutputFit], data: Data, forgetting: floa
     (:func:`rls_covariance`).
     """
     from lenn_ros import config
+    from lenn_ros.service import building
 
     models = common_lags([fitted.model for fitted in outputs])
     values = {**_vector_reading(data), **mimo_values(models, data, forgetting)}
     resolved, network = config.resolve(values)
-    identifier = config.build_identifier({**values, **resolved}, network)
+    identifier = building.build_identifier({**values, **resolved}, network)
 
     passed = values["y_pass_through"]
 

@@ -39,7 +39,7 @@ from rclpy.parameter import Parameter as RosParameter
 from std_msgs.msg import String
 
 from lenn_ros import topics
-from lenn_ros.config import build_identifier, input_topics, is_mimo, rls_forgetting, side_channels
+from lenn_ros.config import input_topics, is_mimo, rls_forgetting, side_channels
 from lenn_ros.core.fields import FieldError, check_path, check_vector
 from lenn_ros.core.networks import ModelFileError
 from lenn_ros.core.pairing import U, Y
@@ -48,7 +48,7 @@ from lenn_ros.nodes.identifier_inputs import IdentifierInputs
 from lenn_ros.nodes.identifier_outputs import OUTPUTS, IdentifierOutputs
 from lenn_ros.nodes.node_parameters import NodeParameters
 from lenn_ros.service import RecordingError
-from lenn_ros.service.building import as_node_builds_it, compile_ahead, loaded_text, weights_path
+from lenn_ros.service.building import as_node_builds_it, build_identifier, compile_ahead, loaded_text, weights_path
 from lenn_ros.session import Notice, Sample, Session, SessionConfig, json_safe
 
 #: Notice kinds that are news, not trouble.

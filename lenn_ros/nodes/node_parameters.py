@@ -19,7 +19,8 @@ from rclpy.parameter import Parameter as RosParameter
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSPolicyKind, QoSProfile, ReliabilityPolicy
 from rclpy.qos_overriding_options import QoSOverridingOptions
 
-from lenn_ros.config import NODE_PARAMETERS, Parameter, check_value, identifier_parameters, unmatched_params_files
+from lenn_ros.config import NODE_PARAMETERS, Parameter, check_value, identifier_parameters
+from lenn_ros.service.params import unmatched_params_files
 
 #: Parameters set by rclpy itself or by the QoS override mechanism: not unknown.
 FOREIGN_PARAMETERS = ("use_sim_time", "start_type_description_service", "qos_overrides.")

@@ -24,7 +24,7 @@ import json
 import sys
 from pathlib import Path
 
-from lenn_ros.paper.examples import EXAMPLES, TEST_SAMPLES, TRAIN_SAMPLES
+from lenn_ros.paper.examples import EXAMPLES
 from lenn_ros.paper.experiments.candidates import CALIBRATION_SEEDS
 from lenn_ros.paper.experiments.convergence import WITHIN_DB, checkpoints
 from lenn_ros.paper.experiments.identification import Row, format_identification, identification
@@ -37,6 +37,7 @@ from lenn_ros.paper.experiments.tracking import (
     plot_tracking,
     tracking,
 )
+from lenn_ros.presets import TEST_SAMPLES, TRAIN_SAMPLES
 
 
 def write_plots(rows: list[Row], tracks: list[TrackingRow], change_at: int, directory: str | Path) -> list[Path]:

@@ -18,9 +18,10 @@ from lenn_ros.core.evaluation import Evaluation, free_run_problems
 from lenn_ros.core.metrics import nmse_db, rmse
 from lenn_ros.core.networks import FunctionalLinkNetwork
 from lenn_ros.core.structure import Identifier
-from lenn_ros.paper.examples import TEST_SAMPLES, TRAIN_SAMPLES, PaperExample
+from lenn_ros.paper.examples import PaperExample
 from lenn_ros.paper.plants import MimoPlant, Plant
 from lenn_ros.paper.signals import Excitation
+from lenn_ros.presets import TEST_SAMPLES, TRAIN_SAMPLES
 
 
 @dataclass

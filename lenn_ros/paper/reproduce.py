@@ -18,8 +18,9 @@ from lenn_ros import progress as bars
 from lenn_ros.core.evaluation import Evaluation
 from lenn_ros.core.structure import Identifier
 from lenn_ros.paper.evaluation import least_squares_floor, simulate, train_and_test
-from lenn_ros.paper.examples import EXAMPLES, TEST_SAMPLES, TRAIN_SAMPLES, get_example
+from lenn_ros.paper.examples import EXAMPLES, get_example
 from lenn_ros.paper.experiments import report
+from lenn_ros.presets import TEST_SAMPLES, TRAIN_SAMPLES
 
 
 @dataclass

@@ -6,9 +6,13 @@
 - :mod:`~lenn_ros.service.recording`: a recording to samples: every message of any rosbag2 bag,
   paired by the node's own session (:func:`~lenn_ros.service.recording.pair_raw`, the one pairing of raw
   topics), numbered as the node numbers them;
-- :mod:`~lenn_ros.service.building`: parameters to an identifier (the node's factory, ``weights_in``,
-  the params-file matcher, the configuration a bag recorded);
-- :mod:`~lenn_ros.service.scoring`: a test part scored, one-step and in free run across breaks.
+- :mod:`~lenn_ros.service.params`: which parameters a params file gives a node (rcl's matching rules,
+  the one matcher: the node's warning, every offline reader);
+- :mod:`~lenn_ros.service.building`: parameters to an identifier (the one factory, any number of
+  channels; ``weights_in``; the configuration a bag recorded);
+- :mod:`~lenn_ros.service.scoring`: a test part scored, one-step and in free run across breaks;
+- :mod:`~lenn_ros.service.evaluation`: a recording evaluated offline (``evaluate``), the node's session
+  over it.
 
 Nothing here knows ROS: the nodes hand it what they received.
 """

@@ -15,10 +15,11 @@ from lenn_ros import progress as bars
 from lenn_ros.core.networks import OnlineRegressor
 from lenn_ros.core.structure import Identifier
 from lenn_ros.paper.evaluation import least_squares_floor, simulate, train_and_test
-from lenn_ros.paper.examples import EXAMPLES, TEST_SAMPLES, TRAIN_SAMPLES, PaperExample
+from lenn_ros.paper.examples import EXAMPLES, PaperExample
 from lenn_ros.paper.experiments import report
 from lenn_ros.paper.experiments.candidates import candidates, winner
 from lenn_ros.paper.experiments.convergence import checkpoints, learning_curve, samples_to_level, samples_to_within
+from lenn_ros.presets import TEST_SAMPLES, TRAIN_SAMPLES
 
 
 @dataclass

@@ -26,12 +26,13 @@ import numpy as np
 from lenn_ros import progress as bars
 from lenn_ros.core.networks import OnlineRegressor
 from lenn_ros.core.structure import Identifier
-from lenn_ros.paper.examples import EXAMPLES, TRAIN_SAMPLES
+from lenn_ros.paper.examples import EXAMPLES
 from lenn_ros.paper.experiments import report
 from lenn_ros.paper.experiments.candidates import candidates
 from lenn_ros.paper.experiments.convergence import WITHIN_DB
 from lenn_ros.paper.plants import Plant
 from lenn_ros.paper.signals import Excitation
+from lenn_ros.presets import TRAIN_SAMPLES
 
 GAIN_AFTER_CHANGE = -1.0
 SMOOTHING_WINDOW = 200

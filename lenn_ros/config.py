@@ -89,6 +89,14 @@ NODE_PARAMETERS = [
         10**6,
         live=True,
     ),
+    Parameter(
+        "free_run_guard",
+        False,
+        "keep a block of health_interval learnt samples only if the model then simulates the recent samples "
+        "(each stretch of them) no worse: learning on from a model fitted for its free run (lenn-ros fit -o "
+        "turns it on) does not trade the free run for the one-step error",
+        live=True,
+    ),
     # -- where u and y_p come from (issue 9: a real robot's topics) --
     Parameter("u_type", "std_msgs/msg/Float64", "message type on u (e.g. std_msgs/msg/Float64MultiArray)"),
     Parameter("y_type", "std_msgs/msg/Float64", "message type on y_p (e.g. sensor_msgs/msg/JointState)"),

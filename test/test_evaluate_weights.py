@@ -62,6 +62,7 @@ def reference_nmse(params: str, weights: str, u: np.ndarray, y: np.ndarray) -> f
     """One-step test NMSE of the params file's model, learning from the fitted weights (the node's start)."""
     resolved, network = resolve(read_params_file(params))
     identifier = build_identifier(resolved, network)
+    identifier.free_run_guard = read_params_file(params)["free_run_guard"]  # (fit writes it on: the kept model)
     identifier.model.load_state(weights)
     identifier.mark_healthy()
     return train_and_test(identifier, Series(u, y, TRAIN)).nmse_db

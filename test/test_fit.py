@@ -224,7 +224,7 @@ def test_params_file_keys_and_typos(tmp_path: Path) -> None:
     ("arguments", "message"),
     [
         (["--test-from", "5"], "at least 100"),
-        (["--test-from", "9999"], "outside the data's samples"),
+        (["--test-from", "9999"], "is outside the samples, numbered 1..1000"),
         (["--u", "speed", "--test-from", "500"], "no column 'speed' (columns: u, y, z)"),
         (["--y", "z", "--test-from", "500"], "constant"),
     ],

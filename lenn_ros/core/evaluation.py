@@ -123,3 +123,37 @@ def free_run_segments(
             info["diverged"], info["diverged_at"] = True, int(begin + part["diverged_at"])
     info["not_simulated"] = int(len(y_free) - info["samples"])
     return y_free, info
+
+
+#: how many times the largest one-step error on the build part the error across the split must exceed
+#: (:func:`join_verdict`): that largest is itself the extreme of thousands of errors
+JOIN_FACTOR = 2.0
+
+
+def join_verdict(features: np.ndarray, targets: np.ndarray, build: np.ndarray, join: np.ndarray, warm: int) -> str:
+    """Why the test part is a record of its own, not the build part's continuation ('' if it continues).
+
+    The one rule, for ``fit`` and ``evaluate`` alike. Benchmark files put a test experiment after
+    the build experiments, and users join two recordings the same way. Simulated from the build
+    part's last samples, such a test part starts from another experiment's state. A lightly damped
+    plant (Bouc-Wen) then carries that transient for a thousand samples, and an integrating one keeps
+    the offset for ever: the score measures the join, not the model. The join shows one step ahead:
+    the model's structure (``features`` of each complete regressor row, ``targets`` what they
+    predict), its weights fitted by least squares to the ``build`` rows (the best one-step predictor
+    of that structure: refined or live-learnt weights trade one-step error for simulation), errs on
+    the ``join`` rows (those whose regressors still hold build samples) more than JOIN_FACTOR times
+    the largest error it makes anywhere on the build part. Then the free run starts from the test
+    part's own first ``warm`` samples, which are not scored.
+    """
+    if np.count_nonzero(build) <= 2 * features.shape[1] or not join.any():
+        return ""
+    weights = np.linalg.lstsq(features[build], targets[build], rcond=None)[0]
+    error = np.abs(targets - features @ weights)
+    largest, across = float(error[build].max()), float(error[join].max())
+    if across <= JOIN_FACTOR * largest:
+        return ""
+    return (
+        f"the test part is a record of its own: one step ahead across the split the model's structure, "
+        f"fitted by least squares, errs {across / largest:.1f} times its largest error on the build part, "
+        f"so the free run starts from the test part's own first {warm} samples, which are not scored"
+    )

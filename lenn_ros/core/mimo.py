@@ -294,6 +294,15 @@ class MimoIdentifier:
             identifier.resume_after = int(value)
 
     @property
+    def free_run_guard(self) -> bool:
+        return self.outputs[0].free_run_guard
+
+    @free_run_guard.setter
+    def free_run_guard(self, value: bool) -> None:
+        for identifier in self.outputs:
+            identifier.free_run_guard = bool(value)
+
+    @property
     def hold_off(self) -> int:
         """The longest pause after a divergence among the outputs (each output pauses on its own)."""
         return max(identifier.hold_off for identifier in self.outputs)
@@ -417,14 +426,16 @@ class MimoIdentifier:
         from lenn_ros.core.networks import FORMAT_VERSION, write_weights_file
 
         arrays, outputs = {}, []
-        for j, model in enumerate(self.models):
+        for j, identifier in enumerate(self.outputs):
+            model = identifier.model
             if not model.is_initialised:
                 model._initialise()
             seen = int(getattr(model, "n_samples_seen_", 0))
             outputs.append(
                 {"name": self.names[j], "kind": model._kind, "params": model.get_params(), "n_samples_seen": seen}
             )
-            arrays.update({f"y{j}_{name}": value for name, value in model.state().items()})
+            with identifier.serving():  # (free_run_guard: the kept state)
+                arrays.update({f"y{j}_{name}": value for name, value in model.state().items()})
         header = {"format": FORMAT_VERSION, "kind": "mimo", "n_u": self.structure.n_u, "outputs": outputs}
         write_weights_file(path, header, arrays)
 

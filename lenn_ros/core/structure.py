@@ -10,15 +10,17 @@ arithmetic either way.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import os
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
 
 from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND, OutputRun, free_run_outputs
+from lenn_ros.core.free_run_guard import WINDOW_BLOCKS, BatchGuard, FreeRunGuard
 from lenn_ros.core.networks import DivergenceError, OnlineRegressor
 from lenn_ros.core.online_step import (
     CLIPPED,
@@ -248,6 +250,13 @@ class Identifier:
     of bad data, an alpha set too high and set back) does not stop learning for good.
     Each divergence doubles the next pause (up to ``MAX_BACKOFF`` times), and
     ``resume_after`` blocks passed in a row bring it back to one.
+
+    Free-run guard (``free_run_guard``, which ``lenn-ros fit`` turns on for the models it writes):
+    the network learns on, and a *kept* state is what a frozen phase, a free run and a saved
+    weights file use; the learning model is adopted as the kept one where it simulates the samples
+    that followed it better (:mod:`~lenn_ros.core.free_run_guard`; counted: ``guard_checks``,
+    ``guard_adopted``). When learning stops (a frozen phase, a test part) the network takes the
+    kept state.
     """
 
     structure: ModelStructure
@@ -258,6 +267,7 @@ class Identifier:
     resume_after: int = 10
     counters: dict[str, int] = field(default_factory=dict)
     diverged: bool = False
+    free_run_guard: bool = False
 
     #: The pause after a divergence grows at most to this many times ``resume_after`` blocks.
     MAX_BACKOFF: ClassVar[int] = 64
@@ -286,7 +296,8 @@ class Identifier:
         learnt its scales restarts from this file alone (a model of several outputs: one file for all)."""
         structure = self.structure
         scaling = {key: getattr(structure, key) for key in self.SCALING} if structure.scaled else None
-        self.model.save(path, scaling=scaling)
+        with self.serving():
+            self.model.save(path, scaling=scaling)
 
     def load_state(self, path: str | os.PathLike[str]) -> None:
         """Start from a file of :meth:`save_state` (``ModelFileError`` with the reason, the model untouched)."""
@@ -322,6 +333,7 @@ class Identifier:
         self._backoff = 1
         self._passed_since_resume = 0
         self._signs = SignTracker()  # y_abs: the sign of each |y| (unused otherwise)
+        self._guard = FreeRunGuard()  # free_run_guard: the kept state and the samples it is judged on
         self.mark_healthy()
 
     # -- one sample ------------------------------------------------------------------
@@ -355,6 +367,11 @@ class Identifier:
             self._check_scaled()
             self._plan_model, self._plan = self.model, StepPlan.for_model(self.model, self.structure)
             self._restart_history()
+        if self.free_run_guard:
+            self._guard.recent.push(u, y)
+            scored = self._pending is not None if self._plan is None else bool(self._plan.state.counts[1])
+            if not learn and scored and self._guard.learnt:
+                self._learning_stops()
         if self._plan is not None:
             self._step_compiled(self._plan, u, y, learn, result)
             return result
@@ -448,6 +465,7 @@ class Identifier:
         result.learned = learn
         if learn:
             self.counters["learned"] += 1
+            self._guard.learnt = True
             self._block_errors.append(result.error)
             self._block_targets.append(y - linear_previous)
             if len(self._block_errors) == self.health_interval and not self._check_block():
@@ -493,6 +511,7 @@ class Identifier:
         self._pending = None
         if self._plan is not None:
             self._plan.state.restart()
+        self._guard.recent.restart(WINDOW_BLOCKS * self.health_interval + self.structure.warm_up)
 
     def _push(self, u: float, y: float) -> None:
         keep = self.structure.warm_up
@@ -523,11 +542,38 @@ class Identifier:
         # weights now (after its last update) are vouched for by the next block.
         self._healthy_state = self._candidate_state
         self._candidate_state = self.model.state()
+        if self.free_run_guard:
+            self._guard.block_end(self.structure, self.model, self.health_interval, self.counters)
         self._target.learn(variance, self.structure.y_scale)
         self._passed_since_resume += 1
         if self._passed_since_resume >= self.resume_after:
             self._backoff = 1
         return True
+
+    def _learning_stops(self) -> None:
+        """``free_run_guard``: learning stopped (a frozen phase, a test part): the learning model is judged once
+        more, and the network takes the kept state, from which the divergence guard's blocks start again."""
+        self._guard.learning_stops(self.structure, self.model, self.health_interval, self.counters)
+        kept = self._guard.kept
+        if kept is not None:
+            self.model.set_state(kept)
+            self._healthy_state = self._candidate_state = kept
+        self._block_errors.clear()
+        self._block_targets.clear()
+
+    @contextlib.contextmanager
+    def serving(self) -> Iterator[None]:
+        """The network holds the kept state for the duration (``free_run_guard``: what a weights file saves)."""
+        kept = self._guard.kept if self.free_run_guard else None
+        if kept is None:
+            yield
+            return
+        now = self.model.state()
+        self.model.set_state(kept)
+        try:
+            yield
+        finally:
+            self.model.set_state(now)
 
     @property
     def target_variance(self) -> float:
@@ -560,7 +606,7 @@ class Identifier:
         if not self.model.is_initialised:
             self.model._initialise()
         self._healthy_state = self.model.state()
-        self._candidate_state = self._healthy_state
+        self._candidate_state = self._guard.kept = self._healthy_state
         self.diverged = False
         self.resume_in = 0
 
@@ -605,11 +651,13 @@ class Identifier:
         # sample p's step learns from target p - first - 1 (none yet in the warm-up: before the first)
         cuts = sorted(((max(position - first - 1, 0), apply) for position, apply in changes), key=lambda c: c[0])
         start = 0
+        guard = BatchGuard(self, u, y, first)  # free_run_guard: samples pushed and judged where step does it
         while start < len(targets) or cuts:
             while cuts and cuts[0][0] <= start:
                 cuts.pop(0)[1]()
             if start >= len(targets):
                 break
+            guard.before(start, bool(mask[start]))
             paused = bool(mask[start]) and self.diverged and self.resume_after > 0
             if paused and self.resume_in == 0:
                 self._resume()  # as step(): the first learnable sample after the pause learns
@@ -635,8 +683,10 @@ class Identifier:
             y_hat[first + 1 + start : first + 1 + stop] = linear[start:stop] + prior
             if learning:
                 self.counters["learned"] += stop - start
+                guard.learnt(stop)
                 self._score_run(outputs[start:stop] - y_hat[first + 1 + start : first + 1 + stop], targets[start:stop])
             start = stop
+        guard.to(len(y))
         self.counters["samples"] += len(y)
         self.last_leverage[first + 1 :] = leverage
         return y_hat

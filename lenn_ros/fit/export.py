@@ -440,6 +440,9 @@ def write_outputs(directory: str | Path, result: FitResult, data: Data) -> dict[
         values = {**data.interpretation, **model_values}
         note = "starts from weights_in below;\n# move the directory and weights_in must follow: it is absolute"
     values["weights_in"] = str(weights.resolve())
+    # the model was chosen and refined for its free run: learning on from it live keeps only what simulates
+    # no worse (without, a robot's 10-minute bag: fit's free run -65.1 dB, after learning on -55.6 dB)
+    values["free_run_guard"] = True
     params = write_params(directory, result, values, note)
     return {"params": str(params), "weights": str(weights), "report": str(write_report(directory, result))}
 

@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from lenn_ros.core.evaluation import free_run_problems, free_run_segments
+from lenn_ros.core.evaluation import free_run_problems, free_run_segments, join_verdict
 from lenn_ros.core.metrics import band_half_width, coverage, nmse_db, rmse
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.structure import Identifier
@@ -154,25 +154,13 @@ def beyond_training_range(
     }
 
 
-#: how many times the largest one-step error on the build part the error across the split must exceed
-#: (:func:`separate_test_record`): that largest is itself the extreme of thousands of errors
-JOIN_FACTOR = 2.0
-
-
 def separate_test_record(models: list[TermModel], views: list[np.ndarray], start: int, cuts: list[int]) -> str:
     """Why the test part is a record of its own, not the build part's continuation ('' if it continues).
 
-    Benchmark files put a test experiment after the build experiments, and users join two
-    recordings the same way. Simulated from the build part's last samples, such a test part
-    starts from another experiment's state. A lightly damped plant (Bouc-Wen) then carries
-    that transient for a thousand samples, and an integrating one keeps the offset for ever:
-    the score measures the join, not the model. The join shows one step ahead. Each output's
-    chosen structure, its weights fitted by least squares to the build part (the best one-step
-    predictor of that structure: refined weights trade one-step error for simulation), errs
-    across the split, where its regressors still hold the build part's samples, more than
-    JOIN_FACTOR times the largest error it makes anywhere on the build part. Any output doing so
-    marks the split. ``views``: each output's [y, u] columns over the whole record; rows whose
-    regressors reach across one of the ``cuts`` (gaps) are neither fitted nor judged.
+    The rule is :func:`~lenn_ros.core.evaluation.join_verdict` (evaluate's too), on each output's
+    chosen structure; any output whose verdict says so marks the split. ``views``: each output's
+    [y, u] columns over the whole record; rows whose regressors reach across one of the ``cuts``
+    (gaps) are neither fitted nor judged.
     """
 
     def verdict(job: tuple[TermModel, np.ndarray]) -> str:
@@ -183,18 +171,7 @@ def separate_test_record(models: list[TermModel], views: list[np.ndarray], start
         sample = np.arange(warm, record.n)
         valid = record.valid_rows(warm)
         build, join = valid & (sample < start), valid & (sample >= start) & (sample < start + warm)
-        if np.count_nonzero(build) <= 2 * features.shape[1] or not join.any():
-            return ""
-        weights = np.linalg.lstsq(features[build], targets[build], rcond=None)[0]
-        error = np.abs(targets - features @ weights)
-        largest, across = float(error[build].max()), float(error[join].max())
-        if across <= JOIN_FACTOR * largest:
-            return ""
-        return (
-            f"the test part is a record of its own: one step ahead across the split the model's structure, "
-            f"fitted by least squares, errs {across / largest:.1f} times its largest error on the build part, "
-            f"so the free run starts from the test part's own first {warm} samples, which are not scored"
-        )
+        return join_verdict(features, targets, build, join, warm)
 
     jobs = list(zip(models, views, strict=True))
     return next((text for text in side_by_side(verdict, jobs, cores()) if text), "")

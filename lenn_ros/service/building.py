@@ -343,6 +343,7 @@ def as_node_builds_it(
     identifier.health_interval = int(values["health_interval"])
     identifier.divergence_ratio = float(values["divergence_ratio"])
     identifier.resume_after = int(values["resume_after"])
+    identifier.free_run_guard = bool(values["free_run_guard"])
     if values.get("weights_in"):
         path = weights_path(values["weights_in"])
         if not path.is_file():

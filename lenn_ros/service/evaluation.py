@@ -196,6 +196,8 @@ def _result(
     notices += change_notes(changes, source)
     for topic, lost in raw_losses(path).items():
         notices.append(f"recording: {lost} {topic} messages missing (gaps in their sequence numbers)")
+    if first.free_run.get("test_record_of_its_own"):
+        notices.append(f"free run: {first.free_run['test_record_of_its_own']}")
     if first.free_run.get("segments", 1) > 1:
         notices.append(
             f"free run: restarted from the measured outputs after each of {first.free_run['segments'] - 1} "

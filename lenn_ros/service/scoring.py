@@ -15,9 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from lenn_ros.core.evaluation import Evaluation, free_run_problems, free_run_segments
+from lenn_ros.core.evaluation import Evaluation, free_run_problems, free_run_segments, join_verdict
 from lenn_ros.core.metrics import coverage, nmse_db, rmse
 from lenn_ros.core.mimo import MimoIdentifier
+from lenn_ros.core.runs import finite_rows, runs
 from lenn_ros.core.spread import Z95
 from lenn_ros.core.structure import Identifier
 from lenn_ros.fit.data import REPORT_FILE
@@ -32,15 +33,61 @@ def score(
     start: int,
 ) -> list[Evaluation]:
     """Each output's scores over the samples from ``start`` on: one-step (``y_hat``), and the free run of all
-    outputs together (restarted from the measured outputs after every break)."""
+    outputs together (restarted from the measured outputs after every break). A test part that is a record of
+    its own (:func:`~lenn_ros.core.evaluation.join_verdict`, fit's rule) is seeded by its own first samples,
+    which are not scored, as fit scores it."""
     test = index >= start
     first = int(np.argmax(test))
+    own = test_record_of_its_own(identifier, index, u, y, first)
+    if own:  # a break at the split: as after a gap
+        index = index + (np.arange(len(index)) >= first)
+        y_hat = np.array(y_hat, dtype=np.float64, copy=True)
+        y_hat[first : first + identifier.structure.warm_up] = np.nan
     y_free, free_run = free_run_segments(identifier, index, u, y, first)
+    free_run["test_record_of_its_own"] = own
     columns = y.reshape(len(y), -1)
     predicted = y_hat.reshape(len(y), -1)
     simulated_all = y_free.reshape(len(y_free), -1)
     return [_score_output(columns[:, j], predicted[:, j], simulated_all[:, j], free_run, test)
             for j in range(columns.shape[1])]  # fmt: skip
+
+
+def test_record_of_its_own(identifier: Identifier | MimoIdentifier, index: np.ndarray, u: np.ndarray,
+                           y: np.ndarray, first: int) -> str:  # fmt: skip
+    """Why the test part from row ``first`` is a record of its own ('' if it continues the build part): fit's
+    rule (:func:`~lenn_ros.core.evaluation.join_verdict`) on each output's structure, over the rows whose
+    regressors lie within one run of valid samples (:func:`~lenn_ros.core.runs.runs`). A functional-link model's
+    features are its terms; an MLP's, its regressors (a linear model of them). Any output may mark the split."""
+    starts, stops = runs(index, finite_rows(u) & finite_rows(y))
+    if first in set(starts.tolist()) or first <= 0:  # a break there already
+        return ""
+    u2 = np.asarray(u, dtype=np.float64).reshape(len(index), -1)
+    y2 = np.asarray(y, dtype=np.float64).reshape(len(index), -1)
+    for j, output in enumerate(identifier.outputs):
+        structure, warm = output.structure, output.structure.warm_up
+        if not structure.scaled or len(index) - first <= 2 * warm:
+            return ""
+        others = identifier.structure.other_values(j, u2, y2) if identifier.vector else u2[:, 0]
+        features, targets, build, join = [], [], [], []
+        for begin, end in zip(starts, stops, strict=True):
+            if end - begin <= warm or begin >= first + warm:
+                continue
+            inputs, target, _ = structure.training_pairs(others[begin:end], y2[begin:end, j])
+            if not output.model.is_initialised:
+                output.model._initialise()
+            phi = output.model.features(inputs) if hasattr(output.model, "features") else inputs
+            features.append(np.column_stack([phi, np.ones(len(phi))]) if phi is inputs else phi)
+            targets.append(target)
+            rows = np.arange(begin + warm, end)
+            build.append(rows < first)
+            join.append((rows >= first) & (rows < first + warm))
+        if not features:
+            return ""
+        text = join_verdict(np.concatenate(features), np.concatenate(targets), np.concatenate(build),
+                            np.concatenate(join), warm)  # fmt: skip
+        if text:
+            return text
+    return ""
 
 
 def _score_output(

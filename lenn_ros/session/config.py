@@ -12,7 +12,7 @@ PAIRING_MODES = ("sequence", "stamp", "sample")
 #: Live parameters that go to every network of the identifier (``set_params``), where it has them.
 MODEL_PARAMETERS = ("alpha", "beta", "forgetting", "nlms_step")
 #: Live parameters of the identifier's divergence guard.
-GUARD_PARAMETERS = ("divergence_ratio", "resume_after")
+GUARD_PARAMETERS = ("divergence_ratio", "resume_after", "free_run_guard")
 
 
 @dataclass

@@ -49,6 +49,7 @@ class Learner:
         self._seen_clipped = 0
         self._clipped_said_at = -math.inf
         self._seen_unsure = 0
+        self._seen_checks = 0
         self._sign_settled: bool | None = None
 
     # -- phases ----------------------------------------------------------------------------------
@@ -162,6 +163,8 @@ class Learner:
         self._last_pair = pair
         if identifier.counters["clipped"] > self._seen_clipped:
             self.say_clipped(pair.time)
+        if identifier.counters.get("guard_checks", 0) > self._seen_checks:
+            self._say_guard(f"sample {pair.index}: ")
         if result.error is not None and result.y_hat is not None:
             self.phase_nmse.add(self.values.split(pair.y), self.values.split(result.y_hat))
         return result
@@ -324,8 +327,22 @@ class Learner:
         scored = valid & finite_rows(y_hat) & (np.arange(len(y)) >= last)
         self.phase_nmse.extend(y[scored], y_hat[scored])
 
+    def _say_guard(self, where: str) -> None:
+        """``free_run_guard`` judged the learning model: said at the first check, then as their count doubles."""
+        counters = self.identifier.counters
+        self._seen_checks = checks = counters["guard_checks"]
+        self.notices.doubling(
+            "guard",
+            checks,
+            f"{where}the learning model simulated the recent samples better than the model kept in "
+            f"{counters.get('guard_adopted', 0)} of {checks} checks and was adopted then; the kept model is what "
+            "frozen phases, free runs and saved weights use (free_run_guard; counted in guard_checks, guard_adopted)",
+        )
+
     def _say_offline(self) -> None:
         """What a batch pass says once for all its samples (live: as it happens)."""
+        if self.identifier.counters.get("guard_checks", 0) > self._seen_checks:
+            self._say_guard("")
         if self.identifier.counters["clipped"] > self._seen_clipped:
             self.say_clipped(None)
         unsure = self.identifier.counters.get("sign_unsure", 0)

@@ -169,7 +169,8 @@ def test_a_recorded_mimo_run_evaluates_offline_to_the_live_figures(tmp_path: Pat
     again_live = start_node("identifier", params_file=params, ros_args=("-p", "wait_for_y_hat_subscribers:=1"))
     try:
         code, _, err = run_replay(damaged)
-        assert code == 0 and "replaying the identifier's samples (0 refused live, as NaN): 3600 samples" in err, err
+        said = "replaying the identifier's samples (0 refused live, as NaN): 2 input(s) and 2 output(s), 3600 samples"
+        assert code == 0 and said in err, err
     finally:
         _, again_err = stop(again_live)
     replayed = final_status(again_err)
@@ -267,7 +268,8 @@ def test_replay_of_a_vector_bag_feeds_a_mimo_identifier_the_recorded_samples(tmp
         code, _, err = run_replay(bag)
         assert code == 0, err
         assert (
-            "replaying /u, /y_p by order (no sequence numbers recorded): 1800 samples in 1 stream(s) of 2 inputs" in err
+            "replaying /u, /y_p by order (no sequence numbers recorded): "
+            "2 input(s) and 2 output(s), 1800 samples in 1 stream(s)" in err
         )
     finally:
         _, id_err = stop(identifier)

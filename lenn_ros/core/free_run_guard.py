@@ -24,6 +24,7 @@ samples) and the judgement; :class:`~lenn_ros.core.structure.Identifier` calls
 
 from __future__ import annotations
 
+import collections
 import itertools
 from typing import Any
 
@@ -167,51 +168,55 @@ def simulates_better(
 
 
 class FreeRunGuard:
-    """One identifier's kept model (``free_run_guard``), its candidate and the recent samples they are judged on.
+    """One identifier's kept model (``free_run_guard``), its candidates and the recent samples they are judged on.
 
     The identifier calls :meth:`block_end` after each block of learning that passed the divergence
     guard, and :meth:`learning_stops` where learning stops (then the network takes :attr:`kept`).
+    A candidate is taken at every block's end and judged WINDOW_BLOCKS blocks later, so the kept
+    model follows a plant that changed a window behind the learning one, not two.
     """
 
     def __init__(self) -> None:
         self.recent = RecentSamples()
         self.kept: dict[str, np.ndarray] | None = None
-        self.candidate: dict[str, np.ndarray] | None = None
-        self.taken_at = 0  # recent.total when the candidate was taken
-        self.blocks = 0  # blocks learnt since
+        self.candidates: collections.deque[list] = collections.deque()  # [state, recent.total then, blocks since]
         self.learnt = False  # the network has learnt since learning last stopped
 
     def block_end(self, structure: Any, model: Any, piece: int, counters: dict[str, int]) -> None:
-        """A block was learnt: judge the candidate once WINDOW_BLOCKS blocks followed it, and take the next."""
-        if self.candidate is not None:
-            self.blocks += 1
-            if self.blocks < WINDOW_BLOCKS:
-                return
-            self._judge(structure, model, piece, counters)
-        self.candidate, self.taken_at, self.blocks = model.state(), self.recent.total, 0
+        """A block was learnt: judge the candidate WINDOW_BLOCKS blocks old, and take this one."""
+        for candidate in self.candidates:
+            candidate[2] += 1
+        if self.candidates and self.candidates[0][2] >= WINDOW_BLOCKS:
+            self._judge(structure, model, piece, counters, *self.candidates.popleft()[:2])
+        self.candidates.append([model.state(), self.recent.total, 0])
 
     def learning_stops(self, structure: Any, model: Any, piece: int, counters: dict[str, int]) -> None:
-        """Learning stopped: a candidate followed by a block's worth of samples or more is judged on them."""
-        if self.candidate is not None and self.recent.total - self.taken_at >= piece:
-            self._judge(structure, model, piece, counters)
-        self.candidate, self.learnt = None, False
+        """Learning stopped: each candidate followed by a block's worth of samples or more is judged on them,
+        the oldest first (a later one must beat what an earlier one left kept)."""
+        while self.candidates:
+            state, taken_at, _ = self.candidates.popleft()
+            if self.recent.total - taken_at >= piece:
+                self._judge(structure, model, piece, counters, state, taken_at)
+        self.learnt = False
 
-    def _judge(self, structure: Any, model: Any, piece: int, counters: dict[str, int]) -> None:
-        pieces = self.pieces(structure, piece)
-        verdict = simulates_better(structure, model, self.candidate, self.kept, pieces) if self.kept else None
+    def _judge(
+        self, structure: Any, model: Any, piece: int, counters: dict[str, int], state: dict, taken_at: int
+    ) -> None:
+        pieces = self.pieces(structure, piece, taken_at)
+        verdict = simulates_better(structure, model, state, self.kept, pieces) if self.kept else None
         if verdict is None:
             return
         counters["guard_checks"] = counters.get("guard_checks", 0) + 1
         if verdict:
             counters["guard_adopted"] = counters.get("guard_adopted", 0) + 1
-            self.kept = self.candidate
+            self.kept = state
 
-    def pieces(self, structure: Any, piece: int) -> list[tuple[np.ndarray, np.ndarray]]:
-        """The pieces of the samples since the candidate was taken: ``piece`` samples each, with the ``warm_up``
+    def pieces(self, structure: Any, piece: int, taken_at: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        """The pieces of the samples pushed after ``taken_at``: ``piece`` samples each, with the ``warm_up``
         measured samples before each as its seed, within one history."""
         seed = structure.warm_up
         out = []
-        for u, y in self.recent.segments(self.taken_at - seed):
+        for u, y in self.recent.segments(taken_at - seed):
             for first in range(0, len(y) - seed - MIN_JUDGED + 1, piece):
                 stop = min(first + seed + piece, len(y))
                 out.append((u[first:stop], y[first:stop]))

@@ -39,8 +39,8 @@ from rclpy.parameter import Parameter as RosParameter
 from std_msgs.msg import String
 
 from lenn_ros import topics
-from lenn_ros.config import input_topics, is_mimo, rls_forgetting, side_channels
-from lenn_ros.core.fields import FieldError, check_path, check_vector
+from lenn_ros.config import input_topics, rls_forgetting, side_channels
+from lenn_ros.core.fields import FieldError, check_vector
 from lenn_ros.core.networks import ModelFileError
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.nodes import console, executor_choice, rclpy_internals, run_node
@@ -142,8 +142,7 @@ class IdentifierNode(Node):
         type_key, field_key = ("u_type", "u_field") if channel == U else ("y_type", "y_field")
         try:
             cls = topics.message_class(self.values[type_key])
-            check = check_vector if is_mimo(self.values) else check_path
-            check(cls, self.values[field_key], self.values[type_key], type_key)
+            check_vector(cls, self.values[field_key], self.values[type_key], type_key)  # (one path: one channel)
         except (ValueError, FieldError) as error:
             raise SystemExit(f"identifier: {type_key}/{field_key}: {error}") from None
         return cls
@@ -165,7 +164,7 @@ class IdentifierNode(Node):
         try:
             parts = {}
             for side in ("u", "y"):
-                _, sizes, names = side_channels(self.values, side) if is_mimo(self.values) else ([], (), ())
+                _, sizes, names = side_channels(self.values, side)  # (one topic: no parts)
                 parts[f"{side}_parts"] = sizes
                 parts[f"{side}_parts_names"] = tuple(self.resolve_topic_name(name) for name in names)
             return SessionConfig.from_values(self.values, u_name=self.u_name, y_name=self.y_name, **parts)
@@ -174,8 +173,9 @@ class IdentifierNode(Node):
 
     def _sample_labels(self) -> tuple[str, ...]:
         """The ``samples`` rows' labels: index, time, each input channel, each output channel, learn."""
-        names = [side_channels(self.values, side)[0] for side in ("u", "y")] if is_mimo(self.values) else [[], []]
-        return topics.sample_labels(*names) if names[0] else topics.SAMPLE_LABELS
+        if not self.session.values.vector:  # (one channel of each: the plain labels)
+            return topics.SAMPLE_LABELS
+        return topics.sample_labels(*(side_channels(self.values, side)[0] for side in ("u", "y")))
 
     def _refuse_stampless(self) -> None:
         """Pairing by stamp needs a header on both inputs: said at the start, with the mode that works."""

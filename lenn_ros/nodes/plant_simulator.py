@@ -23,6 +23,7 @@ from std_msgs.msg import Float64, Float64MultiArray, Int64
 
 from lenn_ros import topics
 from lenn_ros.nodes import TEST_START_UNMATCHED, latched_readers_matched, run_node
+from lenn_ros.nodes.channels import Channels
 from lenn_ros.paper.examples import get_example
 from lenn_ros.paper.expression import ExpressionError
 from lenn_ros.paper.plants import MIMO_PLANTS, MimoPlant, Plant, plant_from_expressions
@@ -105,7 +106,7 @@ class PlantSimulator(Node):
 
         self.plant = self._make_plant()
         p = self.get_parameter
-        self.channels = _Channels.of(self.plant)
+        self.channels = Channels.numbered(self.plant.n_u, self.plant.n_y, isinstance(self.plant, MimoPlant))
         self._make_excitations()
         self.k = 0
         self.input_gain = 1.0  # change_input_gain from change_step on
@@ -141,7 +142,7 @@ class PlantSimulator(Node):
                 p("test_noise").value,
                 channel=channel,
             )
-            for channel in range(self.channels.n_u)
+            for channel in range(self.plant.n_u)
         ]
         self.excitation = self.excitations[0]
 
@@ -251,7 +252,7 @@ class PlantSimulator(Node):
         self.u_publisher.publish(self.channels.message(u, "u"))
         self.y_publisher.publish(self.channels.message(np.ravel(self.plant.output), "y"))
         try:
-            self.channels.step(self.plant, self.input_gain * u + noise)
+            self.plant.step(self.channels.value(self.input_gain * u + noise))
         except ExpressionError as error:
             # A formula can pass every check and still fail at some state (u1/y1 at rest). Raised
             # from this timer callback it would be a traceback; run_node prints this one line, exit 2.
@@ -308,32 +309,6 @@ class PlantSimulator(Node):
                     "more means it lost some)"
                 )
             raise SystemExit(0)
-
-
-class _Channels:
-    """How a plant's u(k) and y_p(k) go out: a plant of one input and one output as Float64 messages (what the
-    identifier reads by default), a plant of several as one Float64MultiArray each, channels labelled u1, u2.. /
-    y1, y2.. (the plant's own names). Chosen once, for the plant the node simulates."""
-
-    def __init__(self, n_u: int, n_y: int, vector: bool) -> None:
-        self.n_u, self.vector = n_u, vector
-        self.message_type = Float64MultiArray if vector else Float64
-        self.layouts = {
-            side: topics.vector_layout([f"{side}{i + 1}" for i in range(count)])
-            for side, count in (("u", n_u), ("y", n_y))
-        }
-
-    @classmethod
-    def of(cls, plant: Plant | MimoPlant) -> _Channels:
-        return cls(plant.n_u, plant.n_y, True) if isinstance(plant, MimoPlant) else cls(1, 1, False)
-
-    def message(self, values: np.ndarray, side: str) -> Float64 | Float64MultiArray:
-        if self.vector:
-            return Float64MultiArray(layout=self.layouts[side], data=values.tolist())
-        return Float64(data=float(values[0]))
-
-    def step(self, plant: Plant | MimoPlant, applied: np.ndarray) -> None:
-        plant.step(applied if self.vector else float(applied[0]))
 
 
 def main(args: list[str] | None = None) -> int:

@@ -83,6 +83,7 @@ from lenn_ros.bag.vectors import read_test_start
 from lenn_ros.config import side_channels
 from lenn_ros.core.runs import finite_rows
 from lenn_ros.nodes import TEST_START_UNMATCHED, latched_readers_matched
+from lenn_ros.nodes.channels import Channels
 from lenn_ros.service import RecordingError
 from lenn_ros.service.recording import numbered_rows, read_recording
 
@@ -165,14 +166,13 @@ class Replay(Node):
         self._feedback_allowed = False
         self._identifier_seen = False
         self._next_slot = 0.0
-        self._msg = topics.message_class(topics.FLOAT64_ARRAY if self.mimo else topics.FLOAT64)
         self.passes = 0
         self._open_stream()
         self.pub_start = None
         if self.test_start is not None:
             int_msg = topics.message_class(topics.INT64)
             self.pub_start = self.create_publisher(int_msg, topics.TEST_START, topics.latched_qos())
-        self.create_subscription(self._msg, topics.Y_HAT, self._on_y_hat, topics.data_qos())
+        self.create_subscription(self.channels.message_type, topics.Y_HAT, self._on_y_hat, topics.data_qos())
         array = topics.message_class(topics.FLOAT64_ARRAY)
         self.create_subscription(array, topics.SAMPLES, self._on_sample, topics.data_qos(), raw=True)
 
@@ -207,11 +207,8 @@ class Replay(Node):
         self.offsets = _due(times)
         self.stream_starts = {int(k) for k in np.flatnonzero(np.diff(self.run_of)) + 1}
         self.test_start = read_test_start(self.bag)
-        self.mimo = np.ndim(self.u) == 2
-        self._u_layout = self._y_layout = None
-        if self.mimo:
-            u_names, y_names = (side_channels(read.values, side)[0] for side in ("u", "y"))
-            self._u_layout, self._y_layout = topics.vector_layout(u_names), topics.vector_layout(y_names)
+        names = {side: side_channels(read.values, side)[0] for side in ("u", "y")}
+        self.channels = Channels(names, vector=np.ndim(self.u) == 2)  # (the recording's samples are vectors)
         self._say_loaded(read, rows)
 
     def _say_loaded(self, read: Any, rows: np.ndarray) -> None:
@@ -221,9 +218,8 @@ class Replay(Node):
         if samples.source == "samples":
             refused = int(np.count_nonzero(~(finite_rows(samples.u) & finite_rows(samples.y))))
             what += f" ({refused} refused live, as NaN)"
-        line = f"replaying {what}: {len(self.run_of)} samples in {len(self.stream_starts) + 1} stream(s)"
-        if self.mimo:
-            line += f" of {self.u.shape[1]} inputs and {self.y_p.shape[1]} outputs"
+        channels = f"{np.size(self.u[:1])} input(s) and {np.size(self.y_p[:1])} output(s)"
+        line = f"replaying {what}: {channels}, {len(self.run_of)} samples in {len(self.stream_starts) + 1} stream(s)"
         counters = read.session.all_counters()
         dropped = sum(counters.get(name, 0) for name in ("duplicates", "stale"))
         tail = f"; {dropped} repeated or stale messages dropped" if dropped else ""
@@ -293,8 +289,8 @@ class Replay(Node):
 
     def _open_stream(self) -> None:
         """Publishers for one pass: new ones start their publication sequence numbers at 1."""
-        self.pub_u = self.create_publisher(self._msg, topics.U, topics.data_qos())
-        self.pub_y = self.create_publisher(self._msg, topics.Y_P, topics.data_qos())
+        self.pub_u = self.create_publisher(self.channels.message_type, topics.U, topics.data_qos())
+        self.pub_y = self.create_publisher(self.channels.message_type, topics.Y_P, topics.data_qos())
 
     def _restart_stream(self, executor: SingleThreadedExecutor, label: str) -> None:
         acked = self.wait_acked()
@@ -364,12 +360,6 @@ class Replay(Node):
         """
         if not self.wait_acked(timeout=self._settle_timeout()):
             self.get_logger().warning("sample 1 of the new pass not acknowledged by every subscriber")
-
-    def _message(self, value: Any, layout: Any) -> Any:
-        """One u or y_p message: a Float64, or (MIMO) a Float64MultiArray naming its channels."""
-        if not self.mimo:
-            return self._msg(data=float(value))
-        return self._msg(layout=layout, data=np.asarray(value, dtype=np.float64).tolist())
 
     def _declare(self, name: str, default: Any, description: str, **ranges: Any) -> None:
         self.declare_parameter(name, default, ParameterDescriptor(description=description, read_only=True, **ranges))
@@ -453,8 +443,8 @@ class Replay(Node):
                     "loop: the recorded live changes were set in the first pass only; later passes keep their "
                     "last values"
                 )
-            self.pub_u.publish(self._message(self.u[k], self._u_layout))
-            self.pub_y.publish(self._message(self.y_p[k], self._y_layout))
+            self.pub_u.publish(self.channels.message(self.u[k], "u"))
+            self.pub_y.publish(self.channels.message(self.y_p[k], "y"))
             self.published += 1
             if (k == 0 and self.passes) or k in self.stream_starts:
                 self._settle_new_stream()

@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import ClassVar, Protocol
 
 import numpy as np
 
@@ -58,6 +58,10 @@ class Plant:
     (Model 1 / Model 2); ``f`` takes the n past outputs, ``g`` the m past inputs
     (Model 4's ``f`` takes the outputs then the inputs).
     """
+
+    #: one input, one output (a :class:`MimoPlant` says how many it has)
+    n_u: ClassVar[int] = 1
+    n_y: ClassVar[int] = 1
 
     model: int
     n: int

@@ -86,18 +86,23 @@ def _figure_lines(result: BagEvaluation, d: dict[str, Any]) -> list[str]:
 
 
 def _plot(args: Any, result: BagEvaluation) -> None:
-    """``--plot``: plant against the model on the test part (one panel per output), the fit's band if known."""
+    """``--plot``: plant against the model on the test part over the errors (a pair of panels per output), with
+    the fit's free-run band if known. The node's one-step band (``y_hat_std``) is not kept per sample here."""
     from lenn_ros.plotting import plot_channels, plot_identification
 
+    free_run = result.intervals.get("free_run", {})
     if result.single:
         e = result.evaluation
         title = f"{args.bag}: NMSE {e.nmse_db:.2f} dB one-step, {e.nmse_free_run_db:.2f} dB free run"
-        band = result.intervals.get("free_run", {}).get("half_width")
-        plot_identification(args.plot, e.y_test, e.y_hat_test, title, e.y_free_test, free_run_band=band)
+        plot_identification(args.plot, e.y_test, e.y_hat_test, title, e.y_free_test, free_run.get("half_width"))
         return
     names = list(result.evaluations)
     stacked = [np.column_stack([getattr(e, key) for e in result.evaluations.values()])
                for key in ("y_test", "y_hat_test", "y_free_test")]  # fmt: skip
+    # by output name; fit_band_coverage gives a lone "y"'s at the top level
+    bands = [(free_run if name == "y" and "half_width" in free_run else free_run.get(name, {})).get("half_width")
+             for name in names]  # fmt: skip
     shown = ", ".join(f"{name} {e.nmse_db:.2f}" for name, e in result.evaluations.items())
-    path = plot_channels(args.plot, names, stacked[0], stacked[1], f"{args.bag}: one-step NMSE {shown} dB", stacked[2])
+    title = f"{args.bag}: one-step NMSE {shown} dB"
+    path = plot_channels(args.plot, names, stacked[0], stacked[1], title, stacked[2], free_run_band=bands)
     print(f"  wrote {path}")

@@ -18,16 +18,18 @@ from lenn_ros.fit.result import FitResult, OutputReport
 
 
 def plot(path: str | Path, result: FitResult, name: str) -> Path:
-    """Plant against the model on the test part (one-step and free run), one panel per output; one output's
-    with its free-run band. ``name``: the data's, for the title."""
+    """Plant against the model on the test part (one-step and free run) over their errors, one pair of panels
+    per output, each with its 95 % bands (one-step and free run). ``name``: the data's, for the title."""
     from lenn_ros.plotting import plot_channels, plot_identification
 
+    free_bands, one_bands = ([part.intervals.get(kind, {}).get("half_width") for part in result.per_output]
+                             for kind in ("free_run", "one_step"))  # fmt: skip
+    series = (result.y_test, result.y_hat_test)
     if result.alone:
         title = f"{name}: free-run RMSE {result.rmse_free_run:.4g} on the test part"
-        band = result.intervals["free_run"]["half_width"]
-        return plot_identification(path, result.y_test, result.y_hat_test, title, result.y_free_test, band)
+        return plot_identification(path, *series, title, result.y_free_test, free_bands[0], one_bands[0])
     title = f"{name}: model on the test part (free run from the measured outputs before it)"
-    return plot_channels(path, result.outputs, result.y_test, result.y_hat_test, title, result.y_free_test)
+    return plot_channels(path, result.outputs, *series, title, result.y_free_test, free_bands, one_bands)
 
 
 def format_report(result: FitResult, dt: float | None = None) -> str:

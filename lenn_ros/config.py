@@ -92,9 +92,11 @@ NODE_PARAMETERS = [
     Parameter(
         "free_run_guard",
         False,
-        "keep a block of health_interval learnt samples only if the model then simulates the recent samples "
-        "(each stretch of them) no worse: learning on from a model fitted for its free run (lenn-ros fit -o "
-        "turns it on) does not trade the free run for the one-step error",
+        "the network learns on, but the model that is served (frozen phases, free runs, saved weights) takes "
+        "its weights of a block's end only once they simulate the 10 blocks of health_interval samples after "
+        "it better, and no stretch of them more than 10 % worse: learning on from a model fitted for its free "
+        "run (lenn-ros fit -o turns it on) does not trade the free run for the one-step error "
+        "(core.free_run_guard)",
         live=True,
     ),
     # -- where u and y_p come from (issue 9: a real robot's topics) --

@@ -885,6 +885,7 @@ def test_fit_simulates_a_speed_read_as_its_absolute_value_and_the_node_signs_it(
     assert result.nmse_db < -35.0
 
 
+@pytest.mark.skipif(not (SILVERBOX.parent / "buck_converter_id.csv").exists(), reason="no shared buck converter")
 def test_fit_undoes_refinement_that_would_diverge_on_the_buck_converter_and_says_so() -> None:
     """On the buck converter the blocks chose two refinement iterations of an increment model; the second
     runs away on the training input shuffled, and (kept) the model diverged 41 samples into the test. It is

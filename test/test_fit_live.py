@@ -22,13 +22,11 @@ rclpy = pytest.importorskip("rclpy")
 from rosutil import Listener, Talker, final_status, start_node, stop  # noqa: E402
 from test_fit import _plant_study, cubic_plant  # noqa: E402
 
-from lenn_ros.config import resolve  # noqa: E402
 from lenn_ros.core.networks import OnlineRegressor  # noqa: E402
 from lenn_ros.fit.data import Data  # noqa: E402
 from lenn_ros.fit.export import write_outputs  # noqa: E402
 from lenn_ros.fit.procedure import fit  # noqa: E402
-from lenn_ros.service.building import build_identifier  # noqa: E402
-from lenn_ros.service.params import read_params_file  # noqa: E402
+from lenn_ros.service.building import identifier_from_params  # noqa: E402
 
 
 class SeriesTalker(Talker):
@@ -114,18 +112,23 @@ def test_node_starts_from_the_fitted_model_and_keeps_adapting(tmp_path: Path, do
     assert counters["learned"] == len(live_u) - result.identifier.structure.warm_up - unsure
     assert counters["clipped_inputs"] == 0  # the network inputs the Identifier clipped (none here)
     # offline: the same files, the same samples, stepped with learning on
-    resolved, network = resolve(read_params_file(files["params"]))
-    offline = build_identifier(resolved, network)
-    offline.model.load_state(files["weights"])
-    offline.mark_healthy()
+    offline, values = identifier_from_params(files["params"])  # as the node builds it
+    assert values["free_run_guard"]  # fit writes it on
     expected = [r.y_hat_next for k in range(len(live_u)) if (r := offline.step(k, live_u[k], live_y[k])).y_hat_next]
     got = listener.values["y_hat"]
     assert len(got) == len(expected)
     assert np.allclose(got, expected, rtol=0, atol=1e-9)
-    # the model kept adapting and is still a good simulator of the plant
+    # the network kept adapting: its one-step predictions are not the fitted model's
+    frozen, _ = identifier_from_params(files["params"])
+    unlearnt = [
+        r.y_hat_next for k in range(len(live_u)) if (r := frozen.step(k, live_u[k], live_y[k], False)).y_hat_next
+    ]
+    assert len(unlearnt) == len(got) and not np.allclose(got, unlearnt, rtol=0, atol=1e-9)
+    # the weights it saved are the model it serves (free_run_guard): the fitted one unless the guard adopted
+    # newer weights, and that model is still a good simulator of the plant
     fitted = OnlineRegressor.load(files["weights"]).weights_
     after = OnlineRegressor.load(tmp_path / "after.npz")
-    assert not np.array_equal(fitted, after.weights_)
+    assert np.array_equal(fitted, after.weights_) == (counters.get("guard_adopted", 0) == 0)
     offline.model.set_state(after.state())
     y_free = offline.free_run(u, y, start)
     assert np.sqrt(np.mean((y_free - y[start:]) ** 2)) < 2.0 * result.rmse_free_run + 1e-3

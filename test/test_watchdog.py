@@ -66,3 +66,13 @@ def test_a_steady_topic_at_its_rate_is_never_said() -> None:
         t = feed(watchdog, "/joint_states", float(second), second + 1.0, 500.0)
         assert watchdog.check(t, PUBLISHER) == []
     assert watchdog.counters == {"input_stalls": 0, "resubscribed": 0, "input_slow": 0}
+
+
+def test_a_topic_that_stops_is_a_stall_never_first_a_slow_topic_whatever_its_window() -> None:
+    """A stop is one event: a window that began just before it must not read as "slow" before the stall."""
+    for stop in (60.0, 60.1, 60.15, 60.2, 60.5, 61.0, 61.95):  # the stop at phases of the 2 s rate window (60.06)
+        watchdog = InputWatchdog(timeout=2.0)
+        last = feed(watchdog, "/joint_states", 0.0, stop, 200.0)
+        kinds = [e.kind for k in range(1, 400) for e in watchdog.check(last + 0.01 * k, PUBLISHER)]
+        assert kinds == ["stalled"], (stop, kinds)
+        assert watchdog.counters["input_slow"] == 0

@@ -11,8 +11,10 @@ publishes only on change has no rate to fall below.
 
 - **stalled**: nothing for ``timeout`` s (at least :data:`PERIODS` of its measured period); said,
   counted, resubscribed; again after twice as long, and so on (each episode: one line per retry);
-- **slow**: over the last :data:`WINDOW` s, under :data:`SLOW_SHARE` of its measured rate; said
-  and counted once per episode (no action: messages do come);
+- **slow**: over the last full window of :data:`WINDOW` s or more (closed by an arrival), under
+  :data:`SLOW_SHARE` of its measured rate; said and counted once per episode (no action: messages
+  do come). A window still open is not judged: a topic that stops would read as slow in it before
+  its stall, and a stop is one event, said as a stall;
 - **resumed**: a stalled or slow topic at half its rate again; said once.
 
 Nothing here knows ROS: the node reports arrivals (:meth:`InputWatchdog.arrived`) and the matched
@@ -104,7 +106,7 @@ class InputWatchdog:
             elif self._back(entry, quiet):
                 events.append(self._resumed(topic, entry))
             elif entry.state == "ok" and names:
-                events += self._slow(topic, entry, self._recent(entry, now), names, now)
+                events += self._slow(topic, entry, entry.recent, names, now)
         return events
 
     def _back(self, entry: _Topic, quiet: float) -> bool:
@@ -112,12 +114,6 @@ class InputWatchdog:
         if entry.state == "stalled":
             return quiet < max(self.timeout, PERIODS / entry.rate)
         return entry.state == "slow" and entry.recent >= 0.5 * entry.rate
-
-    @staticmethod
-    def _recent(entry: _Topic, now: float) -> float:
-        """The rate over the window now running if it is long enough, else over the last full one."""
-        span = now - entry.window_start
-        return entry.window_count / span if span >= WINDOW else entry.recent
 
     def _slow(self, topic: str, entry: _Topic, recent: float, names: list[str], now: float) -> list[InputEvent]:
         if recent >= SLOW_SHARE * entry.rate:

@@ -222,3 +222,36 @@ def test_figures_do_not_switch_the_callers_matplotlib_backend(tmp_path: Path) ->
     assert result.returncode == 0, result.stderr
     assert result.stdout.split() == ["svg", "0"]
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_no_module_over_900_lines_no_class_over_500_and_one_pair_raw() -> None:
+    """Issue 42's structure: small modules and classes, each rule written once."""
+    too_long, classes, pair_raw = [], [], []
+    for path in PACKAGE.rglob("*.py"):
+        text = path.read_text()
+        if text.count("\n") > 900:
+            too_long.append(f"{path.relative_to(REPO)}: {text.count(chr(10))} lines")
+        for node in ast.walk(ast.parse(text)):
+            if isinstance(node, ast.ClassDef) and node.end_lineno - node.lineno + 1 > 500:
+                classes.append(f"{path.relative_to(REPO)}: {node.name}, {node.end_lineno - node.lineno + 1} lines")
+            if isinstance(node, ast.FunctionDef) and node.name == "pair_raw":
+                pair_raw.append(str(path.relative_to(REPO)))
+    assert too_long == [] and classes == []
+    assert pair_raw == ["lenn_ros/service/recording.py"]
+
+
+def test_single_or_several_channel_branches_stay_few() -> None:
+    """A model of several channels composes one-channel models: its branches are counted (68 before issue 42)."""
+    branch = re.compile(r"^\s*(?:el)?if .*(?:mimo|Mimo|MIMO)")
+    found = [
+        f"{path.relative_to(REPO)}:{number}"
+        for path in PACKAGE.rglob("*.py")
+        for number, line in enumerate(path.read_text().splitlines(), 1)
+        if branch.match(line)
+    ]
+    assert len(found) <= 15, found
+
+
+def test_readme_and_results_stay_short() -> None:
+    assert len((REPO / "README.md").read_bytes()) <= 15_000
+    assert (REPO / "bench" / "RESULTS.md").read_text().count("\n") <= 400

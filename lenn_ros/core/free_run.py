@@ -230,3 +230,29 @@ def _python(runs: Sequence[OutputRun], values: np.ndarray, start: int) -> tuple[
         for j, run in enumerate(runs):
             values[k + 1, run.column] = outputs[j]
     return clipped, None
+
+
+def identifier_free_run(
+    identifier: Any, u: np.ndarray, y: np.ndarray, start: int, seeds_signed: bool = False
+) -> np.ndarray:
+    """:meth:`Identifier.free_run <lenn_ros.core.structure.Identifier.free_run>` (see there; ``identifier`` is
+    one, not imported: it imports this module): the one output's run through :func:`free_run_outputs`, its
+    clipped inputs counted and its outcome kept in ``last_free_run``."""
+    u = np.asarray(u, dtype=np.float64)
+    structure = identifier.structure
+    window = structure.warm_up
+    if start < window:
+        raise ValueError(f"free run needs {window} samples of history before it starts")
+    values = np.column_stack([np.asarray(y, dtype=np.float64), u])
+    read_abs = structure.y_abs and not seeds_signed  # |y| measured in, |y^| out
+    if read_abs:
+        values[:start, 0] = identifier.signed(u[:start], values[:start, 0])
+    clipped, diverged_at = free_run_outputs([OutputRun(structure, identifier.model, 0, (1,))], values, int(start))
+    identifier.counters["clipped_free_run"] += clipped[0]
+    identifier.last_free_run = {
+        "samples": len(u) - start,
+        "clipped_inputs": clipped[0],
+        "diverged": diverged_at is not None,
+        "diverged_at": diverged_at,
+    }
+    return np.abs(values[start:, 0]) if read_abs else values[start:, 0]

@@ -25,7 +25,9 @@ samples) and the judgement; :class:`~lenn_ros.core.structure.Identifier` calls
 from __future__ import annotations
 
 import collections
+import contextlib
 import itertools
+from collections.abc import Iterator
 from typing import Any
 
 import numpy as np
@@ -189,6 +191,19 @@ class FreeRunGuard:
         if self.candidates and self.candidates[0][2] >= WINDOW_BLOCKS:
             self._judge(structure, model, piece, counters, *self.candidates.popleft()[:2])
         self.candidates.append([model.state(), self.recent.total, 0])
+
+    @contextlib.contextmanager
+    def serving(self, model: Any) -> Iterator[None]:
+        """``model`` holds the kept state for the duration (what a weights file saves), and its own after."""
+        if self.kept is None:
+            yield
+            return
+        now = model.state()
+        model.set_state(self.kept)
+        try:
+            yield
+        finally:
+            model.set_state(now)
 
     def learning_stops(self, structure: Any, model: Any, piece: int, counters: dict[str, int]) -> None:
         """Learning stopped: each candidate followed by a block's worth of samples or more is judged on them,

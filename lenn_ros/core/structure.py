@@ -13,13 +13,13 @@ from __future__ import annotations
 import contextlib
 import dataclasses
 import os
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
 
 import numpy as np
 
-from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND, OutputRun, free_run_outputs
+from lenn_ros.core.free_run import FREE_RUN_DIVERGENCE_BOUND, identifier_free_run
 from lenn_ros.core.free_run_guard import WINDOW_BLOCKS, BatchGuard, FreeRunGuard
 from lenn_ros.core.networks import DivergenceError, OnlineRegressor
 from lenn_ros.core.online_step import (
@@ -561,19 +561,9 @@ class Identifier:
         self._block_errors.clear()
         self._block_targets.clear()
 
-    @contextlib.contextmanager
-    def serving(self) -> Iterator[None]:
+    def serving(self) -> contextlib.AbstractContextManager[None]:
         """The network holds the kept state for the duration (``free_run_guard``: what a weights file saves)."""
-        kept = self._guard.kept if self.free_run_guard else None
-        if kept is None:
-            yield
-            return
-        now = self.model.state()
-        self.model.set_state(kept)
-        try:
-            yield
-        finally:
-            self.model.set_state(now)
+        return self._guard.serving(self.model) if self.free_run_guard else contextlib.nullcontext()
 
     @property
     def target_variance(self) -> float:
@@ -728,23 +718,7 @@ class Identifier:
         ``start`` is signed already (a run going on from its own outputs, as a twin's),
         and the run is returned signed.
         """
-        u = np.asarray(u, dtype=np.float64)
-        window = self.structure.warm_up
-        if start < window:
-            raise ValueError(f"free run needs {window} samples of history before it starts")
-        values = np.column_stack([np.asarray(y, dtype=np.float64), u])
-        read_abs = self.structure.y_abs and not seeds_signed  # |y| measured in, |y^| out
-        if read_abs:
-            values[:start, 0] = self.signed(u[:start], values[:start, 0])
-        clipped, diverged_at = free_run_outputs([OutputRun(self.structure, self.model, 0, (1,))], values, int(start))
-        self.counters["clipped_free_run"] += clipped[0]
-        self.last_free_run = {
-            "samples": len(u) - start,
-            "clipped_inputs": clipped[0],
-            "diverged": diverged_at is not None,
-            "diverged_at": diverged_at,
-        }
-        return np.abs(values[start:, 0]) if read_abs else values[start:, 0]
+        return identifier_free_run(self, u, y, start, seeds_signed)
 
 
 # -- |y| outputs -------------------------------------------------------------------------

@@ -76,3 +76,18 @@ def test_a_topic_that_stops_is_a_stall_never_first_a_slow_topic_whatever_its_win
         kinds = [e.kind for k in range(1, 400) for e in watchdog.check(last + 0.01 * k, PUBLISHER)]
         assert kinds == ["stalled"], (stop, kinds)
         assert watchdog.counters["input_slow"] == 0
+
+
+def test_the_window_after_a_stall_is_not_read_as_slow() -> None:
+    """The first window after a stall must not span it: the topic back at its rate is resumed, never slow."""
+    for stop in (60.07, 60.2, 60.5, 61.0, 61.9):  # the stop at phases of the 2 s rate window (60.06)
+        watchdog = InputWatchdog(timeout=2.0)
+        last = feed(watchdog, "/joint_states", 0.0, stop, 200.0)
+        kinds = [e.kind for k in range(1, 400) for e in watchdog.check(last + 0.01 * k, PUBLISHER)]
+        back = last + 4.0
+        for k in range(1, 1200):  # back at its rate for 6 s, checked every 10 ms
+            watchdog.arrived("/joint_states", back + k / 200.0)
+            if k % 2 == 0:
+                kinds += [e.kind for e in watchdog.check(back + k / 200.0, PUBLISHER)]
+        assert kinds == ["stalled", "resumed"], (stop, kinds)
+        assert watchdog.counters["input_slow"] == 0

@@ -80,6 +80,9 @@ class InputWatchdog:
             return
         entry.count += 1
         entry.last = now
+        if entry.state == "stalled":  # the first message after a stall opens a window: the stall is not a rate
+            entry.window_start, entry.window_count = now, 1
+            return
         entry.window_count += 1
         span = now - entry.window_start
         if span >= WINDOW:

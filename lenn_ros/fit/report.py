@@ -22,7 +22,7 @@ def plot(path: str | Path, result: FitResult, name: str) -> Path:
     per output, each with its 95 % bands (one-step and free run). ``name``: the data's, for the title."""
     from lenn_ros.plotting import plot_channels, plot_identification
 
-    free_bands, one_bands = ([part.intervals.get(kind, {}).get("half_width") for part in result.per_output]
+    free_bands, one_bands = ([_per_sample(part, kind) for part in result.per_output]
                              for kind in ("free_run", "one_step"))  # fmt: skip
     series = (result.y_test, result.y_hat_test)
     if result.alone:
@@ -30,6 +30,15 @@ def plot(path: str | Path, result: FitResult, name: str) -> Path:
         return plot_identification(path, *series, title, result.y_free_test, free_bands[0], one_bands[0])
     title = f"{name}: model on the test part (free run from the measured outputs before it)"
     return plot_channels(path, result.outputs, *series, title, result.y_free_test, free_bands, one_bands)
+
+
+def _per_sample(part: OutputReport, kind: str) -> Any:
+    """One output's ``kind`` band (``one_step``, ``free_run``) at each test sample, or its one number (a result
+    made without the per-sample half-widths)."""
+    widths = getattr(part, f"{kind}_half_width_test", None)
+    if widths is not None and len(widths) == part.samples:
+        return widths
+    return part.intervals.get(kind, {}).get("half_width")
 
 
 def format_report(result: FitResult, dt: float | None = None) -> str:
@@ -124,7 +133,8 @@ def _table_lines(result: FitResult) -> list[str]:
             f"+-{band['half_width']:.4g}: {band['coverage_test']:.1%}"
         )
     for part in result.per_output:
-        lines += [line.replace("note: ", f"note ({part.name}): ", 1) for line in _beyond_lines(part, "  ")]
+        notes = _beyond_lines(part, "  ") + _unlike_lines(part, "  ")
+        lines += [line.replace("note: ", f"note ({part.name}): ", 1) for line in notes]
     return lines
 
 
@@ -167,21 +177,43 @@ def _test_lines(result: FitResult, dt: float | None) -> list[str]:
         f"RMSE {part.rmse_free_run:.5g}, NMSE {part.nmse_free_run_db:.2f} dB, "
         f"{free['clipped_inputs']} inputs clipped"
     )
-    bands = part.intervals
-    if bands:
-        one, run = bands["one_step"], bands["free_run"]
-        lines.append(
-            f"    95 % bands (from held-out blocks of the training samples): one-step +-{one['half_width']:.4g} "
-            f"covers {one['coverage_test']:.1%}, free run +-{run['half_width']:.4g} covers {run['coverage_test']:.1%}"
-        )
+    if part.intervals:
+        lines.append(_band_line(part.intervals))
     outside = part.test_samples_outside_training_range
     if outside["u"] or outside["y"]:
         lines.append(
             f"  note: {outside['u']} test u and {outside['y']} test y samples lie beyond the training range "
             "plus margin; their network inputs are clipped (counted above)"
         )
-    lines += _beyond_lines(part, "  ")
+    lines += _beyond_lines(part, "  ") + _unlike_lines(part, "  ")
     return lines + _closing_lines(result, dt)
+
+
+def _band_line(bands: dict[str, Any]) -> str:
+    """The 95 % bands in one line: each one's typical half-width, how it varies over the test part, its coverage."""
+    one, run = bands["one_step"], bands["free_run"]
+    spread = _spread(one, "wider the farther a regressor lies from the build data")
+    growth = _spread(run, "growing with the steps since the run's start")
+    source = "in-sample, optimistic" if "in-sample" in one["from"] else "from held-out blocks of the training samples"
+    return (
+        f"    95 % bands ({source}): one-step +-{one['half_width']:.4g}{spread} "
+        f"covers {one['coverage_test']:.1%}, free run +-{run['half_width']:.4g}{growth} "
+        f"covers {run['coverage_test']:.1%}"
+    )
+
+
+def _spread(band: dict[str, Any], why: str) -> str:
+    """' (+-low to +-high: why)' where a band's half-width varies over the test part ('' where it is one number)."""
+    low, high = band.get("half_width_min_test"), band.get("half_width_max_test")
+    if low is None or high is None or not high > low:
+        return ""
+    return f" (+-{low:.4g} to +-{high:.4g}: {why})"
+
+
+def _unlike_lines(part: OutputReport, indent: str) -> list[str]:
+    """One line when many test regressors lie farther from the build data than the build rows do."""
+    said = part.intervals.get("unlike_build")
+    return [f"{indent}note: {said}"] if said else []
 
 
 def _beyond_lines(part: OutputReport, indent: str) -> list[str]:

@@ -53,8 +53,8 @@ class OutputReport:
 
     The fields are the report's, in its order (:meth:`entry`). ``free_run`` is the test
     part's free run, of all outputs together (the same for each). The series (``y_test``,
-    the model's one-step ``y_hat_test`` and free-run ``y_free_test`` over the test part) are
-    for the plot and for callers; the report leaves them out.
+    the model's one-step ``y_hat_test`` and free-run ``y_free_test`` over the test part, the view the bands read
+    and the bands' half-widths per sample) are for the plot and for callers; the report leaves them out.
     """
 
     name: str
@@ -71,6 +71,11 @@ class OutputReport:
     y_test: np.ndarray = field(repr=False)
     y_hat_test: np.ndarray = field(repr=False)
     y_free_test: np.ndarray = field(repr=False)
+    #: the output's view (its [y, u] columns) over the test part and the samples before it its regressors read
+    view_test: np.ndarray = field(default_factory=lambda: np.empty((0, 0)), repr=False)
+    #: the 95 % bands' half-width at each test sample, one step ahead and in free run (NaN: no prediction there)
+    one_step_half_width_test: np.ndarray = field(default_factory=lambda: np.empty(0), repr=False)
+    free_run_half_width_test: np.ndarray = field(default_factory=lambda: np.empty(0), repr=False)
     intervals: dict[str, Any] = field(default_factory=dict)
     model: dict[str, Any] = field(default_factory=dict)
     choices: dict[str, Any] = field(default_factory=dict)

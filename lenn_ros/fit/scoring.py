@@ -4,7 +4,8 @@ The test samples only score the model: one-step and free run across the record's
 (:func:`score`), the share of the free run's error where a signal leaves the training
 range (:func:`beyond_training_range`), whether the test part is a record of its own that
 its own first samples must seed (:func:`separate_test_record`), and 95 % bands from
-errors on samples the model was not fitted to (:func:`fit_intervals`). Apart from the
+errors on samples the model was not fitted to, wider where a test regressor lies far from the
+build data and growing along a free run (:func:`fit_intervals`, :mod:`~lenn_ros.fit.bands`). Apart from the
 procedure: all of it reads the model delivered and the samples, nothing of how the model
 was chosen.
 """
@@ -23,11 +24,21 @@ from lenn_ros.core.metrics import band_half_width, coverage, nmse_db, rmse
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.structure import Identifier
 from lenn_ros.core.threads import cores, side_by_side
+from lenn_ros.fit.bands import (
+    LEVEL,
+    UNLIKE_SHARE,
+    HeldOut,
+    held_out_free_runs,
+    held_out_one_step,
+    horizon_band,
+    one_step_band,
+    raw_features,
+    run_steps,
+)
 from lenn_ros.fit.data import Data
 from lenn_ros.fit.numbering import number, span
 from lenn_ros.fit.record import Record
 from lenn_ros.fit.result import OutputFit, OutputReport
-from lenn_ros.fit.selection import out_of_fold_residuals
 from lenn_ros.fit.termmodel import TermModel
 
 
@@ -130,6 +141,7 @@ def _figures(
         y_test=y_test,
         y_hat_test=one_step,
         y_free_test=free,
+        view_test=view[start - model.warm_up :],
     )
 
 
@@ -182,39 +194,112 @@ def fit_intervals(
 ) -> dict[str, Any]:
     """Nominal 95 % bands of one output, one step ahead and in free run, and how much of the test part they cover.
 
-    Both from errors on samples the model was not fitted to: the blocks the structure
-    was chosen by, each run by the weights fitted without it (``held_out``), one step
-    ahead and in free run. An MLP or SGD model, which the blocks did not run, takes its
-    own errors over the training record (in-sample: optimistic, and said). A
-    half-width is the 95 % quantile of |e|, not 1.96 sigma: free-run errors drift and
-    have heavy tails. The one-step std is also the noise the twin node may add. ``part``: the output's
-    test figures and series; ``y_hat_train``: its one-step predictions over the training rows.
+    Both from errors on samples the model was not fitted to: the blocks the structure was chosen by, each run
+    by the weights fitted without it (``held_out``), one step ahead and in free run. The one-step band widens
+    with the regressor's distance from the build data, the free-run band grows with the steps since the run's
+    start (:mod:`~lenn_ros.fit.bands`: one number each covered 76-80 % of some test parts). An MLP or SGD
+    model, which the blocks did not run, takes its own errors over the training record (in-sample:
+    optimistic, and said), and a band of one number each (one run tells little of how errors grow along
+    runs). The one-step std is also the noise the twin node may add. ``part``: the output's test figures and
+    series (its per-sample half-widths are set here, for the plot); ``y_hat_train``: its one-step predictions
+    over the training rows.
     """
     record = fitted.record
-    y_train = record.y
     if held_out:
-        one_step = out_of_fold_residuals(fitted.chosen, record, one_step=True)
-        free = out_of_fold_residuals(fitted.chosen, record)
+        held = held_out_one_step(fitted.chosen, record)
+        free, steps = held_out_free_runs(fitted.chosen, record)
         source = "the selection's blocks, each run by the weights fitted without it"
     else:
         warm = identifier.structure.warm_up
-        one_step = y_hat_train[warm:] - y_train[warm:]
-        free = identifier.free_run(record.values[:, 1], y_train, warm) - y_train[warm:]
+        errors = y_hat_train[warm:] - record.y[warm:]
+        held = HeldOut(errors[np.isfinite(errors)], np.empty((0, 0)), np.empty(0, dtype=np.int64))
+        free = identifier.free_run(record.values[:, 1], record.y, warm) - record.y[warm:]
+        steps = np.zeros(len(free), dtype=np.int64)  # one run, not runs by horizon: its band is one number
         source = "the delivered model over the training record (in-sample: optimistic)"
-    one_step = one_step[np.isfinite(one_step)]
-    one_step_width, free_width = band_half_width(one_step), band_half_width(free)
-    y_test = part.y_test
+    one_step, notes = _one_step(part, fitted, held, source)
+    free_run = _free_run(part, free, steps, source)
+    return {"level": LEVEL, "one_step": one_step, "free_run": free_run, **notes}
+
+
+def _one_step(part: OutputReport, fitted: OutputFit, held: HeldOut, source: str) -> tuple[dict[str, Any], dict]:
+    """The one-step band's figures (and the note when the test part is unlike the build part); sets the part's
+    per-sample half-widths. One number where the regressors' distance cannot be read (no held-out features, an
+    output read as |y|)."""
+    band = one_step_band(held) if len(held.features) else None
+    features = _test_features(part, fitted) if band is not None else None
+    predicted = np.isfinite(part.y_hat_test)
+    constant = band_half_width(held.errors)
+    figures: dict[str, Any] = {"held_out_half_width": constant}
+    notes = {}
+    if band is None or features is None:
+        widths = np.full(part.samples, constant)
+        figures["rule"] = "one number: the 95 % quantile of |e|"
+    else:
+        widths = band.half_width(*features)
+        far = float(np.mean(band.distance(features[0])[predicted] > band.typical_r)) if predicted.any() else 0.0
+        figures.update(rule=ONE_STEP_RULE, quantile=band.quantile, far_from_build_test=far)
+        if far > UNLIKE_SHARE:
+            notes["unlike_build"] = (
+                f"the test part is not drawn like the build part: {far:.0%} of its regressors lie farther from the "
+                "build data than 99 % of the build rows do (leverage); the one-step band widens with that distance, "
+                "but the held-out blocks vouch for its 95 % only where the test part is like them"
+            )
+    widths = np.where(predicted, widths, np.nan)
+    part.one_step_half_width_test = widths
     return {
-        "level": 0.95,
-        "one_step": {
-            "half_width": one_step_width,
-            "std": float(np.std(one_step)) if len(one_step) else math.nan,
-            "from": f"{len(one_step)} one-step errors of {source}",
-            "coverage_test": coverage(y_test, part.y_hat_test, one_step_width),
-        },
-        "free_run": {
-            "half_width": free_width,
-            "from": f"{int(np.count_nonzero(np.isfinite(free)))} errors of {source}",
-            "coverage_test": coverage(y_test, part.y_free_test, free_width),
-        },
+        "half_width": _typical(widths),
+        "std": float(np.std(held.errors)) if len(held.errors) else math.nan,
+        "from": f"{len(held.errors)} one-step errors of {source}",
+        "coverage_test": coverage(part.y_test, part.y_hat_test, widths),
+        **_extent(widths),
+        **figures,
+    }, notes
+
+
+#: how the one-step band is made, as fit.json says it (lenn_ros.fit.bands)
+ONE_STEP_RULE = (
+    "q l(x) sqrt(1 + r(x)): r the leverage of the regressor's features over its mean among the build rows, l the "
+    "local error level; q the 95 % quantile of the held-out errors normalised alike"
+)
+
+
+def _test_features(part: OutputReport, fitted: OutputFit) -> tuple[np.ndarray, np.ndarray] | None:
+    """The chosen model's features of every test regressor (:func:`~lenn_ros.fit.bands.raw_features`), None where
+    the view scored is not the one the model was fitted on (an output read as |y|, fitted signed)."""
+    model, view = fitted.chosen.model, part.view_test
+    lead = len(view) - part.samples
+    if model is None or (fitted.sign or {}).get("used") or lead < model.warm_up:
+        return None
+    raw, clipped = raw_features(model, view[lead - model.warm_up :])
+    return (raw, clipped) if len(raw) == part.samples else None
+
+
+def _free_run(part: OutputReport, errors: np.ndarray, steps: np.ndarray, source: str) -> dict[str, Any]:
+    """The free-run band's figures by steps since the run's start; sets the part's per-sample half-widths."""
+    band = horizon_band(errors, steps)
+    simulated = np.isfinite(part.y_free_test)
+    widths = band.at(run_steps(part.y_free_test)) if band is not None else np.full(part.samples, math.nan)
+    widths = np.where(simulated, widths, np.nan)
+    part.free_run_half_width_test = widths
+    return {
+        "half_width": _typical(widths),
+        "from": f"{int(np.count_nonzero(np.isfinite(errors)))} errors of {source}"
+        + (", by steps since the run's start" if band is not None and len(band.starts) > 1 else ""),
+        "coverage_test": coverage(part.y_test, part.y_free_test, widths),
+        **_extent(widths),
+        "held_out_half_width": band_half_width(errors),
+        **({"by_horizon": band.as_dict()} if band is not None else {}),
     }
+
+
+def _typical(widths: np.ndarray) -> float:
+    """A band's typical half-width over the test part: the median of its finite ones (NaN: none)."""
+    finite = widths[np.isfinite(widths)]
+    return float(np.median(finite)) if len(finite) else math.nan
+
+
+def _extent(widths: np.ndarray) -> dict[str, float]:
+    """The smallest and largest half-width over the test part."""
+    finite = widths[np.isfinite(widths)]
+    low, high = (float(finite.min()), float(finite.max())) if len(finite) else (math.nan, math.nan)
+    return {"half_width_min_test": low, "half_width_max_test": high}

@@ -453,21 +453,6 @@ def _designs(specs: list[Spec], record: Record, layout: Layout) -> Iterator[tupl
         yield spec, design
 
 
-def out_of_fold_residuals(candidate: Candidate, record: Record, one_step: bool = False) -> np.ndarray:
-    """Errors of ``candidate`` on every block, each block run by the weights fitted without it.
-
-    Free run (what the selection scored the candidate by, kept sample by sample), or
-    ``one_step`` ahead: errors of a model on samples it was not fitted to, so their spread
-    is an honest uncertainty (``fit``'s bands). Empty when the candidate has no fold weights.
-    """
-    if candidate.model is None or not candidate.fold_weights:
-        return np.empty(0)
-    run = record.one_step_residuals if one_step else record.residuals
-    blocks = fold_blocks(record.n, candidate.model.warm_up)
-    parts = [run(candidate.model, a, b, w) for (a, b), w in zip(blocks, candidate.fold_weights, strict=True)]
-    return np.concatenate(parts) if parts else np.empty(0)
-
-
 def order_candidates(candidates: list[Candidate]) -> list[Candidate]:
     """Sorted by score, then the one to use moved first.
 

@@ -386,3 +386,38 @@ def test_an_output_passed_through_needs_its_own_past_and_one_flag_per_output() -
     resolved, network = resolve(values)
     with pytest.raises(ConfigError, match="y_pass_through has 3 values for 2 outputs"):
         build_identifier({**values, **resolved}, network)
+
+
+def test_live_parameter_changes_of_a_several_output_model_are_replayed_offline_at_their_sample() -> None:
+    """forgetting and learning changed live on a 2x2 model: recorded from the next sample, and the batch pass
+    over the recorded samples equals the live run per channel, as for one output (test_session's twin)."""
+    from lenn_ros.core.pairing import U, Y
+    from lenn_ros.session import Session, SessionConfig
+
+    series = simulate_mimo(narendra_mimo_plant(), -30.0, seed=2, train_samples=1500, test_samples=300)
+    changes = {500: {"forgetting": 0.995}, 900: {"learning": False}, 1100: {"learning": True}}
+    live = Session(_identifier(), SessionConfig(pairing="sequence"))
+    rows = []
+    for k in range(1, len(series.u) + 1):
+        live.offer(U, series.u[k - 1], time=k * 0.01, sequence=k)
+        if k in changes:
+            assert live.apply_parameters(changes[k]).from_index == k
+        if k == 1501:
+            live.apply_parameters({"learning": False})  # the test phase
+        for sample in live.offer(Y, series.y[k - 1], time=k * 0.01, sequence=k):
+            rows.append((sample.index, sample.u, sample.y, sample.result is not None and sample.result.learned))
+    index = np.array([row[0] for row in rows])
+    u, y = np.array([row[1] for row in rows]), np.array([row[2] for row in rows])
+    learn = np.array([row[3] for row in rows])
+    assert not learn[(index >= 900) & (index < 1100)].any() and learn[(index >= 1200) & (index < 1500)].all()
+    offline = Session(_identifier(), SessionConfig(pairing="sequence"))
+    offline.run_samples(index, u, y, learn, live.changes)
+    for name in ("y1", "y2"):
+        said = live.status()["channels"][name]["phase_nmse_db"]
+        assert offline.status()["channels"][name]["phase_nmse_db"] == pytest.approx(said, abs=1e-9)
+    for mine, theirs in zip(offline.identifier.models, live.identifier.models, strict=True):
+        np.testing.assert_allclose(mine.weights_, theirs.weights_, rtol=0, atol=1e-12)
+        assert mine.forgetting == theirs.forgetting == 0.995
+    ignored = Session(_identifier(), SessionConfig(pairing="sequence"))
+    ignored.run_samples(index, u, y, learn)  # the change matters: without it another model
+    assert not np.allclose(ignored.identifier.models[0].weights_, live.identifier.models[0].weights_, atol=1e-9)

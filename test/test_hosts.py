@@ -142,7 +142,9 @@ def run_graph(bag: Path, env: dict[str, str], prefix: dict[str, list[str]]) -> t
             f"seed:={SEED}",
             f"train_samples:={TRAIN}",
             f"test_samples:={TEST}",
-            "rate_hz:=0.0",
+            # paced: at full speed the static-peers recording once held 1 550 of 2 298 error messages (a local CI
+            # run, 2026-12-07; not reproduced in 2 reruns, cause not established); the test is about equality
+            "rate_hz:=500.0",
             "wait_for_subscribers:=2",
             "exit_when_done:=true",
         ),

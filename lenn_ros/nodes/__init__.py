@@ -53,6 +53,18 @@ def latched_readers_matched(node: Node, publisher: Any, data_topic: str, wanted:
     return bool(publisher.wait_for_all_acked(Duration(seconds=0)))
 
 
+def watched_publishers(node: Node, subscriptions: Any, watchdog: Any) -> dict[str, list[str]]:
+    """The input watchdog's view of the graph (core.watchdog): per subscribed topic whose rate it knows and that
+    has matched publishers, those publishers' names, for its lines ("?" where the graph names none)."""
+    publishers = {}
+    for subscription in subscriptions:
+        topic = subscription.topic_name
+        if subscription.get_publisher_count() and watchdog.watched(topic):
+            infos = node.get_publishers_info_by_topic(topic)
+            publishers[topic] = sorted({f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in infos}) or ["?"]
+    return publishers
+
+
 def executor_choice(default: str) -> str:
     """The loop a node asked for, unless ``LENN_ROS_EXECUTOR`` names another one.
 

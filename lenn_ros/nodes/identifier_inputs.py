@@ -31,7 +31,7 @@ from lenn_ros.core.fields import FieldError, has_header, stamp_seconds
 from lenn_ros.core.holding import START_GRACE
 from lenn_ros.core.pairing import U, Y
 from lenn_ros.core.watchdog import InputWatchdog
-from lenn_ros.nodes import DRAIN_SECONDS, InputsNode, rclpy_internals
+from lenn_ros.nodes import DRAIN_SECONDS, InputsNode, rclpy_internals, watched_publishers
 from lenn_ros.nodes.node_parameters import QOS_OVERRIDES, NodeParameters
 from lenn_ros.session import Notice
 
@@ -222,12 +222,7 @@ class IdentifierInputs:
         a stalled one resubscribed."""
         if self.watchdog is None:
             return
-        publishers = {}
-        for subscription in self.subscriptions.values():
-            topic = subscription.topic_name
-            if subscription.get_publisher_count() and self.watchdog.watched(topic):
-                infos = self.node.get_publishers_info_by_topic(topic)
-                publishers[topic] = sorted({f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in infos}) or ["?"]
+        publishers = watched_publishers(self.node, self.subscriptions.values(), self.watchdog)
         for event in self.watchdog.check(time.monotonic(), publishers):
             self.node.log(Notice(f"input_{event.kind}", event.text, event.topic))
             if event.resubscribe:

@@ -56,7 +56,7 @@ from lenn_ros.config import NODE_PARAMETERS, ConfigError, field_extractor, side_
 from lenn_ros.core.fields import FieldError, compose, has_header, is_vector
 from lenn_ros.core.watchdog import InputWatchdog
 from lenn_ros.model import ModelError, load_model
-from lenn_ros.nodes import run_node
+from lenn_ros.nodes import run_node, watched_publishers
 from lenn_ros.nodes.node_parameters import QOS_OVERRIDES
 from lenn_ros.nodes.robot_controller import describe
 
@@ -308,10 +308,7 @@ class Twin(Node):
         their names, counted and resubscribed (a reader the middleware no longer serves is mended by a new one)."""
         if self.watchdog is None:
             return
-        publishers = {}
-        if self.subscription.get_publisher_count() and self.watchdog.watched(self.u_name):
-            infos = self.get_publishers_info_by_topic(self.u_name)
-            publishers[self.u_name] = sorted({f"{i.node_namespace.rstrip('/')}/{i.node_name}" for i in infos}) or ["?"]
+        publishers = watched_publishers(self, [self.subscription], self.watchdog)
         for event in self.watchdog.check(time.monotonic(), publishers):
             if event.kind == "resumed":
                 self.get_logger().info(event.text)

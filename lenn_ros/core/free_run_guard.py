@@ -181,16 +181,15 @@ class FreeRunGuard:
     def __init__(self) -> None:
         self.recent = RecentSamples()
         self.kept: dict[str, np.ndarray] | None = None
-        self.candidates: collections.deque[list] = collections.deque()  # [state, recent.total then, blocks since]
+        # (state, recent.total then), one per block's end: the oldest is as many blocks old as there are candidates
+        self.candidates: collections.deque[tuple[dict, int]] = collections.deque()
         self.learnt = False  # the network has learnt since learning last stopped
 
     def block_end(self, structure: Any, model: Any, piece: int, counters: dict[str, int]) -> None:
         """A block was learnt: judge the candidate WINDOW_BLOCKS blocks old, and take this one."""
-        for candidate in self.candidates:
-            candidate[2] += 1
-        if self.candidates and self.candidates[0][2] >= WINDOW_BLOCKS:
-            self._judge(structure, model, piece, counters, *self.candidates.popleft()[:2])
-        self.candidates.append([model.state(), self.recent.total, 0])
+        if len(self.candidates) >= WINDOW_BLOCKS:
+            self._judge(structure, model, piece, counters, *self.candidates.popleft())
+        self.candidates.append((model.state(), self.recent.total))
 
     @contextlib.contextmanager
     def serving(self, model: Any) -> Iterator[None]:
@@ -209,7 +208,7 @@ class FreeRunGuard:
         """Learning stopped: each candidate followed by a block's worth of samples or more is judged on them,
         the oldest first (a later one must beat what an earlier one left kept)."""
         while self.candidates:
-            state, taken_at, _ = self.candidates.popleft()
+            state, taken_at = self.candidates.popleft()
             if self.recent.total - taken_at >= piece:
                 self._judge(structure, model, piece, counters, state, taken_at)
         self.learnt = False

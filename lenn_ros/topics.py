@@ -36,6 +36,12 @@ ERROR_STAMPED = "error_stamped"
 #: ``y_hat_std_stamped``: the std of y^(k), stamped as y_hat_stamped is.
 Y_HAT_STD = "y_hat_std"
 Y_HAT_STD_STAMPED = "y_hat_std_stamped"
+#: The half-width of the live 95 % band around y^(k+1) (core.spread.LiveBand: y_hat_std times a multiplier
+#: that keeps the band's running coverage at 95 % as the noise or the plant drifts; Float64, published right
+#: after y_hat_std): the band is y_hat +- y_hat_band. ``y_hat_band_stamped``: the half-width around y^(k),
+#: stamped as y_hat_stamped is.
+Y_HAT_BAND = "y_hat_band"
+Y_HAT_BAND_STAMPED = "y_hat_band_stamped"
 #: The identifier's resolved configuration (JSON, latched): ``evaluate`` reads it from a bag.
 IDENTIFIER_CONFIG = "identifier_config"
 #: key of the identifier_config JSON naming the topic each input resolved to (after remapping): u -> /arm/cmd
@@ -100,6 +106,8 @@ RUN_TOPICS: tuple[TopicSpec, ...] = (
     TopicSpec(SAMPLES, FLOAT64_ARRAY),
     TopicSpec(Y_HAT_STAMPED, JOINT_STATE),
     TopicSpec(ERROR_STAMPED, JOINT_STATE),
+    TopicSpec(Y_HAT_STD, FLOAT64),
+    TopicSpec(Y_HAT_BAND, FLOAT64),
     TopicSpec(IDENTIFIER_CONFIG, STRING, latched=True),
 )
 
@@ -108,7 +116,7 @@ def run_topics(mimo: bool = False) -> tuple[TopicSpec, ...]:
     """:data:`RUN_TOPICS` of a run with one channel, or with several: then y_hat and error are vectors."""
     if not mimo:
         return RUN_TOPICS
-    vectors = (Y_HAT, ERROR)
+    vectors = (Y_HAT, ERROR, Y_HAT_STD, Y_HAT_BAND)
     return tuple(TopicSpec(spec.name, FLOAT64_ARRAY) if spec.name in vectors else spec for spec in RUN_TOPICS)
 
 

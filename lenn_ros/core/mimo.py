@@ -186,11 +186,15 @@ class MimoStepResult:
     outputs: list[StepResult] = field(default_factory=list)
     y_hat_next_std: np.ndarray | None = None  # one-step std of each output's y_hat_next (the monitors' band)
     y_hat_std: np.ndarray | None = None  # ... of each output's y_hat
+    y_hat_next_band: np.ndarray | None = None  # half-width of each output's live 95 % band around y_hat_next
+    y_hat_band: np.ndarray | None = None  # ... around y_hat
 
     def gather_stds(self) -> None:
-        """The outputs' stds (filled in by the monitors) as vectors, published beside y^."""
+        """The outputs' stds and live half-widths (filled in by the monitors) as vectors, published beside y^."""
         self.y_hat_next_std = _stack([out.y_hat_next_std for out in self.outputs])
         self.y_hat_std = _stack([out.y_hat_std for out in self.outputs])
+        self.y_hat_next_band = _stack([out.y_hat_next_band for out in self.outputs])
+        self.y_hat_band = _stack([out.y_hat_band for out in self.outputs])
 
 
 def _stack(values: list[float | None]) -> np.ndarray | None:

@@ -210,6 +210,8 @@ class StepResult:
     leverage: float = 0.0  # phi' P phi of y_hat_next's pattern (RLS; 0: other rules), for its one-step std
     y_hat_next_std: float | None = None  # one-step std of y_hat_next (the session's core.spread fills it in)
     y_hat_std: float | None = None  # ... of y_hat, the prediction this sample scored
+    y_hat_next_band: float | None = None  # half-width of y_hat_next's live 95 % band (core.spread.LiveBand)
+    y_hat_band: float | None = None  # ... of y_hat's
 
     @property
     def outputs(self) -> list[StepResult]:

@@ -12,6 +12,7 @@ samples formed by the chosen pairing mode, one model step per sample, and out
 - ``y_hat_stamped`` / ``error_stamped``: y^(k) and e(k) as JointState stamped with the
   time of sample k, to overlay on y_p in Foxglove / PlotJuggler without a shift;
 - ``y_hat_std`` / ``y_hat_std_stamped``: the one-step std of each prediction (the band);
+- ``y_hat_band`` / ``y_hat_band_stamped``: the live 95 % band's half-width (y_hat +- y_hat_band);
 - ``samples``: each sample as learnt ([index, time, u.., y_p.., learn]), so a recording
   evaluates offline to exactly the live figure;
 - ``nmse`` every ``report_every`` errors; ``status`` (JSON) and ``/diagnostics``

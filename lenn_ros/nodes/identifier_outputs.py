@@ -1,12 +1,12 @@
-"""What the identifier publishes per sample: y_hat, error (plain and stamped), y_hat_std, samples, nmse.
+"""What the identifier publishes per sample: y_hat, error, y_hat_std, y_hat_band (plain and stamped), samples, nmse.
 
 One message object per output, refilled for every sample: building messages was a good
 part of the per-sample cost (a JointState constructs its Header and Time, the generated
 ``__init__`` re-imports their modules each time); ``publish`` serialises at once, so
-refilling is safe. With several output channels ``y_hat`` / ``error`` / ``y_hat_std`` are
+refilling is safe. With several output channels ``y_hat`` / ``error`` / ``y_hat_std`` / ``y_hat_band`` are
 Float64MultiArray (names in the layout label) and the stamped JointStates name every
-channel (README, "Several inputs and outputs"); the one-step std (the band) is every
-output's, as the session's monitors give it.
+channel (README, "Several inputs and outputs"); the one-step std and the live band's half-width are
+every output's, as the session's monitors give them.
 
 ``samples``, ``error`` and the stamped outputs are VOLATILE: a publisher with no matched
 reader delivers them to nobody, so their messages are not built then
@@ -71,16 +71,18 @@ class IdentifierOutputs:
         self.samples = node.create_publisher(Float64MultiArray, topics.SAMPLES, qos)
         self.y_hat_std = node.create_publisher(value_type, topics.Y_HAT_STD, qos)  # the one-step std (the band)
         self.y_hat_std_stamped = node.create_publisher(JointState, topics.Y_HAT_STD_STAMPED, qos)
+        self.y_hat_band = node.create_publisher(value_type, topics.Y_HAT_BAND, qos)  # the live band's half-width
+        self.y_hat_band_stamped = node.create_publisher(JointState, topics.Y_HAT_BAND_STAMPED, qos)
         self.nmse = node.create_publisher(Float64, topics.NMSE, qos)
         self._sample_message = Float64MultiArray(layout=topics.vector_layout(sample_labels))
         self._messages = {
             publisher: Float64MultiArray(layout=topics.vector_layout(outputs)) if vector else Float64()
-            for publisher in (self.y_hat, self.error, self.y_hat_std)
+            for publisher in (self.y_hat, self.error, self.y_hat_std, self.y_hat_band)
         }
         self._data = _as_vector if vector else float
         self._joint_messages = {
             publisher: JointState(name=list(outputs), position=[0.0] * len(outputs))
-            for publisher in (self.y_hat_stamped, self.error_stamped, self.y_hat_std_stamped)
+            for publisher in (self.y_hat_stamped, self.error_stamped, self.y_hat_std_stamped, self.y_hat_band_stamped)
         }
         self.errors_since_report = 0
 
@@ -96,6 +98,8 @@ class IdentifierOutputs:
                 self._send(self.y_hat, result.y_hat_next)
                 if result.y_hat_next_std is not None and self.y_hat_std.get_subscription_count():
                     self._send(self.y_hat_std, result.y_hat_next_std)
+                if result.y_hat_next_band is not None and self.y_hat_band.get_subscription_count():
+                    self._send(self.y_hat_band, result.y_hat_next_band)
             if self.samples.get_subscription_count():
                 learn = float(result.learned) if result is not None else 0.0
                 values = (float(sample.index), sample.time, *np.ravel(sample.u), *np.ravel(sample.y), learn)
@@ -111,11 +115,13 @@ class IdentifierOutputs:
         publisher.publish(message)
 
     def _publish_error(self, seconds: float, result: Any) -> None:
-        """e(k), y^(k) and its std of a scored sample (plain and stamped), and the NMSE every ``report_every``."""
+        """e(k), y^(k), its std and half-width of a scored sample (plain and stamped), and the NMSE every
+        ``report_every``."""
         if self.error.get_subscription_count():
             self._send(self.error, result.error)
         stamped = ((self.y_hat_stamped, result.y_hat), (self.error_stamped, result.error))
-        for publisher, value in (*stamped, (self.y_hat_std_stamped, result.y_hat_std)):
+        spread = ((self.y_hat_std_stamped, result.y_hat_std), (self.y_hat_band_stamped, result.y_hat_band))
+        for publisher, value in (*stamped, *spread):
             if value is not None and publisher.get_subscription_count():
                 message = self._joint_messages[publisher]
                 set_stamp(message.header.stamp, seconds)

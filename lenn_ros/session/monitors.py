@@ -7,7 +7,8 @@ over a batch (:meth:`Monitors.watch_batch`), so a recording evaluated offline ha
 node published and raises the alarms it raised.
 
 - the band: the one-step std of each prediction (:mod:`lenn_ros.core.spread`: RLS covariance and
-  innovation variance), published as ``y_hat_std``;
+  innovation variance), published as ``y_hat_std``, and the live band's half-width (``LiveBand``: the std
+  times a multiplier that keeps the running coverage at 95 %), published as ``y_hat_band``;
 - the alarm: a CUSUM on e^2 against its learnt level (:mod:`lenn_ros.core.change`), said when it
   rises (WARN on /diagnostics while on) and when it clears.
 """
@@ -21,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from lenn_ros.core.change import ACCEPTED, RAISED, ChangeDetector
-from lenn_ros.core.spread import OneStepSpread
+from lenn_ros.core.spread import LiveBand, OneStepSpread
 from lenn_ros.session.config import ParameterChange, SessionConfig
 from lenn_ros.session.notices import Notices
 
@@ -33,24 +34,28 @@ class OutputMonitor:
         self.name, self.config, self.notices = name, config, notices
         self.where = f" on {name}" if named else ""
         self.spread = OneStepSpread()
+        self.band = LiveBand()
         self.change = ChangeDetector(threshold=config.change_threshold)
         self.change_time: float | None = None  # time of the sample the alarm rose at (live; offline None)
         self.change_started: int | None = None  # the sample the last alarm rose at
         self.next_std: float | None = None  # of the pending prediction
+        self.next_band: float | None = None  # its live band's half-width
 
-    def watch(self, y: float, error: float | None, leverage: float, next_exists: bool, index: int, time: float) -> Any:
-        """One scored step: (the std the scored prediction was published with, the next prediction's std)."""
-        scored_std = None
+    def watch(self, y: float, out: Any, index: int, time: float) -> None:
+        """One scored step of this output's result ``out``: the std and live half-width the scored prediction was
+        published with (``y_hat_std``, ``y_hat_band``), and the next prediction's (``y_hat_next_*``)."""
+        error = out.error
         if error is not None:
-            scored_std = self.next_std
+            out.y_hat_std, out.y_hat_band = self.next_std, self.next_band
             self.spread.update(error)
+            self.band.update(error, self.next_band)
             if self.config.change_alarm:
                 event = self.change.update(error, index, y)
                 if event:
                     self.say(event, index, time)
-        if next_exists:
-            self.next_std = self.spread.std(leverage)
-        return scored_std, (self.next_std if next_exists else None)
+        if out.y_hat_next is not None:
+            self.next_std = out.y_hat_next_std = self.spread.std(out.leverage)
+            self.next_band = out.y_hat_next_band = self.band.half_width(self.next_std)
 
     def watch_batch(
         self,
@@ -60,34 +65,39 @@ class OutputMonitor:
         leverage: np.ndarray,
         changes: Sequence[ParameterChange],
         before: tuple[bool, float],
-    ) -> np.ndarray:
-        """:meth:`watch` over a batch: the std each y^(k) was published with (nan: none), the alarm's events said.
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`watch` over a batch: the std and the live half-width each y^(k) was published with (nan: none),
+        the alarm's events said.
 
         ``before``: (change_alarm, change_threshold) when the batch started; recorded live changes of
         either take effect at their sample, as they did live.
         """
-        stds = self._spread_batch(y, y_hat, leverage)
+        bands = self._spread_batch(y, y_hat, leverage)
         self._change_batch(index, y, y_hat, changes, before)
-        return stds
+        return bands
 
-    def _spread_batch(self, y: np.ndarray, y_hat: np.ndarray, leverage: np.ndarray) -> np.ndarray:
-        """The same OneStepSpread calls in the same order as live: each scored error updates it, then the next
-        prediction asks for its std with its pattern's leverage (the batch RLS reports the same phi' P phi)."""
-        spread = self.spread
-        out = np.full(len(y), np.nan)
+    def _spread_batch(self, y: np.ndarray, y_hat: np.ndarray, leverage: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The same OneStepSpread and LiveBand calls in the same order as live: each scored error updates them,
+        then the next prediction asks for its std with its pattern's leverage (the batch RLS reports the same
+        phi' P phi) and for its half-width."""
+        stds, halves = np.full(len(y), np.nan), np.full(len(y), np.nan)
         errors = (y - y_hat).tolist()
         predicted = np.isfinite(y_hat).tolist()
         levers = leverage.tolist()
-        next_std = self.next_std
-        update, std = spread.update, spread.std
+        next_std, next_band = self.next_std, self.next_band
+        update, std = self.spread.update, self.spread.std
+        learn, half_width = self.band.update, self.band.half_width
         for k, error in enumerate(errors):
             if error == error:  # finite where predicted (y is finite in a valid row)
-                out[k] = math.nan if next_std is None else next_std
+                stds[k] = math.nan if next_std is None else next_std
+                halves[k] = math.nan if next_band is None else next_band
                 update(error)
+                learn(error, next_band)
             if k + 1 < len(errors) and predicted[k + 1]:
                 next_std = std(levers[k + 1])
-        self.next_std = next_std
-        return out
+                next_band = half_width(next_std)
+        self.next_std, self.next_band = next_std, next_band
+        return stds, halves
 
     def _change_batch(
         self,
@@ -164,13 +174,10 @@ class Monitors:
         self.outputs = [OutputMonitor(name, config, notices, len(names) > 1) for name in names]
 
     def watch(self, ys: list[float], result: Any, index: int, time: float) -> None:
-        """One step's results, output by output; the stds go into each output's result (published with y^)."""
+        """One step's results, output by output; the stds and bands go into each output's result (published with
+        y^)."""
         for monitor, y, out in zip(self.outputs, ys, result.outputs, strict=True):
-            scored, following = monitor.watch(y, out.error, out.leverage, out.y_hat_next is not None, index, time)
-            if out.error is not None:
-                out.y_hat_std = scored
-            if out.y_hat_next is not None:
-                out.y_hat_next_std = following
+            monitor.watch(y, out, index, time)
         result.gather_stds()
 
     def watch_batch(
@@ -181,14 +188,17 @@ class Monitors:
         leverage: np.ndarray,
         changes: Sequence[ParameterChange],
         before: tuple[bool, float],
-    ) -> np.ndarray:
-        """Every output over a batch: the stds (N, outputs) each prediction was published with."""
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Every output over a batch: the stds and the live half-widths (N, outputs) each prediction was published
+        with."""
         columns, predicted = y.reshape(len(y), -1), y_hat.reshape(len(y), -1)
-        stds = [
+        pairs = [
             monitor.watch_batch(index, columns[:, j], predicted[:, j], leverage[:, j], changes, before)
             for j, monitor in enumerate(self.outputs)
         ]
-        return np.stack(stds, axis=1) if stds else np.empty((len(y), 0))
+        if not pairs:
+            return np.empty((len(y), 0)), np.empty((len(y), 0))
+        return np.stack([std for std, _ in pairs], axis=1), np.stack([band for _, band in pairs], axis=1)
 
     @property
     def alarm(self) -> OutputMonitor | None:

@@ -73,6 +73,7 @@ class Session:
         self.collect: Callable[[list[Pair]], None] | None = None
         self.changes: list[ParameterChange] = []  # live parameter changes applied, in order
         self.last_y_hat_std = np.zeros(0)  # run_samples(): the std of each y^(k), shaped as y (nan: none)
+        self.last_y_hat_band = np.zeros(0)  # ... the live band's half-width around each y^(k)
 
     # -- live parameters ---------------------------------------------------------------------
     def apply_parameters(self, values: dict[str, Any]) -> ParameterChange:
@@ -247,8 +248,8 @@ class Session:
 
         The learner runs them as the node steps them (:meth:`Learner.run`: the warm-up, the gaps,
         the recorded live ``changes`` each at its sample); the monitors then watch every scored
-        error in order (:meth:`Monitors.watch_batch`), so ``last_y_hat_std`` is the std each y^(k)
-        was published with and the alarm rises where it rose live.
+        error in order (:meth:`Monitors.watch_batch`), so ``last_y_hat_std`` (``last_y_hat_band``) is the std
+        (the live band's half-width) each y^(k) was published with and the alarm rises where it rose live.
         """
         index = np.asarray(index, dtype=np.int64)
         u = np.asarray(u, dtype=np.float64)
@@ -257,10 +258,13 @@ class Session:
         before = (self.config.change_alarm, self.config.change_threshold)
         y_hat, leverage, stepped = self.learner.run(index, u, y, learn, changes, self.replay_change)
         stds = np.full((len(y), len(self.identifier.names)), np.nan)
+        bands = stds.copy()
         if stepped.any():
             rows = np.flatnonzero(stepped)
-            stds[rows] = self.monitors.watch_batch(index[rows], y[rows], y_hat[rows], leverage[rows], changes, before)
+            watched = self.monitors.watch_batch(index[rows], y[rows], y_hat[rows], leverage[rows], changes, before)
+            stds[rows], bands[rows] = watched
         self.last_y_hat_std = stds.reshape(np.shape(y))
+        self.last_y_hat_band = bands.reshape(np.shape(y))
         return y_hat
 
     # -- reporting -----------------------------------------------------------------------------

@@ -17,13 +17,22 @@ from lenn_ros.service.evaluation import BagEvaluation, evaluate_bag
 from lenn_ros.service.reading import flags_of
 
 
+def one_step_lines(name: str, band: dict[str, Any]) -> list[str]:
+    """The node's one-step bands over the test part: 1.96 y_hat_std, and the live band y_hat_band."""
+    width, covered, live = band["median_half_width"], band["coverage_test"], band["live"]
+    return [
+        f"  {name}one-step 95 % band (1.96 y_hat_std, median +-{width:.4g}): covers {covered:.1%}",
+        f"  {name}live 95 % band (y_hat_band, median +-{live['median_half_width']:.4g}): covers "
+        f"{live['coverage_test']:.1%}",
+    ]
+
+
 def band_lines(intervals: dict[str, Any]) -> list[str]:
     """The one-step and free-run 95 % bands and their coverage of the test part, one line each."""
     lines = []
     one, run = intervals.get("one_step"), intervals.get("free_run")
     if one:
-        width, covered = one["median_half_width"], one["coverage_test"]
-        lines.append(f"  one-step 95 % band (y_hat_std, median +-{width:.4g}): covers {covered:.1%}")
+        lines += one_step_lines("", one)
     if run:
         lines.append(
             f"  free-run 95 % band of the fit (+-{run['half_width']:.4g}): covers {run['coverage_test']:.1%} here"
@@ -77,8 +86,7 @@ def _figure_lines(result: BagEvaluation, d: dict[str, Any]) -> list[str]:
         shown = [f"{value:13.3f}" if math.isfinite(value) else f"{'nan':>13s}" for value in cells]
         lines.append(f"  {name:12s} " + "   ".join(shown))
     for name, band in d["intervals"].get("one_step", {}).items():
-        width, covered = band["median_half_width"], band["coverage_test"]
-        lines.append(f"  {name}: one-step 95 % band (y_hat_std, median +-{width:.4g}): covers {covered:.1%}")
+        lines += one_step_lines(f"{name}: ", band)
     for name, band in d["intervals"].get("free_run", {}).items():
         width, covered = band["half_width"], band["coverage_test"]
         lines.append(f"  {name}: free-run 95 % band of the fit (+-{width:.4g}): covers {covered:.1%} here")

@@ -94,6 +94,7 @@ def test_evaluate_with_fit_params_starts_from_the_fitted_weights(fitted, tmp_pat
     # the node's one-step band (y_hat_std as published live) over the test part
     one = evaluation.intervals["one_step"]
     assert 0.93 <= one["coverage_test"] <= 0.97, one
+    assert 0.93 <= one["live"]["coverage_test"] <= 0.97, one  # the live band (y_hat_band)
 
 
 def test_evaluate_of_a_bag_recorded_with_weights_in_uses_them(fitted, tmp_path: Path) -> None:

@@ -209,7 +209,8 @@ def _result(
     unpaired = sum(counters.get(name, 0) for name in ("unpaired", "dropped_u", "dropped_y"))
     weights_in = str(weights_path(values["weights_in"])) if values.get("weights_in") else ""
     gaps = describe_gaps(index, session.config.pairing, session.config.sample_period)
-    one_step = one_step_band(index >= start, y, y_hat, session.last_y_hat_std, list(evaluations))
+    stds, bands = session.last_y_hat_std, session.last_y_hat_band
+    one_step = one_step_band(index >= start, y, y_hat, stds, list(evaluations), bands)
     intervals = {**fit_band_coverage(weights_in, evaluations), **one_step}
     return BagEvaluation(
         evaluations, len(index), unpaired, rejected, int(start), source, absent, counters, notices, weights_in, gaps,

@@ -118,28 +118,32 @@ def _score_output(
 
 
 def one_step_band(
-    test: np.ndarray, y: np.ndarray, y_hat: np.ndarray, std: np.ndarray, names: list[str]
+    test: np.ndarray, y: np.ndarray, y_hat: np.ndarray, std: np.ndarray, names: list[str], band: np.ndarray
 ) -> dict[str, Any]:
-    """The node's nominal 95 % one-step band (``y_hat_std``, as published live) and what it covers of the test
-    part, per output (one output's at the top level, several by name, as :func:`fit_band_coverage` has them).
+    """The node's nominal 95 % one-step band (``y_hat_std``, as published live) and its live band (``y_hat_band``,
+    under ``live``), and what each covers of the test part, per output (one output's at the top level, several
+    by name, as :func:`fit_band_coverage` has them).
 
-    ``run_samples`` gives every prediction the std the node published with it (RLS covariance and
-    innovation variance, ``core.spread``), so this is the band live users saw.
+    ``run_samples`` gives every prediction the std and the live half-width the node published with it (RLS
+    covariance and innovation variance, the multiplier that keeps the running coverage at 95 %: ``core.spread``),
+    so these are the bands live users saw.
     """
-    if np.shape(std) != np.shape(y):
+    if np.shape(std) != np.shape(y) or np.shape(band) != np.shape(y):
         return {}
-    columns = [np.reshape(a, (len(y), -1)) for a in (y, y_hat, std)]
+    columns = [np.reshape(a, (len(y), -1)) for a in (y, y_hat, std, band)]
     bands = {}
     for j, name in enumerate(names):
-        measured, predicted, spread = (column[:, j] for column in columns)
-        scored = test & np.isfinite(predicted) & np.isfinite(spread)
+        measured, predicted, spread, live = (column[:, j] for column in columns)
+        scored = test & np.isfinite(predicted) & np.isfinite(spread) & np.isfinite(live)
         if not scored.any():
             continue
-        half = Z95 * spread[scored]
+        error = np.abs(measured[scored] - predicted[scored])
+        half, live = Z95 * spread[scored], live[scored]
         bands[name] = {
             "median_half_width": float(np.median(half)),
             "from": "the node's y_hat_std (RLS covariance and innovation variance), as published live",
-            "coverage_test": float(np.mean(np.abs(measured[scored] - predicted[scored]) <= half)),
+            "coverage_test": float(np.mean(error <= half)),
+            "live": {"median_half_width": float(np.median(live)), "coverage_test": float(np.mean(error <= live))},
         }
     if not bands:
         return {}

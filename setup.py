@@ -10,6 +10,8 @@ PACKAGE = "lenn_ros"
 PLOT = ["matplotlib>=3.8"]  # --plot, the demo's figure (lenn_ros.plotting)
 PROGRESS = ["tqdm>=4.66"]  # progress bars of reproduce / reproduce-mimo / --beyond
 DOCS = ["mkdocs==1.6.1"]  # the site in docs/ (make docs: mkdocs build --strict)
+# lenn-ros fit-fleet: the entries fitted on a Dask cluster (dask[distributed], named as the two it installs)
+FLEET = ["dask>=2024.1", "distributed>=2024.1"]
 
 setup(
     name=PACKAGE,
@@ -52,9 +54,11 @@ setup(
         "plot": PLOT,
         "progress": PROGRESS,
         "docs": DOCS,
-        # the tests draw plots and build the site, so they need those extras too
+        "fleet": FLEET,
+        # the tests draw plots, build the site and run a fleet on a cluster, so they need those extras too
         "test": PLOT
         + PROGRESS
+        + FLEET
         + DOCS
         + [
             "pytest>=8",

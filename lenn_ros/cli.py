@@ -96,6 +96,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_reproduce_mimo(commands)
     _add_evaluate(commands)
     _add_fit(commands)
+    _add_fit_fleet(commands)
     _add_import_csv(commands)
     _add_bag_info(commands)
     _add_bag_repair(commands)
@@ -241,6 +242,38 @@ def _add_fit(commands: Any) -> None:
     p.set_defaults(handler=_fit)
 
 
+def _fit_fleet(args: argparse.Namespace) -> int:
+    from lenn_ros.fleet_fit import command
+
+    return command.main(args, build_parser)
+
+
+def _add_fit_fleet(commands: Any) -> None:
+    p = commands.add_parser(
+        "fit-fleet",
+        allow_abbrev=False,
+        help="one model per entry of a fleet's logs (a manifest or a folder), fitted side by side on a Dask cluster",
+        description="Each entry (one or several records and fit's flags, from a YAML manifest; or each log of a "
+        "folder, with the flags given here) is fitted by lenn-ros fit itself, on a worker: MODELS/NAME/ holds what "
+        "fit -o writes and the report (fit.txt), bit for bit a serial fit's; MODELS/summary.csv a row per entry. "
+        "Whole models are skipped (unless --force), a failed entry is said and the others go on, a lost worker's "
+        "entries are fitted elsewhere. Flags not listed here are fit's, given to every entry (docs/fleet.md)",
+    )
+    p.add_argument("source", metavar="MANIFEST.yaml|DIR", help="a manifest of entries, or a folder of logs")
+    p.add_argument("-o", "--output", required=True, metavar="MODELS", help="the models' folder (made if missing)")
+    p.add_argument(
+        "--cluster",
+        default="local",
+        help="local (default: a worker process per core, one thread each), local:N (N workers), or a running "
+        "scheduler's address, tcp://HOST:PORT or tls://HOST:PORT (dask scheduler; dask worker ADDRESS)",
+    )
+    p.add_argument("--force", action="store_true", help="fit the entries whose model is already whole too")
+    p.add_argument("--tls-ca-file", metavar="PEM", help="tls:// cluster: the CA that signed the cluster's certificates")
+    p.add_argument("--tls-cert", metavar="PEM", help="tls:// cluster: this client's certificate")
+    p.add_argument("--tls-key", metavar="PEM", help="tls:// cluster: this client's private key")
+    p.set_defaults(handler=_fit_fleet, fit_flags=[])
+
+
 def _add_import_csv(commands: Any) -> None:
     p = commands.add_parser("import-csv", help="make a bag (u, y_p) from a logged CSV file")
     p.add_argument("file", help="delimited text: commas, semicolons, tabs or whitespace; # and %% comment lines")
@@ -354,11 +387,21 @@ def _measured(command: str, started: float) -> None:
     print(f"lenn-ros {command}: {time.monotonic() - started:.1f} s, peak memory {peak:.0f} MiB", file=sys.stderr)
 
 
+def _parsed(parser: argparse.ArgumentParser, argv: Sequence[str] | None) -> argparse.Namespace:
+    """The arguments; the flags fit-fleet does not know are fit's, for every entry (refused by any other command)."""
+    args, unknown = parser.parse_known_args(argv)
+    if unknown and not hasattr(args, "fit_flags"):
+        parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+    if hasattr(args, "fit_flags"):
+        args.fit_flags = unknown
+    return args
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     import time
 
     started = time.monotonic()
-    args = build_parser().parse_args(argv)
+    args = _parsed(build_parser(), argv)
     try:
         code = int(args.handler(args) or 0)
         if args.command in MEASURED:

@@ -46,6 +46,7 @@ LAYER_ERRORS = (
     ("lenn_ros.core.networks", "ModelFileError"),
     ("lenn_ros.paper.expression", "ExpressionError"),
     ("lenn_ros.core.fields", "FieldError"),
+    ("lenn_ros.core.threads", "ThreadsError"),
 )
 
 

@@ -29,6 +29,30 @@ def side_by_side(work: Callable, items: Iterable, workers: int) -> Iterator:
         yield from pool.map(work, items)
 
 
+#: caps :func:`cores` in a process that shares its machine's cores with others of its kind (a fit-fleet
+#: worker: workers x threads must fit the cores, or every fit's thread pools contend for them)
+THREADS_VARIABLE = "LENN_ROS_THREADS"
+#: the thread pools of the libraries below the package, capped alike in such a process before numpy loads
+#: (fit already keeps BLAS to one thread; numba compiles nothing parallel today: both set for what may come)
+LIBRARY_THREADS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS")
+
+
+class ThreadsError(ValueError):
+    """LENN_ROS_THREADS is not a number of threads (the user's to fix: :mod:`lenn_ros.errors`)."""
+
+
 def cores() -> int:
-    """Threads the work may use: the cores this process may run on."""
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    """Threads the work may use: the cores this process may run on, at most LENN_ROS_THREADS when set."""
+    available = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
+    cap = os.environ.get(THREADS_VARIABLE, "").strip()
+    if not cap:
+        return available
+    if not cap.isdigit() or int(cap) < 1:
+        raise ThreadsError(f"{THREADS_VARIABLE}={cap!r}: expected a whole number of threads >= 1")
+    return min(available, int(cap))
+
+
+def worker_environment(threads: int) -> dict[str, str]:
+    """The environment of a worker process given ``threads`` of the machine's cores: the package's
+    cap and the libraries' (to be set before the process starts, as numpy reads them when it loads)."""
+    return {name: str(max(1, threads)) for name in (THREADS_VARIABLE, *LIBRARY_THREADS)}

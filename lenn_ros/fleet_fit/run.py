@@ -1,0 +1,164 @@
+"""The fleet's run: a Dask client (an embedded LocalCluster or a running scheduler), the entries submitted,
+each model put in place as it comes back, a progress bar, the summary.
+
+Dask's public API only: :class:`distributed.Client`, :class:`distributed.LocalCluster`,
+:func:`distributed.as_completed`, futures with ``retries``. A worker lost mid-run is Dask's to
+handle: the scheduler gives its entries to the others (up to ``distributed.scheduler.allowed-failures``
+losses per entry, then the entry fails as KilledWorker, said in its line). An entry's exception that is
+not the user's is retried RETRIES times before it fails.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import time
+import uuid
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from typing import Any
+
+from lenn_ros.core.threads import cores, worker_environment
+from lenn_ros.errors import UserError
+from lenn_ros.fleet_fit.manifest import Entry
+from lenn_ros.fleet_fit.store import Models
+from lenn_ros.fleet_fit.task import Outcome, fit_entry
+from lenn_ros.progress import progress
+
+#: an entry's exception that is not the user's (a worker's disk, a bug) is tried this many more times
+RETRIES = 2
+#: the summary is rewritten at most this often while entries come back (and once at the end)
+SUMMARY_EVERY = 5.0
+#: seconds to reach a running scheduler
+CONNECT_TIMEOUT = 30
+
+
+class ClusterError(UserError):
+    """A --cluster the fleet cannot use: one line saying what it expects."""
+
+
+@dataclass(frozen=True)
+class TLS:
+    """The client's side of a tls:// cluster (``distributed.security.Security``): CA, certificate, key files."""
+
+    ca_file: str
+    cert: str
+    key: str
+
+    def security(self) -> Any:
+        from distributed.security import Security
+
+        return Security(tls_ca_file=self.ca_file, tls_client_cert=self.cert, tls_client_key=self.key,
+                        require_encryption=True)  # fmt: skip
+
+
+def check_cluster(cluster: str, tls: TLS | None = None) -> None:
+    """Refuse a --cluster the fleet cannot use, before anything is read or fitted."""
+    if cluster == "local" or cluster.startswith("local:"):
+        _local_workers(cluster)
+    elif not cluster.startswith(("tcp://", "tls://")):
+        raise ClusterError(f"--cluster {cluster!r}: expected local, local:N, tcp://HOST:PORT or tls://HOST:PORT")
+    if tls is not None and not cluster.startswith("tls://"):
+        raise ClusterError(f"--cluster {cluster}: the TLS files are for a tls:// scheduler")
+
+
+@contextlib.contextmanager
+def open_client(cluster: str, tls: TLS | None = None) -> Iterator[Any]:
+    """A Dask client, closed (with its LocalCluster) on leaving: ``local`` (one single-threaded worker process
+    per core), ``local:N`` (N of them, the cores shared among them), or a running scheduler (tcp://, tls://)."""
+    from distributed import Client, LocalCluster
+
+    check_cluster(cluster, tls)
+    if cluster.startswith(("tcp://", "tls://")):
+        try:
+            client = Client(cluster, security=tls.security() if tls else None, timeout=CONNECT_TIMEOUT)
+        except OSError as error:
+            raise ClusterError(f"--cluster {cluster}: no scheduler answered ({error})") from None
+        with client:
+            yield client
+        return
+    workers = _local_workers(cluster)
+    threads = max(1, cores() // workers)  # set before each worker's numpy loads
+    options = {"dashboard_address": None, "silence_logs": logging.ERROR, "env": worker_environment(threads)}
+    with (
+        LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, **options) as local,
+        Client(local) as client,
+    ):
+        yield client
+
+
+def _local_workers(cluster: str) -> int:
+    count = cluster.partition(":")[2]
+    if not count:
+        return cores()
+    if not count.isdigit() or int(count) < 1:
+        raise ClusterError(f"--cluster {cluster!r}: local:N takes a number of workers >= 1")
+    return int(count)
+
+
+def fit_fleet(
+    entries: list[Entry],
+    models: Models,
+    connect: Callable[[], Any],
+    fit_parser: Callable[[], argparse.ArgumentParser],
+    force: bool = False,
+    bar: bool = False,
+    say: Callable[[str], None] = print,
+) -> list[Outcome]:
+    """Every entry's outcome, in the entries' order: whole models skipped (unless ``force``), the others fitted
+    on the cluster ``connect()`` opens (a client, as a context; only when there is something to fit) and put in
+    MODELS/NAME/ as each comes back; a failed entry said in one line by ``say``."""
+    outcomes = {e.name: models.skipped(e.name) for e in entries if not force and models.complete(e.name)}
+    todo = [entry for entry in entries if entry.name not in outcomes]
+    if todo:
+        with connect() as client:
+            workers = len(client.scheduler_info().get("workers", {}))
+            say(f"fit-fleet: {len(todo)} of {len(entries)} entries to fit on {workers} workers, into {models.root}")
+            outcomes.update(_fitted(todo, models, client, fit_parser, bar, say, entries))
+    ordered = [outcomes[entry.name] for entry in entries]
+    models.write_summary(ordered)
+    return ordered
+
+
+def _fitted(
+    todo: list[Entry],
+    models: Models,
+    client: Any,
+    fit_parser: Callable[[], argparse.ArgumentParser],
+    bar: bool,
+    say: Callable[[str], None],
+    entries: list[Entry],
+) -> dict[str, Outcome]:
+    """``todo`` submitted to ``client``, each model put in place as it comes back (the summary kept current)."""
+    from distributed import as_completed
+
+    outcomes: dict[str, Outcome] = {}
+    run = uuid.uuid4().hex[:8]
+    futures = {
+        client.submit(fit_entry, entry, fit_parser, key=f"fit-{entry.name}-{run}", pure=False, retries=RETRIES): entry
+        for entry in todo
+    }
+    shown, written = progress(len(todo), bar, "fit-fleet", unit="model"), time.monotonic()
+    for future in as_completed(futures):
+        outcome = _collected(future, futures[future], models)
+        if outcome.status == "failed":
+            say(f"fit-fleet: {outcome.name}: failed: {outcome.reason}")
+        outcomes[outcome.name] = outcome
+        future.release()
+        shown.update()
+        if time.monotonic() - written > SUMMARY_EVERY:
+            models.write_summary(outcomes.get(e.name) or models.skipped(e.name) for e in entries)
+            written = time.monotonic()
+    shown.close()
+    return outcomes
+
+
+def _collected(future: Any, entry: Entry, models: Models) -> Outcome:
+    """The entry's outcome from its future: its model put in place, or why it failed (in one line)."""
+    try:
+        outcome = future.result()
+    except Exception as error:  # the task's own after its retries, KilledWorker, a cancelled future
+        reason = " ".join(f"{type(error).__name__}: {error}".split())
+        return Outcome(entry.name, "failed", reason)
+    return models.install(outcome) if outcome.status == "done" else outcome

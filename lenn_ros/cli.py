@@ -197,8 +197,11 @@ def _add_fit(commands: Any) -> None:
     )
     p.add_argument(
         "data",
-        help="CSV file (columns by name or 0-based index; commas, semicolons, tabs or whitespace; # and %% comment "
-        "lines; a row with a cell empty, NaN or inf is a gap) or a rosbag2 bag (a directory of MCAP or sqlite3 "
+        nargs="+",
+        help="one or several records to build on, each a run of its own (never fitted across a join; the scales "
+        "and the selection's blocks from all of them), each a CSV file (columns by name or 0-based index; commas, "
+        "semicolons, tabs or whitespace; # and %% comment lines; a row with a cell empty, NaN or inf is a gap) or a "
+        "rosbag2 bag (a directory of MCAP or sqlite3 "
         "files, one or split; a .mcap file; a .db3 file beside its metadata.yaml): its u / y_p topics as the "
         "identifier read them (identifier_config: types, fields, pairing, remapped topics), or the topics named "
         "by --u/--y; of a bag of plain Float64MultiArray u / y_p (import-csv's), --u/--y may name channels by label",
@@ -218,7 +221,15 @@ def _add_fit(commands: Any) -> None:
         help="the number of the first test sample: samples numbered below K build the model, K.. score it. A "
         "sample's number is the node's: in a bag its sample index, in a CSV its data row from 1 (a header not "
         "counted; a row missing a cell keeps its number). The same meaning as in evaluate, import-csv and "
-        "bag-info; honoured exactly or refused. Required for a CSV; a bag's recorded test start is the default",
+        "bag-info; honoured exactly or refused. Required for a CSV; a bag's recorded test start is the default. "
+        "With several records only where their numbers run on from one to the next (else --test)",
+    )
+    p.add_argument(
+        "--test",
+        action="append",
+        metavar="FILE",
+        help="a record (CSV file or bag, read as the others) that only scores the model, whole: its one-step pass "
+        "and free run start from its own first samples. Repeatable; instead of --test-from",
     )
     p.add_argument("--json", action="store_true", help="print the report as a JSON object")
     p.add_argument("--plot", metavar="FILE", help="write plant vs model (one-step and free run) on the test part")

@@ -22,6 +22,27 @@ class FitError(ValueError):
     """Data or options ``fit`` cannot work with; the message names the fix."""
 
 
+@dataclass(frozen=True)
+class RecordPart:
+    """One file of several given to ``fit`` (:mod:`~lenn_ros.fit.records`): where its samples lie in the joined
+    record and what they are for. ``role``: ``"build"`` (fitted and selected on) or ``"test"`` (scored only);
+    ``first``: the 0-based row of its first sample; ``numbers``: its first and last samples' numbers in the joined
+    record (what the report's other lines name), ``shift`` what was added to the record's own numbers to give
+    them (0 where they run on from the record before); ``source``: what was read, as one record's report says it."""
+
+    name: str
+    role: str
+    first: int
+    samples: int
+    numbers: tuple[int, int]
+    source: str
+    shift: int = 0
+
+    def as_dict(self) -> dict[str, Any]:
+        return {"name": self.name, "role": self.role, "samples": self.samples, "numbers": list(self.numbers),
+                "shift": self.shift, "source": self.source}  # fmt: skip
+
+
 @dataclass
 class Data:
     """Paired samples of any number of channels: ``u`` (N,) or (N, n_u), ``y`` (N,) or (N, n_y).
@@ -34,7 +55,8 @@ class Data:
     the node values that say how the bag's topics became these samples (types, fields, names,
     pairing, sample period), written into the params file; empty for a CSV. ``u_names`` /
     ``y_names``: the channels' names (default ``u``, ``y``, or ``u0``, ``u1``...). ``sample_period``: seconds
-    between samples where the data say it (a CSV's time column), else None.
+    between samples where the data say it (a CSV's time column), else None. ``records``: the files this record
+    was joined from, each a run of its own (:mod:`~lenn_ros.fit.records`); empty for one file.
     """
 
     u: np.ndarray
@@ -47,6 +69,7 @@ class Data:
     u_names: tuple[str, ...] = ()
     y_names: tuple[str, ...] = ()
     sample_period: float | None = None
+    records: tuple[RecordPart, ...] = ()
 
     def __post_init__(self) -> None:
         self.u, self.y = np.asarray(self.u, dtype=np.float64), np.asarray(self.y, dtype=np.float64)

@@ -52,6 +52,7 @@ from lenn_ros.fit.families import candidate_specs
 from lenn_ros.fit.memory import within_memory
 from lenn_ros.fit.numbering import first_test_row, number, span, split_numbers
 from lenn_ros.fit.record import Record, fold_blocks
+from lenn_ros.fit.records import records_report
 from lenn_ros.fit.rest import without_rest
 from lenn_ros.fit.result import FitResult, OutputFit
 from lenn_ros.fit.schedule import refine_outputs, refinement_jobs, views_side_by_side
@@ -112,6 +113,7 @@ def fit(
     # the report counts samples as the user does: by number, the rows the rules left out included
     result.test_from, result.train_samples, result.left_out = int(test_from), start, said
     result.numbers = split_numbers(data, start, int(test_from))
+    result.records = records_report(data, result.per_output) if data.records else []
     return result
 
 

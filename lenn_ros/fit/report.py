@@ -14,6 +14,7 @@ from typing import Any
 
 from lenn_ros.fit.delay import delays_text
 from lenn_ros.fit.numbering import split_line
+from lenn_ros.fit.records import record_lines
 from lenn_ros.fit.result import FitResult, OutputReport
 
 
@@ -44,6 +45,7 @@ def _per_sample(part: OutputReport, kind: str) -> Any:
 def format_report(result: FitResult, dt: float | None = None) -> str:
     """The text report: how each output's model was chosen, then its test figures."""
     lines = [f"{result.data}: {split_line(result.test_from, result.train_samples, result.samples, result.numbers)}"]
+    lines += record_lines(result.records)
     lines += [f"  note: {done['text']}" for done in result.left_out.values()]
     if result.free_run.get("test_record_of_its_own"):
         lines.append(f"  note: {result.free_run['test_record_of_its_own']}")

@@ -106,7 +106,8 @@ class FitResult:
     whole, each output's own in its ``per_output`` entry). ``inputs``, ``outputs``: the
     channels' names. ``seconds``: the fit's time. ``left_out``: what each rule that leaves
     training rows out did, by its key (:data:`~lenn_ros.fit.procedure.LEFT_OUT`). ``files``:
-    what ``fit -o`` wrote (set by the command). Not in the report: the ``identifier`` the
+    what ``fit -o`` wrote (set by the command). ``records``: the files joined into the data, each a run of its own
+    (:mod:`~lenn_ros.fit.records`; empty for one file). Not in the report: the ``identifier`` the
     node runs, each output's terms as the identifier runs them (``models``) and what the
     selection made of each output (``fits``).
     """
@@ -126,6 +127,7 @@ class FitResult:
     left_out: dict[str, dict[str, Any]] = field(default_factory=dict)
     files: dict[str, str] | None = None
     numbers: dict[str, Any] = field(default_factory=dict)
+    records: list[dict[str, Any]] = field(default_factory=list)
 
     rmse = _the_output("rmse")
     nmse_db = _the_output("nmse_db")
@@ -191,6 +193,8 @@ class FitResult:
         head = {"data": self.data, "test_from": self.test_from, "train_samples": self.train_samples}
         if self.numbers:  # (a record whose rows are its numbers reads as it always did)
             head["sample_numbers"] = self.numbers
+        if self.records:
+            head["records"] = self.records
         figures = self.only.entry(alone=True) if self.alone else self._several()
         files = {} if self.files is None else {"files": self.files}
         return _plain({**head, **figures, "seconds": self.seconds, **self.left_out, **files})

@@ -1,0 +1,238 @@
+"""``lenn-ros fit-fleet`` on a real Dask cluster: a scheduler and two single-threaded workers as subprocesses.
+
+Twelve logs of a simulated plant and one corrupt file are fitted: each model equals a serial
+``lenn-ros fit`` of its log byte for byte; a worker killed once the first models are written
+loses no model; the corrupt file fails in one line while the others are done; a rerun skips
+every whole model. Manifests are refused in one line naming the entry and the key.
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+from lenn_ros.core.threads import worker_environment
+from lenn_ros.fleet_fit.manifest import ManifestError, entries_from
+from lenn_ros.fleet_fit.store import COMPLETE, RelocationError, relocated
+
+distributed = pytest.importorskip(
+    "distributed", reason="fit-fleet needs Dask distributed: pip install 'lenn_ros[fleet]'"
+)
+
+LOGS = 12
+SAMPLES, TEST_FROM = 2500, 2001
+FLAGS = ["--u", "input", "--y", "output", "--test-from", str(TEST_FROM)]
+#: readiness and the runs: generous bounds on a loaded 2-core machine, never waited out when all goes well
+READY, RUN = 60.0, 600.0
+
+
+def plant(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A damped oscillator with a cubic stiffness, driven by smoothed noise (a small Silverbox)."""
+    rng = np.random.default_rng(seed)
+    u = np.convolve(rng.uniform(-1, 1, n), np.ones(3) / 3, mode="same") + 0.3
+    y = np.zeros(n)
+    for k in range(2, n):
+        y[k] = 1.5 * y[k - 1] - 0.7 * y[k - 2] + 0.35 * u[k - 1] - 0.4 * y[k - 1] ** 3
+    return u, y + 0.002 * rng.standard_normal(n)
+
+
+def write_logs(folder: Path, count: int = LOGS) -> list[Path]:
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for seed in range(count):
+        u, y = plant(SAMPLES, seed)
+        path = folder / f"joint{seed:02d}.csv"
+        np.savetxt(path, np.c_[np.arange(SAMPLES), u, y], delimiter=",", header="t,input,output", comments="")
+        paths.append(path)
+    return paths
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def dask(*arguments: str, log: Path) -> subprocess.Popen:
+    """A ``dask`` command in a session of its own (killed with its nanny's worker as one group)."""
+    env = {**os.environ, **worker_environment(1)}
+    command = [str(Path(sys.executable).parent / "dask"), *arguments]
+    return subprocess.Popen(command, stdout=log.open("w"), stderr=subprocess.STDOUT, env=env, start_new_session=True)
+
+
+def stop(process: subprocess.Popen) -> None:
+    if process.poll() is None:
+        os.killpg(process.pid, signal.SIGKILL)
+    process.wait(timeout=30)
+
+
+@pytest.fixture(scope="module")
+def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[str, list[subprocess.Popen]]]:
+    """A scheduler and two ``dask worker --nthreads 1`` on 127.0.0.1, polled until both have joined."""
+    logs = tmp_path_factory.mktemp("dask")
+    address = f"tcp://127.0.0.1:{free_port()}"
+    port = address.rsplit(":", 1)[1]
+    scheduler = dask("scheduler", "--host", "127.0.0.1", "--port", port, "--no-dashboard", log=logs / "scheduler.log")
+    workers = [
+        dask("worker", address, "--nthreads", "1", "--no-dashboard", "--host", "127.0.0.1", log=logs / f"w{i}.log")
+        for i in range(2)
+    ]
+    try:
+        with distributed.Client(address, timeout=READY) as client:
+            client.wait_for_workers(2, timeout=READY)
+        yield address, workers
+    finally:
+        for process in [*workers, scheduler]:
+            stop(process)
+
+
+def fleet(source: Path, models: Path, address: str, *extra: str) -> subprocess.Popen:
+    command = [sys.executable, "-m", "lenn_ros.cli", "fit-fleet", str(source), *FLAGS, "-o", str(models)]
+    return subprocess.Popen([*command, "--cluster", address, *extra], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                            text=True)  # fmt: skip
+
+
+def summary(models: Path) -> dict[str, dict[str, str]]:
+    with (models / "summary.csv").open(newline="") as stream:
+        return {row["name"]: row for row in csv.DictReader(stream)}
+
+
+def whole(models: Path) -> list[str]:
+    folders = models.iterdir() if models.is_dir() else []
+    return sorted(p.name for p in folders if p.is_dir() and all((p / f).is_file() for f in COMPLETE))
+
+
+def test_a_fleet_on_a_cluster_is_serial_fit_bit_for_bit_and_survives_a_lost_worker(tmp_path: Path, cluster) -> None:
+    address, workers = cluster
+    logs = write_logs(tmp_path / "logs")
+    (tmp_path / "logs" / "corrupt.csv").write_text("t,input,output\n1,0.5,not-a-number-at-all,7\n\x00\x01\n")
+    models = tmp_path / "models"
+    run = fleet(tmp_path / "logs", models, address)
+    deadline = time.monotonic() + RUN
+    while not whole(models) and run.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)  # poll: the first model written
+    assert whole(models), f"no model written: {run.poll()} {run.stderr.read() if run.poll() is not None else ''}"
+    assert len(whole(models)) < LOGS  # (mid-run: models still to come)
+    stop(workers[1])  # a worker lost mid-run, with its nanny: its entries must be fitted by the other
+    out, err = run.communicate(timeout=RUN)
+    assert run.returncode == 1, err  # the corrupt log failed
+    rows = summary(models)
+    assert whole(models) == sorted(p.stem for p in logs)
+    assert {name: row["status"] for name, row in rows.items()} == {
+        **{p.stem: "done" for p in logs},
+        "corrupt": "failed",
+    }
+    assert "corrupt.csv" in rows["corrupt"]["reason"] and "corrupt: failed:" in err
+    assert "12 done, 1 failed" in out
+    done_by = {row["worker"] for row in rows.values() if row["status"] == "done"}
+    assert len(done_by) >= 1 and all(worker.startswith("tcp://127.0.0.1:") for worker in done_by)
+    for row in rows.values():
+        if row["status"] == "done":
+            assert float(row["nmse_free_run_db"]) < -30 and row["samples"] == str(SAMPLES - TEST_FROM + 1)
+
+    # bit for bit what the serial command writes into the same folder (two entries: one per worker if both did some)
+    chosen = {row["worker"]: name for name, row in sorted(rows.items()) if row["status"] == "done"}
+    for name in list(chosen.values())[:2]:
+        folder = models / name
+        fleet_params = (folder / "params.yaml").read_bytes()
+        with np.load(folder / "weights.npz") as fleet_weights:
+            fleet_arrays = {key: fleet_weights[key] for key in fleet_weights.files}
+        serial = subprocess.run([sys.executable, "-m", "lenn_ros.cli", "fit", str(tmp_path / "logs" / f"{name}.csv"),
+                                 *FLAGS, "-o", str(folder)], capture_output=True, text=True, timeout=RUN)  # fmt: skip
+        assert serial.returncode == 0, serial.stderr
+        assert (folder / "params.yaml").read_bytes() == fleet_params
+        with np.load(folder / "weights.npz") as serial_weights:
+            assert sorted(serial_weights.files) == sorted(fleet_arrays)
+            for key in serial_weights.files:
+                assert np.array_equal(serial_weights[key], fleet_arrays[key]), f"{name}: {key}"
+
+    # a rerun skips every whole model; the corrupt log is tried again and fails again
+    rerun = fleet(tmp_path / "logs", models, address)
+    out, err = rerun.communicate(timeout=RUN)
+    assert rerun.returncode == 1, err
+    rows = summary(models)
+    assert {name: row["status"] for name, row in rows.items()} == {
+        **{p.stem: "skipped" for p in logs},
+        "corrupt": "failed",
+    }
+    assert rows[logs[0].stem]["rmse_free_run"]  # a skipped model's figures are read from its fit.json
+    assert "12 skipped, 1 failed" in out
+
+
+@pytest.mark.parametrize(
+    ("manifest", "said"),
+    [
+        ({"entries": [{"name": "a", "records": ["joint00.csv"]}, {"name": "b", "recrds": ["x"]}]},
+         "entry 'b': unknown key 'recrds'"),
+        ({"entries": [{"name": "a", "records": ["missing.csv"]}]}, "entry 'a': key 'records': missing.csv does not"),
+        ({"entries": [{"name": "a", "record": "joint00.csv", "flags": ["--bogus"]}]},
+         "entry 'a': key 'flags': unrecognized arguments: --bogus"),
+        ({"entries": [{"name": "a", "record": "joint00.csv", "flags": "-o elsewhere"}]},
+         "entry 'a': key 'flags': -o is the fleet's"),
+        ({"entries": [{"name": "a/b", "record": "joint00.csv"}]}, "entry 'a/b': key 'name'"),
+        ({"entries": [{"name": "a", "record": "joint00.csv"}, {"name": "a", "record": "joint00.csv"}]},
+         "entry 'a': key 'name': given to two entries"),
+        ({"entries": [{"records": ["joint00.csv"]}]}, "entry 1: key 'name'"),
+        ({"entry": []}, "key 'entries'"),
+    ],
+)  # fmt: skip
+def test_a_malformed_manifest_is_refused_in_one_line_naming_the_entry_and_the_key(
+    tmp_path: Path, manifest: dict, said: str
+) -> None:
+    write_logs(tmp_path, count=1)
+    path = tmp_path / "fleet.yaml"
+    path.write_text(yaml.safe_dump(manifest))
+    from lenn_ros.cli import build_parser
+
+    with pytest.raises(ManifestError, match=said.replace("(", r"\(")) as refused:
+        entries_from(path, FLAGS, build_parser)
+    assert "\n" not in str(refused.value)
+
+
+def test_the_command_refuses_a_manifest_before_any_cluster_starts(tmp_path: Path) -> None:
+    write_logs(tmp_path, count=1)
+    path = tmp_path / "fleet.yaml"
+    path.write_text(yaml.safe_dump({"entries": [{"name": "arm", "records": ["joint00.csv"], "flag": []}]}))
+    done = subprocess.run([sys.executable, "-m", "lenn_ros.cli", "fit-fleet", str(path), "-o", str(tmp_path / "m")],
+                          capture_output=True, text=True, timeout=120)  # fmt: skip
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines() == [
+        f"lenn-ros fit-fleet: error: {path}: entry 'arm': unknown key 'flag' (expected name, records, flags)"
+    ]
+    assert not (tmp_path / "m").exists()
+
+
+def test_a_manifest_entry_is_the_serial_argv_with_the_common_flags_first(tmp_path: Path) -> None:
+    write_logs(tmp_path, count=2)
+    path = tmp_path / "fleet.yaml"
+    entries = {
+        "flags": ["--network", "lenn"],
+        "entries": [{"name": "arm", "record": "joint01.csv", "flags": "--no-refine"}],
+    }
+    path.write_text(yaml.safe_dump(entries))
+    from lenn_ros.cli import build_parser
+
+    (entry,) = entries_from(path, FLAGS, build_parser)
+    expected = ["fit", str(tmp_path / "joint01.csv"), *FLAGS, "--network", "lenn", "--no-refine", "-o", "OUT"]
+    assert entry.argv("OUT") == expected
+    folder = entries_from(tmp_path, FLAGS, build_parser)
+    assert [e.name for e in folder] == ["joint00", "joint01"] and folder[0].flags == tuple(FLAGS)
+
+
+def test_relocation_gives_the_files_their_place_or_fails_the_entry() -> None:
+    scratch = "/tmp/lenn-ros-fleet-abc/arm"
+    text = f"weights_in: {scratch}/weights.npz\n# --params-file {scratch}/params.yaml\n".encode()
+    assert relocated(text, scratch, "/m/arm") == b"weights_in: /m/arm/weights.npz\n# --params-file /m/arm/params.yaml\n"
+    with pytest.raises(RelocationError):  # a path broken over two lines is not found whole: never half relocated
+        relocated(b"weights_in: /tmp/lenn-ros-fleet-abc/\n  arm/weights.npz", scratch, "/m/arm")

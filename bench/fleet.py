@@ -1,27 +1,31 @@
-"""Plants identified at 100 Hz with zero loss: one fleet process against one process per plant.
+"""Plants identified at 100 Hz with zero loss: a fleet on one core, a fleet on every core, a process per plant.
 
     python bench/fleet.py                          # N = 4, 8, 16, 32, 64 plants, 10 s trials
-    python bench/fleet.py --counts 8,16 --seconds 5
+    python bench/fleet.py --counts 128,160,192,224,256 --setups fleet,workers   # the capacity, 1 and all
     lenn-ros bench fleet --counts 8,16             # the same through the CLI
 
-For each N, two set-ups identify the same N plants (Example 1, LeNN, sequence pairing):
+For each N, the set-ups identify the same N plants (Example 1, LeNN, sequence pairing):
 
-- ``fleet``: one ``lenn_ros fleet`` process, ``plants:=[p0, ..., pN-1]``: N identifier
-  nodes on one wait-set loop, one DDS participant, one interpreter;
+- ``fleet``: one ``lenn_ros fleet`` process, ``plants:=[p0, ..., pN-1] workers:=1``: N
+  identifier nodes on one wait-set loop, one DDS participant, one interpreter, one core;
+- ``workers``: the same with ``workers:=auto``: the plants spread over one worker process
+  per core this process may use, each such a one-process fleet;
 - ``processes``: N ``lenn_ros identifier`` processes, ``-r __ns:=/pI`` each.
 
 A driver in this process (its own private domain, discovery on this machine) publishes
 u(k) then y_p(k) for every plant every 10 ms (one lockstep publisher node for all
 plants, RELIABLE, depth ``topics.DATA_DEPTH``) for ``--seconds``, after a 1 s warm-up. A
-set-up *passes* at N when every identifier's final status reports all samples paired,
-none lost, none stale, every plant's ``status`` had caught up (paired == sent)
+set-up *passes* at N when every identifier's final status reports all samples paired and
+learnt from (all but the warm-up's), none lost, none stale, every plant's ``status`` had caught up (paired == sent)
 within ``CATCH_UP`` seconds of the last publication (an identifier that falls behind
 would otherwise only build a backlog), and the driver really published at the rate
 (``MIN_RATE_FRACTION`` of it: on a saturated machine it cannot, and the plants then run
-slower than 100 Hz). Also reported: the CPU time the node processes
-used per plant-sample over the timed part (utime + stime from /proc, both cores
-counted) and their resident memory at the end. The search per set-up stops at its first
-failing N.
+slower than 100 Hz). Also reported: the CPU time the node processes (a fleet's workers
+included) used per plant-sample over the timed part (utime + stime from /proc, both cores
+counted), their resident memory at the end, and the CPU the driver itself took over the
+timed part (this process, in % of one core): on two cores it shares the machine with the
+identifiers, so a set-up's capacity here is what the cores left to it identify. The search
+per set-up stops at its first failing N.
 """
 
 from __future__ import annotations
@@ -44,11 +48,13 @@ sys.path.insert(0, str(REPO))
 from speed_online import read_cpu_seconds, read_memory_kb  # noqa: E402  (a script of bench/, beside this one)
 
 from lenn_ros import topics  # noqa: E402
+from lenn_ros.paper.examples import EXAMPLES  # noqa: E402
 
 RATE_HZ = 100.0
 CATCH_UP = 3.0  # s after the last sample by which every plant must have paired everything
 WARM_UP = 1.0  # s at the rate before the timed part (discovery, first compile of the step)
 MIN_RATE_FRACTION = 0.98  # of RATE_HZ the driver must reach in the timed part, or the trial is not at the rate
+SETUP_WORKERS = {"fleet": "1", "workers": "auto"}  # the fleet set-ups and their workers parameter
 
 
 @dataclass
@@ -65,6 +71,8 @@ class Trial:
     worst_lag_samples: int = 0
     driver_late_ticks: int = 0
     rate_hz: float = 0.0  # what the driver reached in the timed part
+    driver_cpu_percent: float = 0.0  # this process's CPU over the timed part, in % of one core
+    processes: int = 0  # node processes (a fleet's launcher, its workers and multiprocessing's resource tracker)
     counters: dict[str, int] = field(default_factory=dict)
 
 
@@ -74,9 +82,9 @@ def plant_names(count: int) -> list[str]:
 
 def start_nodes(setup: str, plants: list[str], env: dict[str, str], logs: Path) -> list[subprocess.Popen]:
     common = ["-p", "status_period:=0.5", "-p", "example:=1"]
-    if setup == "fleet":
+    if setup in SETUP_WORKERS:
         argv = [sys.executable, "-m", "lenn_ros.nodes.fleet", "--ros-args", "-p", f"plants:=[{', '.join(plants)}]"]
-        commands = [argv + common]
+        commands = [[*argv, "-p", f"workers:={SETUP_WORKERS[setup]}", *common]]
     else:
         commands = [
             [sys.executable, "-m", "lenn_ros.nodes.identifier", "--ros-args", "-r", f"__ns:=/{plant}", *common]
@@ -90,14 +98,31 @@ def start_nodes(setup: str, plants: list[str], env: dict[str, str], logs: Path) 
     return processes
 
 
-def cpu_seconds(processes: list[subprocess.Popen]) -> float:
-    """User + system CPU seconds of the node processes together (a process gone counts 0)."""
-    return sum(read_cpu_seconds(process.pid) or 0.0 for process in processes)
+def process_tree(processes: list[subprocess.Popen]) -> list[int]:
+    """The node processes and every process below them (a fleet's workers), from /proc."""
+    parents = {}
+    for entry in Path("/proc").iterdir():
+        if entry.name.isdigit():
+            try:
+                parents[int(entry.name)] = int((entry / "stat").read_text().rpartition(")")[2].split()[1])
+            except OSError:
+                continue  # gone meanwhile
+    found = {process.pid for process in processes}
+    frontier = set(found)
+    while frontier:
+        frontier = {pid for pid, parent in parents.items() if parent in frontier} - found
+        found |= frontier
+    return sorted(found)
 
 
-def rss_mb(processes: list[subprocess.Popen]) -> float:
+def cpu_seconds(pids: list[int]) -> float:
+    """User + system CPU seconds of these processes together (a process gone counts 0)."""
+    return sum(read_cpu_seconds(pid) or 0.0 for pid in pids)
+
+
+def rss_mb(pids: list[int]) -> float:
     """Their resident memory together."""
-    return sum((read_memory_kb(process.pid) or (0, 0))[0] for process in processes) / 1024
+    return sum((read_memory_kb(pid) or (0, 0))[0] for pid in pids) / 1024
 
 
 def final_statuses(logs: Path) -> dict[str, dict]:
@@ -193,15 +218,18 @@ def run_trial(setup: str, count: int, seconds: float, domain: int) -> Trial:
                 trial.reason = "the identifiers never all subscribed"
                 return trial
             driver.run(WARM_UP)
-            cpu_before = cpu_seconds(processes)
+            pids = process_tree(processes)  # the workers are up: their identifiers subscribed
+            cpu_before, driver_before, timed_at = cpu_seconds(pids), read_cpu_seconds(os.getpid()), time.monotonic()
             timed_from = driver.sent
             trial.driver_late_ticks, trial.rate_hz = driver.run(seconds)
-            cpu = cpu_seconds(processes) - cpu_before
+            cpu = cpu_seconds(pids) - cpu_before
+            driver_cpu = read_cpu_seconds(os.getpid()) - driver_before
+            trial.driver_cpu_percent = 100 * driver_cpu / (time.monotonic() - timed_at)
             deadline = time.monotonic() + CATCH_UP
             while time.monotonic() < deadline and min(driver.paired.values()) < driver.sent:
                 time.sleep(0.05)
             trial.worst_lag_samples = driver.sent - min(driver.paired.values())
-            trial.rss_mb = rss_mb(processes)
+            trial.rss_mb, trial.processes = rss_mb(pids), len(pids)
             trial.sent = driver.sent
             trial.cpu_us_per_sample = cpu / ((driver.sent - timed_from) * count) * 1e6
         finally:
@@ -221,7 +249,7 @@ def run_trial(setup: str, count: int, seconds: float, domain: int) -> Trial:
 def judge(trial: Trial, statuses: dict[str, dict], plants: list[str]) -> None:
     """Zero loss for every plant and every plant caught up, else the first reason."""
     missing = [plant for plant in plants if plant not in statuses]
-    totals = {"paired": 0, "lost": 0, "stale": 0, "samples": 0}
+    totals = {"paired": 0, "learned": 0, "lost": 0, "stale": 0, "samples": 0}
     for status in statuses.values():
         for key in totals:
             totals[key] += int(status["counters"][key])
@@ -235,6 +263,8 @@ def judge(trial: Trial, statuses: dict[str, dict], plants: list[str]) -> None:
         trial.reason = f"no final status from {len(missing)} plants"
     elif totals["paired"] != expected or totals["lost"] or totals["stale"]:
         trial.reason = f"paired {totals['paired']} of {expected}, lost {totals['lost']}, stale {totals['stale']}"
+    elif totals["learned"] != expected - EXAMPLES[1].structure.warm_up * len(plants):  # the warm-up has no prediction
+        trial.reason = f"learnt from {totals['learned']} of {expected} samples"
     elif trial.worst_lag_samples > 0:
         trial.reason = f"fell behind: a plant was {trial.worst_lag_samples} samples short {CATCH_UP:.0f} s after"
     else:
@@ -243,15 +273,20 @@ def judge(trial: Trial, statuses: dict[str, dict], plants: list[str]) -> None:
 
 def table(trials: list[Trial]) -> str:
     lines = [
-        "| set-up | plants at 100 Hz | result | node CPU us per plant-sample | node RSS MB (total) | driver rate Hz |",
-        "|---|---|---|---|---|---|",
+        "| set-up | plants at 100 Hz | result | node CPU us per plant-sample | node RSS MB (total) "
+        "| node processes | driver rate Hz | driver CPU % of a core |",
+        "|---|---|---|---|---|---|---|---|",
     ]
     for t in trials:
         result = "zero loss" if t.passed else f"FAIL: {t.reason}"
-        cost = f"{t.cpu_us_per_sample:.0f} | {t.rss_mb:.0f} | {t.rate_hz:.1f}"
+        cost = (
+            f"{t.cpu_us_per_sample:.0f} | {t.rss_mb:.0f} | {t.processes} | {t.rate_hz:.1f} | {t.driver_cpu_percent:.0f}"
+        )
         lines.append(f"| {t.setup} | {t.plants} | {result} | {cost} |")
-    best = {s: max((t.plants for t in trials if t.setup == s and t.passed), default=0) for s in ("fleet", "processes")}
-    lines += ["", f"Most plants identified with zero loss: fleet {best['fleet']}, processes {best['processes']}."]
+    setups = list(dict.fromkeys(t.setup for t in trials))
+    best = {s: max((t.plants for t in trials if t.setup == s and t.passed), default=0) for s in setups}
+    said = ", ".join(f"{setup} {count}" for setup, count in best.items())
+    lines += ["", f"Most plants identified with zero loss (of the counts tried): {said}."]
     return "\n".join(lines)
 
 
@@ -259,7 +294,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--counts", default="4,8,16,32,64", help="numbers of plants to try, rising (default 4..64)")
     parser.add_argument("--seconds", type=float, default=10.0, help="timed part of each trial (default 10)")
-    parser.add_argument("--setups", default="fleet,processes", help="which set-ups (default both)")
+    parser.add_argument(
+        "--setups", default="fleet,workers,processes", help="which set-ups: fleet, workers, processes (default all)"
+    )
     parser.add_argument("--json", type=Path, help="also write every trial as JSON here")
     args = parser.parse_args(argv)
     import domain_coordinator
@@ -280,7 +317,8 @@ def main(argv: list[str] | None = None) -> int:
     print(table(trials))
     print(
         f"\n{args.seconds:.0f} s trials, {time.monotonic() - started:.0f} s in all, "
-        f"load {load:.1f} at start, {os.getloadavg()[0]:.1f} at end"
+        f"load {load:.1f} at start, {os.getloadavg()[0]:.1f} at end; workers:=auto = "
+        f"{len(os.sched_getaffinity(0))} worker processes here"
     )
     if args.json:
         args.json.write_text(json.dumps([t.__dict__ for t in trials], indent=1))

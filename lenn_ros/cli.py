@@ -155,7 +155,12 @@ def _add_evaluate(commands: Any) -> None:
         "model on the test samples (one-step and free run). Clipped network inputs, divergence and a free run "
         "worse than the mean are printed as WARNING lines (and listed in the JSON's warnings).",
     )
-    p.add_argument("bag", help="rosbag2 bag: a directory (MCAP or sqlite3, one file or split) or its .mcap file")
+    p.add_argument(
+        "bag",
+        nargs="+",
+        help="rosbag2 bag: a directory (MCAP or sqlite3, one file or split) or its .mcap file. Several: each a "
+        "record of its own, one model learnt through their build parts, scored on each test part and on all",
+    )
     p.add_argument(
         "--params",
         metavar="FILE",

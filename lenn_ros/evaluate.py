@@ -13,8 +13,10 @@ from typing import Any
 
 import numpy as np
 
+from lenn_ros.service import RecordingError
 from lenn_ros.service.evaluation import BagEvaluation, evaluate_bag
 from lenn_ros.service.reading import flags_of
+from lenn_ros.service.records import evaluate_bags
 
 
 def one_step_lines(name: str, band: dict[str, Any]) -> list[str]:
@@ -42,16 +44,19 @@ def band_lines(intervals: dict[str, Any]) -> list[str]:
 
 def main(args) -> int:
     progress = sys.stderr.isatty() and not args.json
-    result = evaluate_bag(
-        args.bag, args.params, args.test_from, getattr(args, "node", "/identifier"), flags_of(args), progress
-    )
+    bags = [args.bag] if isinstance(args.bag, str) else list(args.bag)
+    if len(bags) > 1:
+        return _several(args, bags, progress)
+    bag = bags[0]
+    result = evaluate_bag(bag, args.params, args.test_from, getattr(args, "node", "/identifier"), flags_of(args),
+                          progress)  # fmt: skip
     if args.plot:
-        _plot(args, result)
+        _plot(args, result, bag)
     d = result.as_dict()
     if args.json:
         print(json.dumps(d, indent=1, default=lambda value: None))
         return 0
-    print(f"bag {args.bag}: {d['pairs']} samples from {d['source']}, test from sample {d['test_start']}")
+    print(f"bag {bag}: {d['pairs']} samples from {d['source']}, test from sample {d['test_start']}")
     if result.test_default:
         print(f"  {result.test_default}")
     if d["weights_in"]:
@@ -93,7 +98,45 @@ def _figure_lines(result: BagEvaluation, d: dict[str, Any]) -> list[str]:
     return lines
 
 
-def _plot(args: Any, result: BagEvaluation) -> None:
+def _several(args: Any, bags: list[str], progress: bool) -> int:
+    """Several bags, each a record of its own (:mod:`lenn_ros.service.records`): each one's figures, then all."""
+    if args.plot:
+        raise RecordingError("--plot: for one bag (evaluate each bag apart to plot it)")
+    result = evaluate_bags(bags, args.params, args.test_from, getattr(args, "node", "/identifier"), flags_of(args),
+                           progress)  # fmt: skip
+    d = result.as_dict()
+    if args.json:
+        print(json.dumps(d, indent=1, default=lambda value: None))
+        return 0
+    print(f"{len(bags)} bags, each a record of its own: one model learnt through their build parts in this order, "
+          "frozen, scored on each test part (free run from the measured outputs before it) and on all "
+          "together")  # fmt: skip
+    header = "  {:<40s} {:>8s} {:>8s} {:>8s}   NMSE one-step / free run (dB), RMSE one-step / free run"
+    print(header.format("bag (output)", "trained", "tested", "from"))
+    for record in d["records"]:
+        for name, figures in record["channels"].items():
+            shown = f"{record['bag']} ({name})" if len(record["channels"]) > 1 else record["bag"]
+            print(f"  {shown:<40s} {record['trained']:>8d} {figures['samples']:>8d} {record['test_start']:>8d}   "
+                  + _figures_text(figures))  # fmt: skip
+        if record["test_default"]:
+            print(f"    {record['test_default']}")
+    for name, figures in d["overall"].items():
+        label = "all test parts" + ("" if len(d["overall"]) == 1 else f" ({name})")
+        print(f"  {label:<67s}   " + _figures_text(figures))
+    for notice in d["notices"]:
+        print(f"  note: {notice}")
+    return 0
+
+
+def _figures_text(figures: dict[str, Any]) -> str:
+    """NMSE one-step / free run, RMSE one-step / free run, one row of the several bags' table."""
+    cells = [figures[key] for key in ("nmse_db", "nmse_free_run_db", "rmse", "rmse_free_run")]
+    shown = [f"{value:.3f}" if value is not None and math.isfinite(value) else "nan" for value in cells[:2]]
+    shown += [f"{value:.5g}" if value is not None and math.isfinite(value) else "nan" for value in cells[2:]]
+    return f"{shown[0]} / {shown[1]}, {shown[2]} / {shown[3]}"
+
+
+def _plot(args: Any, result: BagEvaluation, bag: str) -> None:
     """``--plot``: plant against the model on the test part over the errors (a pair of panels per output), with
     the fit's free-run band if known. The node's one-step band (``y_hat_std``) is not kept per sample here."""
     from lenn_ros.plotting import plot_channels, plot_identification
@@ -101,7 +144,7 @@ def _plot(args: Any, result: BagEvaluation) -> None:
     free_run = result.intervals.get("free_run", {})
     if result.single:
         e = result.evaluation
-        title = f"{args.bag}: NMSE {e.nmse_db:.2f} dB one-step, {e.nmse_free_run_db:.2f} dB free run"
+        title = f"{bag}: NMSE {e.nmse_db:.2f} dB one-step, {e.nmse_free_run_db:.2f} dB free run"
         plot_identification(args.plot, e.y_test, e.y_hat_test, title, e.y_free_test, free_run.get("half_width"))
         return
     names = list(result.evaluations)
@@ -111,6 +154,6 @@ def _plot(args: Any, result: BagEvaluation) -> None:
     bands = [(free_run if name == "y" and "half_width" in free_run else free_run.get(name, {})).get("half_width")
              for name in names]  # fmt: skip
     shown = ", ".join(f"{name} {e.nmse_db:.2f}" for name, e in result.evaluations.items())
-    title = f"{args.bag}: one-step NMSE {shown} dB"
+    title = f"{bag}: one-step NMSE {shown} dB"
     path = plot_channels(args.plot, names, stacked[0], stacked[1], title, stacked[2], free_run_band=bands)
     print(f"  wrote {path}")

@@ -165,3 +165,26 @@ def test_records_of_other_channels_are_refused(runs: dict[str, Path], tmp_path: 
     other.write_text("u,z\n" + "\n".join(f"{k},{k}" for k in range(300)) + "\n")
     with pytest.raises(FitError, match="every record must hold the same channels"):
         load_records([runs["steps"]], [other], "u", None)
+
+
+def test_evaluate_scores_several_bags_each_as_a_record_of_its_own(runs: dict[str, Path], tmp_path: Path) -> None:
+    """``evaluate A B`` (a subprocess; bags written by ``import-csv``) learns one model through both build parts
+    (the last fifth of each is its test part) and scores each bag's test part and both together; the same bag
+    twice scores the same twice, whatever came before it in the joined pass (nothing carried across a join)."""
+    bags = [str(import_csv(runs[name], "u", "y", 0.01, tmp_path / name)) for name in ("steps", "sine")]
+    made = lenn_ros("fit", str(runs["steps"]), "--test", str(runs["noise"]), "--no-refine", "-o", str(tmp_path / "m"))
+    assert made.returncode == 0, made.stderr
+    params = ("--params", str(tmp_path / "m" / "params.yaml"))
+    done = lenn_ros("evaluate", *bags, *params, "--json")
+    assert done.returncode == 0, done.stderr
+    report = json.loads(done.stdout)
+    assert [r["test_start"] for r in report["records"]] == [int(0.8 * RUN) + 1] * 2
+    assert [r["trained"] for r in report["records"]] == [int(0.8 * RUN)] * 2
+    tested = [r["channels"]["y"]["samples"] for r in report["records"]]
+    assert all(np.isfinite(r["channels"]["y"]["nmse_free_run_db"]) for r in report["records"])
+    assert sum(tested) > 0.19 * 2 * RUN
+    twice = json.loads(lenn_ros("evaluate", bags[0], bags[0], *params, "--json").stdout)["records"]
+    assert twice[0]["channels"] == twice[1]["channels"]
+    refused = lenn_ros("evaluate", *bags, *params, "--test-from", "200")
+    assert refused.returncode != 0 and len(refused.stderr.strip().splitlines()) == 1
+    assert "--test-from 200 with 2 bags" in refused.stderr

@@ -24,8 +24,9 @@ slower than 100 Hz). Also reported: the CPU time the node processes (a fleet's w
 included) used per plant-sample over the timed part (utime + stime from /proc, both cores
 counted), their resident memory at the end, and the CPU the driver itself took over the
 timed part (this process, in % of one core): on two cores it shares the machine with the
-identifiers, so a set-up's capacity here is what the cores left to it identify. The search
-per set-up stops at its first failing N.
+identifiers, so a set-up's capacity here is what the cores left to it identify. The set-ups
+take turns at each N (a load that drifts over the run weighs on all of them alike); a
+set-up's search stops at its first failing N.
 """
 
 from __future__ import annotations
@@ -160,9 +161,14 @@ class Driver:
             )
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(self.node)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.stopping = threading.Event()  # the spin ends before the executor does (rclpy raised in a shut-down spin)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
         self.thread.start()
         self.sent = 0
+
+    def _spin(self) -> None:
+        while not self.stopping.is_set():
+            self.executor.spin_once(timeout_sec=0.1)
 
     def _on_status(self, plant: str, message: object) -> None:
         self.paired[plant] = int(json.loads(message.data)["counters"]["paired"])
@@ -198,8 +204,9 @@ class Driver:
         return late, ticks / (time.monotonic() - start)
 
     def close(self) -> None:
-        self.executor.shutdown()
+        self.stopping.set()
         self.thread.join(timeout=5)
+        self.executor.shutdown()
         self.node.destroy_node()
         self.context.try_shutdown()
 
@@ -306,14 +313,15 @@ def main(argv: list[str] | None = None) -> int:
     started = time.monotonic()
     load = os.getloadavg()[0]
     with domain_coordinator.domain_id() as domain:
-        for setup in args.setups.split(","):
-            for count in counts:
+        searching = args.setups.split(",")  # taken in turn at each N: a load that drifts over the run hits all alike
+        for count in counts:
+            for setup in list(searching):
                 trial = run_trial(setup, count, args.seconds, domain)
                 trials.append(trial)
                 verdict = "pass" if trial.passed else f"FAIL: {trial.reason}"
                 print(f"  {setup:9s} {count:4d} plants: {verdict}", file=sys.stderr, flush=True)
                 if not trial.passed:
-                    break
+                    searching.remove(setup)
     print(table(trials))
     print(
         f"\n{args.seconds:.0f} s trials, {time.monotonic() - started:.0f} s in all, "

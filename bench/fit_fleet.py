@@ -1,0 +1,118 @@
+"""A fleet's logs fitted on a Dask cluster against the serial ``lenn-ros fit`` one by one, in one run.
+
+    python bench/fit_fleet.py                       # 12 logs of 4000 samples, local:2 (this machine's cores)
+    python bench/fit_fleet.py --logs 24 --samples 8000 --cluster local:4
+
+The same logs (a plant with a cubic stiffness, one seed each) are fitted twice:
+
+- ``serial``: one ``lenn-ros fit LOG ... -o MODELS/NAME`` process after another, as a user would;
+- ``fleet``: one ``lenn-ros fit-fleet LOGS ... -o MODELS --cluster ...`` process, the cluster's start included.
+
+Both write into the same folders (the fleet first; its files are read, then the serial fit writes over
+them), so the models are compared as bytes: params.yaml whole, every array of weights.npz. One fit of
+the first log runs before both (numba's cache on disk, the files in the page cache), untimed. On a
+machine others share, the two alternate for ``--rounds`` and each is reported by its fastest round,
+with the load average over its rounds and its CPU seconds (the processes and all they started).
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+FLAGS = ["--u", "input", "--y", "output"]
+
+
+def plant(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """y(k) = 1.5 y(k-1) - 0.7 y(k-2) + 0.35 u(k-1) - 0.4 y(k-1)^3 plus output noise (test_fit's plant)."""
+    rng = np.random.default_rng(seed)
+    u = np.convolve(rng.uniform(-1, 1, n), np.ones(3) / 3, mode="same") + 0.3
+    y = np.zeros(n)
+    for k in range(2, n):
+        y[k] = 1.5 * y[k - 1] - 0.7 * y[k - 2] + 0.35 * u[k - 1] - 0.4 * y[k - 1] ** 3
+    return u, y + 0.002 * rng.standard_normal(n)
+
+
+def write_logs(folder: Path, count: int, samples: int) -> list[Path]:
+    folder.mkdir(parents=True)
+    paths = []
+    for seed in range(count):
+        u, y = plant(samples, seed)
+        path = folder / f"joint{seed:02d}.csv"
+        np.savetxt(path, np.c_[np.arange(samples), u, y], delimiter=",", header="t,input,output", comments="")
+        paths.append(path)
+    return paths
+
+
+def lenn_ros(*arguments: str) -> float:
+    """Run ``lenn-ros ARGUMENTS`` (its output kept quiet); its wall time in seconds."""
+    started = time.monotonic()
+    done = subprocess.run([sys.executable, "-m", "lenn_ros.cli", *arguments], capture_output=True, text=True)
+    if done.returncode != 0:
+        sys.exit(f"lenn-ros {arguments[0]} failed: {done.stderr.strip().splitlines()[-1:]}")
+    return time.monotonic() - started
+
+
+def measured(work) -> tuple[float, float, float]:
+    """(wall seconds, CPU seconds of the processes it started, the 1-minute load average after) of ``work()``."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    wall = work()
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
+    return wall, cpu, os.getloadavg()[0]
+
+
+def model_files(folder: Path) -> tuple[bytes, dict[str, np.ndarray]]:
+    with np.load(folder / "weights.npz") as weights:
+        return (folder / "params.yaml").read_bytes(), {key: weights[key] for key in weights.files}
+
+
+def same(a: tuple[bytes, dict[str, np.ndarray]], b: tuple[bytes, dict[str, np.ndarray]]) -> bool:
+    return a[0] == b[0] and a[1].keys() == b[1].keys() and all(np.array_equal(a[1][k], b[1][k]) for k in a[1])
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--logs", type=int, default=12, help="logs in the fleet (default 12)")
+    parser.add_argument("--samples", type=int, default=4000, help="samples per log, the last fifth the test part")
+    parser.add_argument("--cluster", default="local:2", help="fit-fleet's --cluster (default local:2)")
+    parser.add_argument("--rounds", type=int, default=2, help="serial and fleet alternately (default 2)")
+    options = parser.parse_args()
+    flags = [*FLAGS, "--test-from", str(options.samples * 4 // 5 + 1)]
+    runs: dict[str, list[tuple[float, float, float]]] = {"serial": [], "fleet": []}
+    with tempfile.TemporaryDirectory(prefix="fit-fleet-bench-") as scratch:
+        root = Path(scratch)
+        logs, models = write_logs(root / "logs", options.logs, options.samples), root / "models"
+        lenn_ros("fit", str(logs[0]), *flags, "-o", str(root / "warm"))
+        equal = 0
+        fleet = ("fit-fleet", str(root / "logs"), *flags, "-o", str(models), "--cluster", options.cluster)
+        serial = [("fit", str(log), *flags, "-o", str(models / log.stem)) for log in logs]
+        for _ in range(options.rounds):
+            runs["fleet"].append(measured(lambda: lenn_ros(*fleet, "--force")))
+            fleet_models = {log.stem: model_files(models / log.stem) for log in logs}
+            runs["serial"].append(measured(lambda: sum(lenn_ros(*argv) for argv in serial)))
+            equal = sum(same(fleet_models[log.stem], model_files(models / log.stem)) for log in logs)
+    print(f"{options.logs} logs of {options.samples} samples, fit-fleet --cluster {options.cluster}, "
+          f"{os.cpu_count()} cores, best of {options.rounds} rounds")  # fmt: skip
+    print("| | wall (best) | wall (each round) | CPU s | load avg |")
+    print("|---|---|---|---|---|")
+    for name, rows in runs.items():
+        walls = ", ".join(f"{wall:.1f}" for wall, _, _ in rows)
+        cpu, load = min(rows)[1], sum(row[2] for row in rows) / len(rows)
+        print(f"| {name} | {min(rows)[0]:.1f} s | {walls} | {cpu:.1f} | {load:.1f} |")
+    print(f"speed-up (best wall): {min(runs['serial'])[0] / min(runs['fleet'])[0]:.2f}x; "
+          f"models bit-identical: {equal} of {options.logs}")  # fmt: skip
+    return 0 if equal == options.logs else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -108,18 +108,20 @@ def test_quick_offline_bench_runs_and_reports_every_figure() -> None:
 
 
 def test_fleet_bench_judges_loss_and_backlog() -> None:
-    """A trial passes only with every plant's samples paired, none lost, and no plant behind."""
+    """A trial passes only with every plant's samples paired and learnt from, none lost, and no plant behind."""
     import fleet
 
     plants = ["p0", "p1"]
 
-    def statuses(paired: int, lost: int = 0) -> dict[str, dict]:
-        counters = {"paired": paired, "lost": lost, "stale": 0, "samples": paired}
+    def statuses(paired: int, lost: int = 0, unlearnt: int = 0) -> dict[str, dict]:
+        learned = paired - fleet.EXAMPLES[1].structure.warm_up - unlearnt
+        counters = {"paired": paired, "learned": learned, "lost": lost, "stale": 0, "samples": paired}
         return {plant: {"counters": dict(counters)} for plant in plants}
 
     cases = {
         "clean": (statuses(500), 0, True),
         "lost": (statuses(498, lost=2), 0, False),
+        "paired, not learnt from": (statuses(500, unlearnt=3), 0, False),
         "behind": (statuses(500), 7, False),
         "silent plant": ({"p0": statuses(500)["p0"]}, 0, False),
     }
@@ -134,15 +136,22 @@ def test_fleet_bench_judges_loss_and_backlog() -> None:
 
 @pytest.mark.ros
 @pytest.mark.timeout(120)
-def test_fleet_bench_runs_a_real_trial(domain: int) -> None:
-    """Two plants in one fleet process for 2 s at 100 Hz, through DDS: all of it paired."""
+@pytest.mark.parametrize(("setup", "processes"), [("fleet", 1), ("workers", 4)])
+def test_fleet_bench_runs_a_real_trial(domain: int, setup: str, processes: int) -> None:
+    """Two plants in one fleet process (or over two workers) for 2 s at 100 Hz, through DDS: all of it paired;
+    the workers' CPU and memory counted with the launcher's (and multiprocessing's resource tracker)."""
     pytest.importorskip("rclpy")
+    import os
+
     import fleet
 
-    trial = fleet.run_trial("fleet", 2, 2.0, domain)
+    if setup == "workers" and len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("workers:=auto is one worker on one core")
+    trial = fleet.run_trial(setup, 2, 2.0, domain)
     assert trial.passed, trial
     assert trial.sent == int((fleet.WARM_UP + 2.0) * fleet.RATE_HZ) and trial.counters["paired"] == 2 * trial.sent
-    assert trial.cpu_us_per_sample > 0 and trial.rss_mb > 50
+    assert trial.cpu_us_per_sample > 0 and trial.rss_mb > 50 * processes and trial.processes == processes
+    assert trial.driver_cpu_percent > 0
 
 
 def test_bag_read_bench_reads_the_same_messages_with_every_reader(tmp_path) -> None:

@@ -351,7 +351,7 @@ BENCHMARKS = {
     "online": ("speed_online.py", "loss-free rate and latency through ROS, nodes compared in one run"),
     "reproduce": ("reproduce_marginal.py", "marginal end-to-end cost of `lenn-ros reproduce`"),
     "evaluate": ("evaluate_large.py", "`evaluate` of a 10^6-sample bag, read to result"),
-    "fleet": ("fleet.py", "plants identified at 100 Hz with zero loss: one fleet process against a process per plant"),
+    "fleet": ("fleet.py", "plants at 100 Hz with zero loss: a fleet on one core, on every core, a process per plant"),
     "soak": ("soak.py", "a long live run (10^6 samples) through simulator, identifier and recorder"),
     "bag-read": ("bag_read.py", "bag reading speed (messages/s) beside rosbags' and mcap's own readers"),
     "peers": ("peer_narx.py", "against SysIdentPy's FROLS polynomial NARX on real data"),

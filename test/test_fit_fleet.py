@@ -64,10 +64,10 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
-def dask(*arguments: str, log: Path) -> subprocess.Popen:
+def dask(*arguments: str, log: Path, prefix: list[str] | None = None) -> subprocess.Popen:
     """A ``dask`` command in a session of its own (killed with its nanny's worker as one group)."""
     env = {**os.environ, **worker_environment(1)}
-    command = [str(Path(sys.executable).parent / "dask"), *arguments]
+    command = [*(prefix or []), str(Path(sys.executable).parent / "dask"), *arguments]
     return subprocess.Popen(command, stdout=log.open("w"), stderr=subprocess.STDOUT, env=env, start_new_session=True)
 
 
@@ -236,3 +236,45 @@ def test_relocation_gives_the_files_their_place_or_fails_the_entry() -> None:
     assert relocated(text, scratch, "/m/arm") == b"weights_in: /m/arm/weights.npz\n# --params-file /m/arm/params.yaml\n"
     with pytest.raises(RelocationError):  # a path broken over two lines is not found whole: never half relocated
         relocated(b"weights_in: /tmp/lenn-ros-fleet-abc/\n  arm/weights.npz", scratch, "/m/arm")
+
+
+def test_a_cluster_across_hosts_fits_from_shared_logs_and_sends_the_models_back(tmp_path: Path) -> None:
+    """Scheduler and client in one network namespace, a worker in each of two others (test_hosts' hosts):
+    the workers read the logs at the manifest's paths, the models come back over the (virtual) network."""
+    hosts_module = pytest.importorskip("test_hosts", reason="the hosts of test_hosts (it needs rclpy)")
+    refusal = hosts_module.netns_refusal()
+    if refusal is not None:
+        pytest.skip(f"a cluster across hosts needs network namespaces: {refusal}")
+    logs = write_logs(tmp_path / "logs", count=2)
+    with hosts_module.Hosts(f"f{os.getpid() % 10000}", multicast=False) as hosts:
+        scheduler_ns, *worker_ns = hosts.namespaces.values()
+        scheduler, *workers = hosts.addresses()
+        address = f"tcp://{scheduler}:8786"
+
+        def inside(namespace: str, *argv: str, log: str) -> subprocess.Popen:
+            return dask(*argv, log=tmp_path / log, prefix=["ip", "netns", "exec", namespace])
+
+        started = [inside(scheduler_ns, "scheduler", "--host", scheduler, "--port", "8786", "--no-dashboard",
+                          log="scheduler.log")]  # fmt: skip
+        started += [inside(ns, "worker", address, "--host", host, "--nthreads", "1", "--no-dashboard", log=f"{ns}.log")
+                    for ns, host in zip(worker_ns, workers, strict=True)]  # fmt: skip
+        try:
+            ready = f"import distributed; distributed.Client({address!r}, timeout=60).wait_for_workers(2, timeout=60)"
+            polled = subprocess.run(["ip", "netns", "exec", scheduler_ns, sys.executable, "-c", ready],
+                                    capture_output=True, text=True, timeout=READY * 2)  # fmt: skip
+            assert polled.returncode == 0, polled.stderr
+            before = {role: hosts.bytes_through(role) for role in list(hosts.namespaces)[1:]}
+            command = [sys.executable, "-m", "lenn_ros.cli", "fit-fleet", str(tmp_path / "logs"), *FLAGS,
+                       "-o", str(tmp_path / "models"), "--cluster", address]  # fmt: skip
+            run = subprocess.run(["ip", "netns", "exec", scheduler_ns, *command], capture_output=True, text=True,
+                                 timeout=RUN)  # fmt: skip
+            assert run.returncode == 0, run.stderr
+            carried = {role: hosts.bytes_through(role) - before[role] for role in before}
+        finally:
+            for process in started:
+                stop(process)
+    rows = summary(tmp_path / "models")
+    assert {row["status"] for row in rows.values()} == {"done"} and len(rows) == len(logs)
+    assert {row["worker"].rsplit(":", 1)[0] for row in rows.values()} <= {f"tcp://{host}" for host in workers}
+    model_bytes = sum(f.stat().st_size for f in (tmp_path / "models" / logs[0].stem).iterdir())
+    assert max(carried.values()) > model_bytes  # a model's files crossed the network to the client

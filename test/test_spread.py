@@ -105,21 +105,21 @@ def covered(errors: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_the_live_band_recovers_95_percent_within_2000_samples_of_a_noise_level_tripling(seed: int) -> None:
+def test_the_live_band_recovers_95_percent_within_1000_samples_of_a_noise_level_tripling(seed: int) -> None:
     errors = np.random.default_rng(seed).standard_normal(30_000)
     errors[20_000:] *= 3.0  # index 19 999 of the coverage arrays is the first error at the new level
     plain, live = covered(errors)
     step = 19_999
     assert 0.94 <= live[10_000:step].mean() <= 0.96
-    # the first 1 000 at the new level: 1.96 std (an EWMA of 500 samples) covers about 84-85 %, the live band
-    # widens as it misses (measured 92.7-93.1 % over seeds 0-2)
-    assert plain[step : step + 1000].mean() < 0.87 and live[step : step + 1000].mean() >= 0.91
-    # from 2 000 samples on it is back at 95 % (measured 94.9-95.2 %)
-    assert 0.94 <= live[step + 2000 :].mean() <= 0.96
+    # the first 1 000 at the new level: 1.96 std (an EWMA of 500 samples) covers 83.9-84.9 % over seeds 0-2, the
+    # live band, which widens as it misses, 94.5-94.9 % (its first 250: 90.8-91.6 %, then 94-97 % per 250)
+    assert plain[step : step + 1000].mean() < 0.87 and 0.93 <= live[step : step + 1000].mean() <= 0.97
+    # from 1 000 samples on it is at 95 % (measured 95.0 %)
+    assert 0.94 <= live[step + 1000 :].mean() <= 0.96
 
 
 def test_on_heavy_tails_the_live_band_covers_95_percent_where_1_96_std_does_not() -> None:
-    """Laplace errors (kurtosis 6): 1.96 std covers 93.7 % (measured 93.75 %), the live band 95.0 % (94.99 %)."""
+    """Laplace errors (kurtosis 6): 1.96 std covers 93.7 % (measured 93.73 %), the live band 95.0 % (94.99 %)."""
     errors = np.random.default_rng(1).laplace(size=60_000)
     plain, live = covered(errors)
     assert plain[5_000:].mean() < 0.94

@@ -42,7 +42,7 @@ from std_msgs.msg import Float64MultiArray
 from lenn_ros.nodes import run_node
 from lenn_ros.nodes.robot_controller import CMD, describe
 from lenn_ros.paper.examples import get_example
-from lenn_ros.paper.physical import physical_plant
+from lenn_ros.paper.physical import PLANT_CHANGES, ServoAxis, change_plant, physical_plant
 from lenn_ros.paper.robot import CommandHold, SimulatedRobot
 
 #: Default topic of the measurements (relative: remap with -r joint_states:=/robot/joint_states).
@@ -57,7 +57,19 @@ class RobotSimulator(Node):
         declare = self.declare_parameter
         declare("example", 1, describe("paper example 1-4 whose plant the robot is", 1, 4))
         declare(
-            "plant", "example", describe("the robot's plant: example (the paper's, above) or friction_joint (radians)")
+            "plant",
+            "example",
+            describe("the robot's plant: example (the paper's, above), friction_joint (radians) or servo_axis (a belt "
+                     "drive under its PD loop: u the position setpoint, rad)"),
+        )  # fmt: skip
+        declare("change_step", 0, describe("step at which the plant changes (0 = never; physical plants)", 0, 10**9))
+        declare("change_kind", "gain", describe("what changes at change_step: gain, friction, payload or offset"))
+        declare(
+            "change_size",
+            -0.2,
+            describe(
+                "relative size of the change (-0.2: 20 % less; offset: added to y in the output's units)", -10.0, 10.0
+            ),
         )
         example = get_example(self.get_parameter("example").value)
         declare("rate_hz", 100.0, describe("plant steps per second", 0.1, 10_000.0))
@@ -92,6 +104,7 @@ class RobotSimulator(Node):
             plant = example.plant() if p("plant").value == "example" else physical_plant(p("plant").value, 1.0 / rate)
         except ValueError as error:
             raise SystemExit(f"robot_simulator: {error}") from None
+        self._check_change(p("plant").value)
         self.robot = SimulatedRobot(
             plant,
             self.period_ns,
@@ -105,14 +118,10 @@ class RobotSimulator(Node):
             stamp_jitter_s=p("stamp_jitter").value,
             stamp_offset_s=p("stamp_offset").value,
         )
-        self.hold = CommandHold()
-        self.command_index = p("command_index").value
-        self.joint_name = p("joint_name").value
-        self.latency_ns = round(p("latency").value * 1e9)
-        self.command_wait_ns = round(p("command_wait").value * 1e9)
-        self.bad_commands = 0
-        depth = p("depth").value
-        overriding = QoSOverridingOptions.with_default_policies
+        self.hold, self.bad_commands = CommandHold(), 0
+        self.command_index, self.joint_name = p("command_index").value, p("joint_name").value
+        self.latency_ns, self.command_wait_ns = round(p("latency").value * 1e9), round(p("command_wait").value * 1e9)
+        depth, overriding = p("depth").value, QoSOverridingOptions.with_default_policies
         self.create_subscription(
             Float64MultiArray,
             CMD,
@@ -196,7 +205,17 @@ class RobotSimulator(Node):
         return self.max_steps is not None and self.k >= self.max_steps
 
     def _step(self, stamp_ns: int) -> None:
-        y, published, delay = self.robot.step(stamp_ns, *self.hold.at(stamp_ns))
+        if self.change_step and self.k == self.change_step:
+            self._change_plant()
+        u, received_ns = self.hold.at(stamp_ns)
+        if (
+            self.change_kind == "gain"
+            and self.k >= self.change_step > 0
+            and not isinstance(self.robot.plant, ServoAxis)
+        ):
+            u *= 1.0 + self.change_size  # a joint's actuator: the torque it gets
+        y, published, delay = self.robot.step(stamp_ns, u, received_ns)
+        y += self.offset
         self.k += 1
         if not published:
             return
@@ -204,6 +223,32 @@ class RobotSimulator(Node):
         header_ns = self.robot.header_stamp_ns(stamp_ns)
         message.header.stamp = TimeMsg(sec=header_ns // 10**9, nanosec=header_ns % 10**9)
         self.pending.append((stamp_ns + round(delay * 1e9), message))
+
+    def _declare_change(self) -> None:
+        """The plant-change options: a gain, friction, payload or offset change at a step (the alarm's demo)."""
+        declare = self.declare_parameter
+        declare("change_step", 0, describe("step at which the plant changes (0 = never; physical plants)", 0, 10**9))
+        declare("change_kind", "gain", describe("what changes at change_step: gain, friction, payload or offset"))
+        size = "relative size of the change (-0.2: 20 % less; offset: added to y, in the output's units)"
+        declare("change_size", -0.2, describe(size, -10.0, 10.0))
+
+    def _check_change(self, plant: str) -> None:
+        self._declare_change()
+        p = self.get_parameter
+        self.change_step, self.change_kind = p("change_step").value, p("change_kind").value
+        self.change_size, self.offset = p("change_size").value, 0.0
+        if self.change_step and (plant == "example" or self.change_kind not in PLANT_CHANGES):
+            raise SystemExit(
+                f"robot_simulator: cannot change the plant: change_kind {self.change_kind!r} (known: "
+                f"{', '.join(PLANT_CHANGES)}) needs a physical plant (plant:=friction_joint or servo_axis)"
+            )
+
+    def _change_plant(self) -> None:
+        """The plant changes under the model, as a robot's does (a payload picked up, a belt worn): said once."""
+        change_plant(self.robot.plant, self.change_kind, self.change_size)
+        if self.change_kind == "offset":
+            self.offset = self.change_size
+        self.get_logger().info(f"step {self.k}: plant changed: {self.change_kind} {self.change_size:+g}")
 
     def shutdown(self) -> None:
         """Called by run_node on the way out (end, SIGINT or SIGTERM): the lockstep series."""

@@ -162,3 +162,30 @@ class Excitation:
             self._left -= n
             filled += n
         return out
+
+
+def point_to_point(
+    rng: np.random.Generator,
+    samples: int,
+    period: float,
+    centre: float = 0.0,
+    amplitude: float = 1.0,
+    speed: float = 2.0,
+    dwell: tuple[float, float] = (0.2, 1.5),
+) -> np.ndarray:
+    """A positioning axis's setpoints: moves at ``speed`` (units/s) to random targets within centre +- amplitude,
+    each held for a random dwell (s): how a robot drives an axis (ramps and rests, not white noise). The
+    change alarm's excitation changes are other ``centre`` / ``amplitude`` / ``speed`` / ``dwell`` values."""
+    out = np.empty(samples)
+    position, k = centre, 0
+    step = speed * period
+    while k < samples:
+        target = centre + amplitude * rng.uniform(-1.0, 1.0)
+        moves = max(1, int(abs(target - position) / step))
+        ramp = np.linspace(position, target, moves + 1)[1:]
+        hold = np.full(max(1, int(rng.uniform(*dwell) / period)), target)
+        piece = np.concatenate([ramp, hold])[: samples - k]
+        out[k : k + len(piece)] = piece
+        k += len(piece)
+        position = target
+    return out

@@ -324,6 +324,7 @@ def summary(phases: list[dict], probe: Probe, day: dict, exit_code: int | None) 
         "live_test_nmse_db": live.get("phase_nmse_db"),
         "live_test_samples": live.get("phase_samples"),
         "live_counters": live.get("counters"),
+        "change": live.get("change"),  # the alarm: a healthy day raises none (issue 43)
         "offline_test_nmse_db": offline.get("nmse_db"),
         "offline": {k: v for k, v in offline.items() if k in ("nmse_db", "nmse_free_run_db", "error", "notices")},
         "recorder_caught_up_s": day["recorder_caught_up_s"],
@@ -356,6 +357,10 @@ def print_table(result: dict) -> None:
     print(f"test phase one-step NMSE: live {result['live_test_nmse_db']} dB over {result['live_test_samples']} "
           f"samples; evaluate of the bag {result['offline_test_nmse_db']} dB")  # fmt: skip
     print(f"exit {result['sigint_exit_s']} s after SIGINT (code {result['exit_code']})")
+    change = result["change"] or {}
+    print(f"change alarms: {change.get('count')} (armed {change.get('armed')}, reference "
+          f"{change.get('reference_nmse_db')} dB; blocks tested {change.get('blocks_tested')}, novel "
+          f"{change.get('blocks_novel')}{'; ' + change['why'] if change.get('why') else ''})")  # fmt: skip
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -178,16 +178,17 @@ NODE_PARAMETERS = [
     Parameter(
         "change_alarm",
         True,
-        "watch the one-step errors for a plant change: /diagnostics WARN 'plant changed' while the residual level "
-        "stays above the one the model had learnt (single output; core.change)",
+        "watch for a plant change: a frozen reference of the served model simulates each block of samples; "
+        "/diagnostics WARN 'plant changed' when its free-run errors rise above their learnt level where it knows "
+        "the motion (every output; armed only by a reference that simulates; core.change)",
         live=True,
     ),
     Parameter(
         "change_threshold",
         DEFAULT_THRESHOLD,
-        "change alarm: CUSUM threshold on e^2 / its learnt level (higher: fewer false alarms, later detection; "
-        "bench/change_alarm.py measures both)",
-        1.0,
+        "change alarm: CUSUM threshold on the blocks' standardised log free-run errors (higher: fewer false "
+        "alarms, later detection; bench/change_alarm.py sweeps it)",
+        0.1,
         1e6,
         live=True,
     ),

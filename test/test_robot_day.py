@@ -65,3 +65,5 @@ def test_a_robot_day_with_the_defaults(tmp_path: Path, domain: int, solver: str 
     assert result["recorder_caught_up_s"] is not None, result["recorder"]
     assert result["offline_test_nmse_db"] == pytest.approx(result["live_test_nmse_db"], abs=1e-6)
     assert result["exit_code"] == 0 and result["sigint_exit_s"] < 2.0
+    # a healthy day (rest, motion, alpha changed live, a burst, a frozen phase) raises no plant-change alarm
+    assert result["live_counters"]["change_alarms"] == 0 and result["change"]["count"] == 0, result["change"]

@@ -347,7 +347,7 @@ class IdentifierNode(Node):
             level, text = DiagnosticStatus.ERROR, status["refused"] or "diverged, type or QoS mismatch"
         elif status["change"]["alarm"]:  # while it is on, whatever else was said
             change = status["change"]
-            level, text = DiagnosticStatus.WARN, self.session.change_text(change["since_sample"], change["since_time"])
+            level, text = DiagnosticStatus.WARN, self.session.change_text(change["raised_at"], change["since_time"])
         elif status["inputs_stalled"]:  # for as long as it lasts
             level, text = DiagnosticStatus.WARN, f"input stalled or slow: {', '.join(status['inputs_stalled'])}"
         elif self.session.silent:  # for as long as it lasts, not only in the period it was said

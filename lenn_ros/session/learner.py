@@ -8,7 +8,10 @@
 - **the step**: one pair through the identifier (live), or runs of consecutive valid samples
   through its compiled batch (offline, :meth:`Learner.run`), cut where a recorded live parameter
   change comes, so a recording evaluated offline learns as the node learnt; the model's events
-  (a gap, a divergence and its resume, clipped inputs, the sign of a |y| sensor) said in one line.
+  (a gap, a divergence and its resume, clipped inputs, the sign of a |y| sensor) said in one line;
+- **references**: before the first sample stepped in each span of ``REFERENCE_SAMPLES`` sample numbers, a
+  frozen copy of every output's served model (:class:`~lenn_ros.core.change.Reference`), for the change
+  alarm; the batch takes it at the same samples, inside a run as a recorded change is applied there.
 """
 
 from __future__ import annotations
@@ -20,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from lenn_ros.core.alignment import Pair
+from lenn_ros.core.change import REFERENCE_SAMPLES, Reference
 from lenn_ros.core.metrics import ChannelsNMSE
 from lenn_ros.core.runs import finite_rows, gap_text, missing, runs
 from lenn_ros.core.warmup import MAX_WARM_UP, ScaleWarmUp, warm_up_samples
@@ -51,6 +55,9 @@ class Learner:
         self._seen_unsure = 0
         self._seen_checks = 0
         self._sign_settled: bool | None = None
+        self._span: int | None = None  # REFERENCE_SAMPLES span of the last reference taken
+        #: references taken and not yet handed to the monitors: (sample, {output: Reference})
+        self.references: list[tuple[int, dict[int, Reference]]] = []
 
     # -- phases ----------------------------------------------------------------------------------
     def set_test_start(self, index: int) -> None:
@@ -153,6 +160,8 @@ class Learner:
             self.phase_learning = learn
             self.phase_nmse.reset()
             self.notices.say("phase", f"sample {pair.index}: {'training' if learn else 'frozen (test)'} phase")
+        if self._new_span(pair.index):
+            self._take_reference(pair.index, range(len(identifier.outputs)))
         result = identifier.step(pair.index, pair.u, pair.y, learn)
         if learn and identifier.sign_settled is not self._sign_settled:
             self._say_sign(pair.index)
@@ -306,12 +315,53 @@ class Learner:
             while pending and where[0] < stop:
                 inside.append((where.pop(0) - start, applier(pending.pop(0))))
             if stop > start and valid[start]:
+                inside += self._references_inside(index, start, stop)
                 predicted = self.identifier.run(u[start:stop], y[start:stop], learn[start:stop], inside)
                 y_hat[start:stop] = np.reshape(predicted, (stop - start, -1))
                 for j, output in enumerate(self.identifier.outputs):
                     leverage[start:stop, j] = output.last_leverage
         for change in pending:  # from after the last sample: no sample learns with it, the state has it
             replay(change, None)
+
+    # -- references for the change alarm ------------------------------------------------------------
+    def _new_span(self, index: int) -> bool:
+        span = index // REFERENCE_SAMPLES
+        if span == self._span:
+            return False
+        self._span = span
+        return True
+
+    def _take_reference(self, index: int, outputs: Any) -> None:
+        """Frozen copies of the given outputs' served models, before sample ``index`` is stepped."""
+        if not self.references or self.references[-1][0] != index:
+            self.references.append((index, {}))
+        taken = self.references[-1][1]
+        for j in outputs:
+            output = self.identifier.outputs[j]
+            with output.serving():
+                taken[j] = Reference(output.structure, output.model, index)
+
+    def _references_inside(self, index: np.ndarray, start: int, stop: int) -> list[tuple[int, Callable[..., None]]]:
+        """The run's samples that open a new span: a reference before each, as (position, apply) cuts
+        (``apply(j)`` per output of a several-output model, as its run applies a change; ``apply()`` else)."""
+        cuts: list[tuple[int, Callable[..., None]]] = []
+        every = range(len(self.identifier.outputs))
+        spans = index[start:stop] // REFERENCE_SAMPLES
+        opening = np.flatnonzero(spans != np.concatenate(([-1 if self._span is None else self._span], spans[:-1])))
+        for row in opening.tolist():
+            sample = int(index[start + row])
+            self._new_span(sample)
+
+            def take(*output: int, sample: int = sample) -> None:
+                self._take_reference(sample, output or every)
+
+            cuts.append((row, take))
+        return cuts
+
+    def take_references(self) -> list[tuple[int, dict[int, Reference]]]:
+        """The references taken since the last call, in order (the monitors offer them to their detectors)."""
+        taken, self.references = self.references, []
+        return taken
 
     def _phases(self, learn: np.ndarray, u: np.ndarray, y: np.ndarray, y_hat: np.ndarray) -> None:
         """The phase NMSE follows the learn flags as live (a new phase starts where the flag changes)."""

@@ -9,8 +9,10 @@ node published and raises the alarms it raised.
 - the band: the one-step std of each prediction (:mod:`lenn_ros.core.spread`: RLS covariance and
   innovation variance), published as ``y_hat_std``, and the live band's half-width (``LiveBand``: the std
   times a multiplier that keeps the running coverage at 95 %), published as ``y_hat_band``;
-- the alarm: a CUSUM on e^2 against its learnt level (:mod:`lenn_ros.core.change`), said when it
-  rises (WARN on /diagnostics while on) and when it clears.
+- the alarm: a CUSUM over blocks of a frozen reference model's free-run errors against their learnt
+  level (:mod:`lenn_ros.core.change`), fed each scored sample with what the output's model reads, and the
+  references the learner took; said when it rises (WARN on /diagnostics while on), when it clears, and
+  whether it is armed.
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from typing import Any
 
 import numpy as np
 
-from lenn_ros.core.change import ACCEPTED, RAISED, ChangeDetector
+from lenn_ros.core.change import ACCEPTED, ARMED, RAISED, UNARMED, ChangeDetector, Reference
 from lenn_ros.core.spread import LiveBand, OneStepSpread
 from lenn_ros.session.config import ParameterChange, SessionConfig
 from lenn_ros.session.notices import Notices
@@ -41,16 +43,17 @@ class OutputMonitor:
         self.next_std: float | None = None  # of the pending prediction
         self.next_band: float | None = None  # its live band's half-width
 
-    def watch(self, y: float, out: Any, index: int, time: float) -> None:
+    def watch(self, y: float, out: Any, index: int, time: float, u: Any) -> None:
         """One scored step of this output's result ``out``: the std and live half-width the scored prediction was
-        published with (``y_hat_std``, ``y_hat_band``), and the next prediction's (``y_hat_next_*``)."""
+        published with (``y_hat_std``, ``y_hat_band``), and the next prediction's (``y_hat_next_*``); ``u``: what
+        the output's model reads beside its output, for the alarm's reference."""
         error = out.error
         if error is not None:
             out.y_hat_std, out.y_hat_band = self.next_std, self.next_band
             self.spread.update(error)
             self.band.update(error, self.next_band)
             if self.config.change_alarm:
-                event = self.change.update(error, index, y)
+                event = self.change.update(u, y, index)
                 if event:
                     self.say(event, index, time)
         if out.y_hat_next is not None:
@@ -65,15 +68,18 @@ class OutputMonitor:
         leverage: np.ndarray,
         changes: Sequence[ParameterChange],
         before: tuple[bool, float],
+        u: np.ndarray,
+        references: Sequence[tuple[int, Reference]] = (),
     ) -> tuple[np.ndarray, np.ndarray]:
         """:meth:`watch` over a batch: the std and the live half-width each y^(k) was published with (nan: none),
         the alarm's events said.
 
         ``before``: (change_alarm, change_threshold) when the batch started; recorded live changes of
-        either take effect at their sample, as they did live.
+        either take effect at their sample, as they did live. ``u``: what the output's model reads, per row;
+        ``references``: (sample, reference) the learner took, each offered before that sample, as live.
         """
         bands = self._spread_batch(y, y_hat, leverage)
-        self._change_batch(index, y, y_hat, changes, before)
+        self._change_batch(index, y, y_hat, changes, before, u, references)
         return bands
 
     def _spread_batch(self, y: np.ndarray, y_hat: np.ndarray, leverage: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -106,6 +112,8 @@ class OutputMonitor:
         y_hat: np.ndarray,
         changes: Sequence[ParameterChange],
         before: tuple[bool, float],
+        u: np.ndarray,
+        references: Sequence[tuple[int, Reference]],
     ) -> None:
         detector = self.change
         watched, detector.threshold = before
@@ -113,24 +121,29 @@ class OutputMonitor:
             (change for change in changes if {"change_alarm", "change_threshold"} & set(change.values)),
             key=lambda change: change.from_index,
         )
-        errors = y - y_hat
-        scored = np.flatnonzero(np.isfinite(errors))
-        update = detector.update
-        measured = y.tolist()
-        for row, error in zip(scored.tolist(), errors[scored].tolist(), strict=True):
+        offered = list(references)
+        scored = np.flatnonzero(np.isfinite(y - y_hat))
+        update, offer = detector.update, detector.offer
+        measured, inputs = y.tolist(), u.tolist()
+        for row in scored.tolist():
             sample = int(index[row])
+            while offered and offered[0][0] <= sample:
+                offer(offered.pop(0)[1])
             while pending and pending[0].from_index <= sample:
                 values = pending.pop(0).values
                 watched = bool(values.get("change_alarm", watched))
                 detector.threshold = float(values.get("change_threshold", detector.threshold))
             if watched:
-                event = update(error, sample, measured[row])
+                event = update(inputs[row], measured[row], sample)
                 if event:
                     self.say(event, sample, None)
+        for _, reference in offered:
+            offer(reference)
         detector.threshold = self.config.change_threshold
 
     def say(self, event: str, index: int, time: float | None) -> None:
-        """The alarm rose (one WARN line: when, by how much) or cleared (one info line: how long it was on)."""
+        """The alarm rose (one WARN line: when, by how much, what changed) or cleared (one info line: how long it
+        was on), or it armed or cannot arm (one line: why)."""
         detector = self.change
         when = f"sample {index}" + (f" (t={time:.3f} s)" if time is not None else "")
         if event == RAISED:
@@ -138,13 +151,22 @@ class OutputMonitor:
             self.change_time, self.change_started = time, index
             self.notices.say("change", self.text(index, time), self.name)
             return
+        if event in (ARMED, UNARMED):
+            reference = detector.reference.index if detector.reference is not None else None
+            text = (
+                f"{when}: change alarm{self.where} armed: the reference model (the model served at sample "
+                f"{reference}) simulates the output at {detector.nmse_db:.1f} dB"
+                if event == ARMED
+                else f"{when}: change alarm{self.where} not armed: {detector.why}"
+            )
+            self.notices.say("change_armed", text, self.name)
+            return
         started, self.change_time = self.change_started, None
         how = (
-            "the model has re-learnt: residual level back within "
-            f"{detector.clear_ratio:g}x its learnt level for {detector.hold_samples} samples"
+            f"the free run is back within {detector.clear_ratio:g}x its learnt level for {detector.clear_blocks} blocks"
             if event != ACCEPTED
-            else f"the model did not get back to the old level in {detector.accept_samples} samples: its level now "
-            "is taken as the learnt one"
+            else f"the plant stayed changed for {detector.accept_blocks} blocks: the model served now is the "
+            "reference, its level learnt anew"
         )
         self.notices.say(
             "change_cleared",
@@ -154,12 +176,13 @@ class OutputMonitor:
         )
 
     def text(self, index: int, time: float | None) -> str:
-        """The alarm in one line: when, where, and by how much the residual level rose."""
+        """The alarm in one line: when, where, by how much the reference's free run got worse, what changed."""
         detector = self.change
         when = f"sample {index}" + (f" (t={time:.3f} s)" if time is not None else "")
         return (
-            f"plant changed{self.where} at {when}: residual level {detector.magnitude:.1f} times its learnt level "
-            f"(RMS one-step error; CUSUM over change_threshold {detector.threshold:g}; alarm {detector.count})"
+            f"plant changed{self.where} at {when}, from about sample {detector.since_sample}: the reference model's "
+            f"free run misses by {detector.magnitude:.1f} times its learnt level; what changed: {detector.kind} "
+            f"(CUSUM over change_threshold {detector.threshold:g}; alarm {detector.count})"
         )
 
     def status(self) -> dict[str, Any]:
@@ -173,12 +196,18 @@ class Monitors:
     def __init__(self, names: Sequence[str], config: SessionConfig, notices: Notices) -> None:
         self.outputs = [OutputMonitor(name, config, notices, len(names) > 1) for name in names]
 
-    def watch(self, ys: list[float], result: Any, index: int, time: float) -> None:
+    def watch(self, ys: list[float], result: Any, index: int, time: float, us: list[Any]) -> None:
         """One step's results, output by output; the stds and bands go into each output's result (published with
-        y^)."""
-        for monitor, y, out in zip(self.outputs, ys, result.outputs, strict=True):
-            monitor.watch(y, out, index, time)
+        y^); ``us``: what each output's model reads beside its output."""
+        for monitor, y, out, u in zip(self.outputs, ys, result.outputs, us, strict=True):
+            monitor.watch(y, out, index, time, u)
         result.gather_stds()
+
+    def offer(self, references: list[tuple[int, dict[int, Reference]]]) -> None:
+        """The references the learner took, to each output's alarm (live: before the sample they were taken at)."""
+        for _, taken in references:
+            for j, reference in taken.items():
+                self.outputs[j].change.offer(reference)
 
     def watch_batch(
         self,
@@ -188,12 +217,23 @@ class Monitors:
         leverage: np.ndarray,
         changes: Sequence[ParameterChange],
         before: tuple[bool, float],
+        us: list[np.ndarray],
+        references: list[tuple[int, dict[int, Reference]]],
     ) -> tuple[np.ndarray, np.ndarray]:
         """Every output over a batch: the stds and the live half-widths (N, outputs) each prediction was published
-        with."""
+        with; ``us``: what each output's model reads, per row; ``references``: those the learner took."""
         columns, predicted = y.reshape(len(y), -1), y_hat.reshape(len(y), -1)
         pairs = [
-            monitor.watch_batch(index, columns[:, j], predicted[:, j], leverage[:, j], changes, before)
+            monitor.watch_batch(
+                index,
+                columns[:, j],
+                predicted[:, j],
+                leverage[:, j],
+                changes,
+                before,
+                us[j],
+                [(sample, taken[j]) for sample, taken in references if j in taken],
+            )
             for j, monitor in enumerate(self.outputs)
         ]
         if not pairs:

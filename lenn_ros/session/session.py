@@ -232,8 +232,11 @@ class Session:
 
     def _step(self, pair: Pair) -> Sample:
         result = self.learner.step(pair)
+        if self.learner.references:
+            self.monitors.offer(self.learner.take_references())
         if result is not None:
-            self.monitors.watch(self.values.split(pair.y), result, pair.index, pair.time)
+            inputs = self.values.inputs(self.identifier, pair.u, pair.y)
+            self.monitors.watch(self.values.split(pair.y), result, pair.index, pair.time, inputs)
         return Sample(pair.index, pair.time, pair.u, pair.y, result)
 
     def run_samples(
@@ -261,7 +264,11 @@ class Session:
         bands = stds.copy()
         if stepped.any():
             rows = np.flatnonzero(stepped)
-            watched = self.monitors.watch_batch(index[rows], y[rows], y_hat[rows], leverage[rows], changes, before)
+            inputs = self.values.inputs(self.identifier, u[rows], y[rows])
+            references = self.learner.take_references()
+            watched = self.monitors.watch_batch(
+                index[rows], y[rows], y_hat[rows], leverage[rows], changes, before, inputs, references
+            )
             stds[rows], bands[rows] = watched
         self.last_y_hat_std = stds.reshape(np.shape(y))
         self.last_y_hat_band = bands.reshape(np.shape(y))

@@ -38,6 +38,11 @@ class Values:
         return [value]
 
     @staticmethod
+    def inputs(identifier: Any, u: Any, y: Any) -> list[Any]:
+        """Per output channel, what its model reads beside its own output (one sample or rows of samples)."""
+        return [u]
+
+    @staticmethod
     def shown(raw: Any, screened: Any) -> Any:
         """What a screening notice shows of a half: one channel's screened value."""
         return screened
@@ -67,6 +72,11 @@ class VectorValues(Values):
     @staticmethod
     def split(value: Any) -> list[Any]:
         return [float(v) for v in np.ravel(value)]
+
+    @staticmethod
+    def inputs(identifier: Any, u: Any, y: Any) -> list[Any]:
+        channels = np.concatenate((np.asarray(y, dtype=np.float64), np.asarray(u, dtype=np.float64)), axis=-1)
+        return [channels[..., identifier.structure.picks(j)] for j in range(len(identifier.outputs))]
 
     @staticmethod
     def shown(raw: Any, screened: Any) -> Any:

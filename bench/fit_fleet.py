@@ -29,17 +29,10 @@ from pathlib import Path
 import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "test"))
+from test_fit_fleet import plant  # noqa: E402  (one definition of the logs' plant)
+
 FLAGS = ["--u", "input", "--y", "output"]
-
-
-def plant(n: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """y(k) = 1.5 y(k-1) - 0.7 y(k-2) + 0.35 u(k-1) - 0.4 y(k-1)^3 plus output noise (test_fit's plant)."""
-    rng = np.random.default_rng(seed)
-    u = np.convolve(rng.uniform(-1, 1, n), np.ones(3) / 3, mode="same") + 0.3
-    y = np.zeros(n)
-    for k in range(2, n):
-        y[k] = 1.5 * y[k - 1] - 0.7 * y[k - 2] + 0.35 * u[k - 1] - 0.4 * y[k - 1] ** 3
-    return u, y + 0.002 * rng.standard_normal(n)
 
 
 def write_logs(folder: Path, count: int, samples: int) -> list[Path]:

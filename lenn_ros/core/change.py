@@ -205,10 +205,17 @@ class ChangeDetector:
         self._y.append(y)
         self._moving += self.gate.update(y)
         if self.reference is None:
+            if len(self._y) > 4 * self.block:  # (bounded while there is nothing to simulate them with)
+                del self._u[: self.block]
+                del self._y[: self.block]
             return ""
         seed = self.reference.structure.warm_up
-        if len(self._y) < seed + self.block:
+        extra = len(self._y) - seed - self.block
+        if extra < 0:
             return ""
+        if extra:  # samples from before the reference came: the block is the last ones
+            del self._u[:extra]
+            del self._y[:extra]
         event = self._block(index, seed)
         del self._u[: self.block]  # the next block starts where this one ended; its seed is this one's end
         del self._y[: self.block]

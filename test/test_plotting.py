@@ -223,7 +223,7 @@ def test_evaluate_plots_the_fits_free_run_band_by_output_name(drawn: list[Figure
     }
     intervals = {"free_run": {"tc": {"half_width": 0.7}}}
     result = SimpleNamespace(single=False, evaluations=evaluations, intervals=intervals)
-    evaluate._plot(SimpleNamespace(bag="bag", plot="ev.png"), result)
+    evaluate._plot(SimpleNamespace(plot="ev.png"), result, "bag")
     axes, k = drawn[0].get_axes(), np.arange(N)
     assert not polygons(axes[0]) and not polygons(axes[1])
     assert shades(axes[3], k, np.full(N, -0.7), np.full(N, 0.7))

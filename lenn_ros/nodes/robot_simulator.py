@@ -62,15 +62,6 @@ class RobotSimulator(Node):
             describe("the robot's plant: example (the paper's, above), friction_joint (radians) or servo_axis (a belt "
                      "drive under its PD loop: u the position setpoint, rad)"),
         )  # fmt: skip
-        declare("change_step", 0, describe("step at which the plant changes (0 = never; physical plants)", 0, 10**9))
-        declare("change_kind", "gain", describe("what changes at change_step: gain, friction, payload or offset"))
-        declare(
-            "change_size",
-            -0.2,
-            describe(
-                "relative size of the change (-0.2: 20 % less; offset: added to y in the output's units)", -10.0, 10.0
-            ),
-        )
         example = get_example(self.get_parameter("example").value)
         declare("rate_hz", 100.0, describe("plant steps per second", 0.1, 10_000.0))
         declare("start_delay", 2.0, describe("seconds after start before the first step", 0.0, 3600.0))

@@ -75,8 +75,8 @@ class VectorValues(Values):
 
     @staticmethod
     def inputs(identifier: Any, u: Any, y: Any) -> list[Any]:
-        channels = np.concatenate((np.asarray(y, dtype=np.float64), np.asarray(u, dtype=np.float64)), axis=-1)
-        return [channels[..., identifier.structure.picks(j)] for j in range(len(identifier.outputs))]
+        u, y = np.asarray(u, dtype=np.float64), np.asarray(y, dtype=np.float64)
+        return [identifier.structure.other_values(j, u, y) for j in range(len(identifier.outputs))]
 
     @staticmethod
     def shown(raw: Any, screened: Any) -> Any:

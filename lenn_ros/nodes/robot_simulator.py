@@ -42,7 +42,7 @@ from std_msgs.msg import Float64MultiArray
 from lenn_ros.nodes import run_node
 from lenn_ros.nodes.robot_controller import CMD, describe
 from lenn_ros.paper.examples import get_example
-from lenn_ros.paper.physical import PLANT_CHANGES, ServoAxis, change_plant, physical_plant
+from lenn_ros.paper.physical import PLANT_CHANGES, change_plant, physical_plant
 from lenn_ros.paper.robot import CommandHold, SimulatedRobot
 
 #: Default topic of the measurements (relative: remap with -r joint_states:=/robot/joint_states).
@@ -198,14 +198,7 @@ class RobotSimulator(Node):
     def _step(self, stamp_ns: int) -> None:
         if self.change_step and self.k == self.change_step:
             self._change_plant()
-        u, received_ns = self.hold.at(stamp_ns)
-        if (
-            self.change_kind == "gain"
-            and self.k >= self.change_step > 0
-            and not isinstance(self.robot.plant, ServoAxis)
-        ):
-            u *= 1.0 + self.change_size  # a joint's actuator: the torque it gets
-        y, published, delay = self.robot.step(stamp_ns, u, received_ns)
+        y, published, delay = self.robot.step(stamp_ns, *self.hold.at(stamp_ns))
         y += self.offset
         self.k += 1
         if not published:

@@ -28,15 +28,16 @@ def _joint_steps(
     """Advance (angle, velocity) through each torque held for one sample; out[k] = the angle before torque k.
 
     Semi-implicit Euler on ``substeps`` sub-steps per sample. At rest (|velocity| below
-    ``parameters[6]``) the joint stays stuck while the net torque is within stiction.
+    ``parameters[6]``) the joint stays stuck while the net torque is within stiction; ``parameters[5]`` is the
+    actuator's gain on the commanded torque.
     """
-    inertia, gravity, viscous, coulomb, stiction, _, rest = parameters[:7]
+    inertia, gravity, viscous, coulomb, stiction, gain, rest = parameters[:7]
     h = dt / substeps
     angle, velocity = state[0], state[1]
     for k in range(len(torques)):
         out[k] = angle
         for _ in range(substeps):
-            drive = torques[k] - gravity * math.sin(angle)
+            drive = gain * torques[k] - gravity * math.sin(angle)
             if abs(velocity) < rest and abs(drive) <= stiction:
                 velocity = 0.0
                 continue
@@ -64,6 +65,7 @@ class FrictionJoint:
     viscous: float = 0.1  # N m s / rad
     coulomb: float = 0.1  # N m
     stiction: float = 0.15  # N m
+    gain: float = 1.0  # the actuator's: N m applied per N m commanded
     substeps: int = 10
     rest: float = 1e-3  # rad / s below which the joint may stick
     name: str = "friction joint"
@@ -71,10 +73,11 @@ class FrictionJoint:
     def __post_init__(self) -> None:
         if not (self.period > 0 and self.inertia > 0 and self.substeps >= 1):
             raise ValueError("a joint needs period > 0, inertia > 0 and substeps >= 1")
-        self._parameters = np.array(
-            [self.inertia, self.gravity, self.viscous, self.coulomb, self.stiction, 0.0, self.rest]
-        )
         self.reset()
+
+    def _parameters(self) -> np.ndarray:
+        """What the compiled steps read, from the attributes as they are now (a change may have set them)."""
+        return np.array([self.inertia, self.gravity, self.viscous, self.coulomb, self.stiction, self.gain, self.rest])
 
     def reset(self) -> None:
         """At rest, hanging down."""
@@ -88,14 +91,14 @@ class FrictionJoint:
     def step(self, torque: float) -> float:
         """Hold ``torque`` for one period; returns the angle after it."""
         out = np.empty(1)
-        _joint_steps(self.state, np.array([float(torque)]), self._parameters, self.substeps, self.period, out)
+        _joint_steps(self.state, np.array([float(torque)]), self._parameters(), self.substeps, self.period, out)
         return float(self.state[0])
 
     def run(self, torques: np.ndarray) -> np.ndarray:
         """Angles y(0..N) for torques u(0..N-1): y[k] is shown before u[k] acts (the package's convention)."""
         torques = np.ascontiguousarray(torques, dtype=np.float64)
         out = np.empty(len(torques) + 1)
-        _joint_steps(self.state, torques, self._parameters, self.substeps, self.period, out[:-1])
+        _joint_steps(self.state, torques, self._parameters(), self.substeps, self.period, out[:-1])
         out[-1] = self.state[0]
         return out
 
@@ -190,7 +193,7 @@ PHYSICAL_PLANTS = {"friction_joint": FrictionJoint, "servo_axis": ServoAxis}
 
 #: A plant change: what it scales on each physical plant (``offset`` is added to the output instead).
 PLANT_CHANGES: dict[str, dict[str, tuple[str, ...]]] = {
-    "gain": {"servo_axis": ("gain",), "friction_joint": ()},
+    "gain": {"servo_axis": ("gain",), "friction_joint": ("gain",)},
     "friction": {"servo_axis": ("coulomb", "viscous"), "friction_joint": ("viscous", "coulomb", "stiction")},
     "payload": {"servo_axis": ("payload",), "friction_joint": ("inertia", "gravity")},
     "offset": {"servo_axis": (), "friction_joint": ()},
@@ -199,34 +202,26 @@ PLANT_CHANGES: dict[str, dict[str, tuple[str, ...]]] = {
 
 def change_plant(plant: FrictionJoint | ServoAxis, kind: str, size: float) -> None:
     """Change ``plant`` in place: ``kind`` (:data:`PLANT_CHANGES`) by the relative ``size`` (-0.2: 20 % less),
-    keeping its state (a change happens to a running plant). ``offset`` and a joint's ``gain`` change nothing
-    here: the caller adds the offset to the output and scales the joint's torque (:func:`changed_run`)."""
+    keeping its state (a change happens to a running plant). ``offset`` changes nothing here: the caller adds it
+    to the output (:func:`changed_run`)."""
     if kind not in PLANT_CHANGES:
         raise ValueError(f"unknown plant change {kind!r}; known: {', '.join(PLANT_CHANGES)}")
     key = "servo_axis" if isinstance(plant, ServoAxis) else "friction_joint"
     for name in PLANT_CHANGES[kind][key]:
         setattr(plant, name, getattr(plant, name) * (1.0 + size))
-    if isinstance(plant, FrictionJoint):
-        plant._parameters = np.array(
-            [plant.inertia, plant.gravity, plant.viscous, plant.coulomb, plant.stiction, 0.0, plant.rest]
-        )
 
 
 def changed_run(
     plant: FrictionJoint | ServoAxis, u: np.ndarray, at: int | None, kind: str = "gain", size: float = 0.0
 ) -> np.ndarray:
     """Outputs y(0..N-1) of ``plant`` driven by u, changed (:func:`change_plant`) from sample ``at`` on (None:
-    never): y[at] is the first output the changed plant made. ``offset``: ``size`` is added to y[at:];
-    a joint's ``gain`` scales its torque."""
+    never): y[at] is the first output the changed plant made. ``offset``: ``size`` is added to y[at:]."""
     u = np.asarray(u, dtype=np.float64)
     if at is None or at >= len(u):
         return plant.run(u)[:-1]
     first = plant.run(u[: at - 1])  # y(0..at-1); the state now makes y(at-1) -> after u(at-1)
     change_plant(plant, kind, size)
-    rest = u[at - 1 :].copy()
-    if kind == "gain" and isinstance(plant, FrictionJoint):
-        rest *= 1.0 + size
-    y = np.concatenate([first[:-1], plant.run(rest)[:-1]])
+    y = np.concatenate([first[:-1], plant.run(u[at - 1 :])[:-1]])
     if kind == "offset":
         y[at:] += size
     return y

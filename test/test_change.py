@@ -16,19 +16,16 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from change_alarm import RATE, plant_log  # (bench/, on the tests' path: setup.cfg)
 
 from lenn_ros.config import resolve
 from lenn_ros.core.change import ChangeDetector, change_kind
 from lenn_ros.fit.data import Data
 from lenn_ros.fit.export import write_outputs
 from lenn_ros.fit.procedure import fit
-from lenn_ros.paper.physical import ServoAxis, changed_run
-from lenn_ros.paper.signals import point_to_point
 from lenn_ros.service.building import build_identifier, identifier_from_params, make_session
 from lenn_ros.session import Session, SessionConfig
 
-RATE = 100.0  # Hz: "within 2 s at 100 Hz" is 200 samples
-NOISE, TICK = 2e-4, 1e-4  # rad
 #: the changes the hidden check names, by their relative size
 CHANGES = {"gain": -0.2, "friction": 0.5, "payload": 0.3}
 #: excitation changes of an unchanged plant: (samples, point_to_point keywords) pieces ("rest": the setpoint held)
@@ -43,18 +40,9 @@ DRIVEN_DIFFERENTLY = {
 def servo_log(
     seed: int, samples: int, kind: str = "gain", at: int | None = None, size: float = 0.0, pieces: list | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(u, y) of the servo axis, changed (``kind`` by ``size``) from sample ``at`` on, or driven in ``pieces``."""
-    rng = np.random.default_rng(seed)
-    if pieces is None:
-        u = point_to_point(rng, samples, 1.0 / RATE)
-    else:
-        parts: list[np.ndarray] = []
-        for count, keywords in pieces:
-            held = np.full(count, parts[-1][-1] if parts else 0.0)
-            parts.append(held if keywords.get("rest") else point_to_point(rng, count, 1.0 / RATE, **keywords))
-        u = np.concatenate(parts)[:samples]
-    y = changed_run(ServoAxis(period=1.0 / RATE), u, at, kind, size)
-    return u, np.round((y + rng.normal(0.0, NOISE, len(y))) / TICK) * TICK
+    """(u, y) of the servo axis, changed (``kind`` by ``size``) from sample ``at`` on, or driven in ``pieces``: the
+    benchmark's log (bench/change_alarm.py), one definition of the plant, its drive and its encoder."""
+    return plant_log("servo_axis", seed, samples, kind, at, size, pieces)
 
 
 @pytest.fixture(scope="module")

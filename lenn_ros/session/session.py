@@ -235,8 +235,10 @@ class Session:
         if self.learner.references:
             self.monitors.offer(self.learner.take_references())
         if result is not None:
-            inputs = self.values.inputs(self.identifier, pair.u, pair.y)
-            self.monitors.watch(self.values.split(pair.y), result, pair.index, pair.time, inputs)
+            ys = self.values.split(pair.y)
+            # what each output's model reads, for the alarm's reference only (not per sample when it is off)
+            inputs = self.values.inputs(self.identifier, pair.u, pair.y) if self.config.change_alarm else ys
+            self.monitors.watch(ys, result, pair.index, pair.time, inputs)
         return Sample(pair.index, pair.time, pair.u, pair.y, result)
 
     def run_samples(

@@ -17,6 +17,7 @@ from lenn_ros.service import RecordingError
 from lenn_ros.service.evaluation import BagEvaluation, evaluate_bag
 from lenn_ros.service.reading import flags_of
 from lenn_ros.service.records import evaluate_bags
+from lenn_ros.service.scoring import fit_free_run_widths
 
 
 def one_step_lines(name: str, band: dict[str, Any]) -> list[str]:
@@ -36,8 +37,9 @@ def band_lines(intervals: dict[str, Any]) -> list[str]:
     if one:
         lines += one_step_lines("", one)
     if run:
+        how = "by steps since the run's start, median " if "by_horizon" in run else ""
         lines.append(
-            f"  free-run 95 % band of the fit (+-{run['half_width']:.4g}): covers {run['coverage_test']:.1%} here"
+            f"  free-run 95 % band of the fit ({how}+-{run['half_width']:.4g}): covers {run['coverage_test']:.1%} here"
         )
     return lines
 
@@ -145,14 +147,15 @@ def _plot(args: Any, result: BagEvaluation, bag: str) -> None:
     if result.single:
         e = result.evaluation
         title = f"{bag}: NMSE {e.nmse_db:.2f} dB one-step, {e.nmse_free_run_db:.2f} dB free run"
-        plot_identification(args.plot, e.y_test, e.y_hat_test, title, e.y_free_test, free_run.get("half_width"))
+        plot_identification(args.plot, e.y_test, e.y_hat_test, title, e.y_free_test,
+                            fit_free_run_widths(free_run, e.y_free_test))  # fmt: skip
         return
     names = list(result.evaluations)
     stacked = [np.column_stack([getattr(e, key) for e in result.evaluations.values()])
                for key in ("y_test", "y_hat_test", "y_free_test")]  # fmt: skip
     # by output name; fit_band_coverage gives a lone "y"'s at the top level
-    bands = [(free_run if name == "y" and "half_width" in free_run else free_run.get(name, {})).get("half_width")
-             for name in names]  # fmt: skip
+    bands = [fit_free_run_widths(free_run if name == "y" and "half_width" in free_run else free_run.get(name, {}),
+                                 e.y_free_test) for name, e in result.evaluations.items()]  # fmt: skip
     shown = ", ".join(f"{name} {e.nmse_db:.2f}" for name, e in result.evaluations.items())
     title = f"{bag}: one-step NMSE {shown} dB"
     path = plot_channels(args.plot, names, stacked[0], stacked[1], title, stacked[2], free_run_band=bands)

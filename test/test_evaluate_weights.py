@@ -30,6 +30,7 @@ from lenn_ros.service import RecordingError
 from lenn_ros.service.building import build_identifier
 from lenn_ros.service.evaluation import evaluate_bag
 from lenn_ros.service.params import read_params_file
+from lenn_ros.service.scoring import fit_free_run_widths
 
 REPO = Path(__file__).resolve().parents[1]
 TRAIN = 2000
@@ -85,16 +86,36 @@ def test_evaluate_with_fit_params_starts_from_the_fitted_weights(fitted, tmp_pat
     # the figure is fit's model (adapted by RLS over the training part), not a fresh one's
     assert evaluation.evaluation.nmse_db < result.nmse_db + 3.0
     # the fit's free-run band (fit.json beside the weights), and its coverage of this recording's free run
+    # by steps since the free run's start, as fit scored its own test part (one run from the test's first sample)
     band = evaluation.intervals["free_run"]
-    assert band["half_width"] == result.intervals["free_run"]["half_width"]
+    assert band["by_horizon"] == result.intervals["free_run"]["by_horizon"]
+    assert len(band["by_horizon"]["from_step"]) > 1  # (more than one number: the horizon bins are used)
     e = evaluation.evaluation
-    inside = np.abs(e.y_test - e.y_free_test) <= band["half_width"]
+    widths = fit_free_run_widths(band, e.y_free_test)
+    np.testing.assert_array_equal(widths, result.only.free_run_half_width_test)
+    assert band["half_width"] == result.intervals["free_run"]["half_width"] == np.median(widths)
+    inside = np.abs(e.y_test - e.y_free_test) <= widths
     assert band["coverage_test"] == pytest.approx(inside.mean(), abs=1e-12)
     assert 0.0 < band["coverage_test"] <= 1.0
     # the node's one-step band (y_hat_std as published live) over the test part
     one = evaluation.intervals["one_step"]
     assert 0.93 <= one["coverage_test"] <= 0.97, one
     assert 0.93 <= one["live"]["coverage_test"] <= 0.97, one  # the live band (y_hat_band)
+
+
+def test_the_fits_free_run_band_widens_along_each_run_and_starts_narrow_again_after_a_gap() -> None:
+    """fit.json's band by horizon, read by evaluate: steps since each run's start (a gap restarts the free run from
+    measured outputs), and beyond the longest held-out run the growth fit measured between its last two bins."""
+    band = {"half_width": 0.2, "by_horizon": {"from_step": [0, 4, 16], "half_width": [0.1, 0.2, 0.4],
+                                              "longest_held_out_run": 32, "growth_beyond": 0.5}}  # fmt: skip
+    y_free = np.r_[np.zeros(20), np.nan, np.nan, np.zeros(70)]
+    widths = fit_free_run_widths(band, y_free)
+    np.testing.assert_array_equal(widths[:20], np.repeat([0.1, 0.2, 0.4], [4, 12, 4]))
+    assert np.isnan(widths[20:22]).all()
+    np.testing.assert_array_equal(widths[22:54], np.repeat([0.1, 0.2, 0.4], [4, 12, 16]))
+    np.testing.assert_allclose(widths[-1], 0.4 * (70 / 32) ** 0.5)  # step 69 of the second run
+    assert fit_free_run_widths({"half_width": 0.3}, y_free)[0] == 0.3  # a fit of one number (an MLP's, in-sample)
+    assert fit_free_run_widths({}, y_free) is None
 
 
 def test_evaluate_of_a_bag_recorded_with_weights_in_uses_them(fitted, tmp_path: Path) -> None:

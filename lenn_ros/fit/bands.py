@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -212,6 +213,16 @@ class HorizonBand:
         width = self.widths[np.clip(np.searchsorted(self.starts, steps, side="right") - 1, 0, len(self.widths) - 1)]
         beyond = np.maximum((steps + 1.0) / self.longest, 1.0)
         return width * beyond**self.growth
+
+    @classmethod
+    def from_dict(cls, figures: dict[str, Any]) -> HorizonBand:
+        """The band as :meth:`as_dict` wrote it (fit.json's ``by_horizon``): evaluate and a loaded model read it."""
+        return cls(
+            np.asarray(figures["from_step"], dtype=np.int64),
+            np.asarray(figures["half_width"], dtype=np.float64),
+            int(figures["longest_held_out_run"]),
+            float(figures["growth_beyond"]),
+        )
 
     def as_dict(self) -> dict[str, object]:
         return {

@@ -21,6 +21,7 @@ from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.runs import finite_rows, runs
 from lenn_ros.core.spread import Z95
 from lenn_ros.core.structure import Identifier
+from lenn_ros.fit.bands import HorizonBand, run_steps
 from lenn_ros.fit.data import REPORT_FILE
 
 
@@ -153,10 +154,10 @@ def one_step_band(
 def fit_band_coverage(weights_in: str, evaluations: dict[str, Evaluation]) -> dict[str, Any]:
     """The nominal 95 % free-run band of the fit the weights came from (its ``fit.json``), and what it covers here.
 
-    The band is the fit's estimate (errors on its held-out blocks); the model scored here
-    went on learning from the bag's training phase, so the coverage says how well the
-    fit's uncertainty carries over to this recording. Several outputs: one band each,
-    under ``free_run`` by output name. Empty without a fit report.
+    The band is the fit's estimate (errors on its held-out blocks, by steps since a run's start:
+    :func:`fit_free_run_widths`); the model scored here went on learning from the bag's training
+    phase, so the coverage says how well the fit's uncertainty carries over to this recording.
+    Several outputs: one band each, under ``free_run`` by output name. Empty without a fit report.
     """
     report = Path(weights_in).parent / REPORT_FILE if weights_in else None
     if report is None or not report.is_file():
@@ -168,12 +169,32 @@ def fit_band_coverage(weights_in: str, evaluations: dict[str, Evaluation]) -> di
     parts = fitted.get("per_output") or [fitted]
     covered = {}
     for (name, evaluation), part in zip(evaluations.items(), parts, strict=False):
-        width = part.get("intervals", {}).get("free_run", {}).get("half_width")
-        if not width:
+        band = part.get("intervals", {}).get("free_run", {})
+        widths = fit_free_run_widths(band, evaluation.y_free_test)
+        if widths is None:
             continue
-        simulated = np.isfinite(evaluation.y_free_test)
-        share = coverage(evaluation.y_test[simulated], evaluation.y_free_test[simulated], float(width))
-        covered[name] = {"half_width": float(width), "from": str(report), "coverage_test": share}
+        finite = widths[np.isfinite(widths)]
+        covered[name] = {
+            "half_width": float(np.median(finite)) if len(finite) else math.nan,
+            "from": str(report),
+            "coverage_test": coverage(evaluation.y_test, evaluation.y_free_test, widths),
+            **({"by_horizon": band["by_horizon"]} if "by_horizon" in band else {}),
+        }
     if not covered:
         return {}
     return {"level": 0.95, "free_run": covered["y"] if list(covered) == ["y"] else covered}
+
+
+def fit_free_run_widths(band: dict[str, Any], y_free: np.ndarray) -> np.ndarray | None:
+    """Per-sample half-widths of a fit's free-run band (fit.json's ``intervals.free_run``) along ``y_free``: by steps
+    since each run's start where the fit gave them by horizon (``by_horizon``: fit's test part is scored so, and a
+    free run restarted after a gap starts narrow again), else its one number; NaN where nothing was simulated.
+    None without a band. ``evaluate``'s coverage and its plot both take them from here."""
+    y_free = np.asarray(y_free, dtype=np.float64)
+    if band.get("by_horizon"):
+        widths = HorizonBand.from_dict(band["by_horizon"]).at(run_steps(y_free))
+    elif band.get("half_width"):
+        widths = np.full(len(y_free), float(band["half_width"]))
+    else:
+        return None
+    return np.where(np.isfinite(y_free), widths, np.nan)

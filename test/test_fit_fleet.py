@@ -278,3 +278,29 @@ def test_a_cluster_across_hosts_fits_from_shared_logs_and_sends_the_models_back(
     assert {row["worker"].rsplit(":", 1)[0] for row in rows.values()} <= {f"tcp://{host}" for host in workers}
     model_bytes = sum(f.stat().st_size for f in (tmp_path / "models" / logs[0].stem).iterdir())
     assert max(carried.values()) > model_bytes  # a model's files crossed the network to the client
+
+
+def _threads_seen() -> tuple[int, list[int]]:
+    """What a fit on this worker would use: its threads (lenn_ros.core.threads.cores) and BLAS's."""
+    from threadpoolctl import threadpool_info
+
+    from lenn_ros.core.threads import cores
+    from lenn_ros.fleet_fit.task import _the_workers_threads
+
+    with _the_workers_threads():
+        return cores(), [pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"]
+
+
+def test_a_plain_dask_worker_fits_on_its_own_threads_not_every_core(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``dask worker ADDRESS --nthreads 1`` started without lenn_ros's variables: its fits take its one thread (and BLAS
+    one), not the host's every core; the variables, when set, win; outside a worker nothing changes."""
+    monkeypatch.delenv("LENN_ROS_THREADS", raising=False)
+    if len(os.sched_getaffinity(0)) < 2:
+        pytest.skip("one core: a fit takes one thread anyway")
+    with distributed.Client(processes=False, n_workers=1, threads_per_worker=1, dashboard_address=None) as client:
+        assert client.submit(_threads_seen, pure=False).result() == (1, [1] * len(_threads_seen()[1]))
+        assert "LENN_ROS_THREADS" not in os.environ  # (the worker shares this process: its setting is undone)
+        monkeypatch.setenv("LENN_ROS_THREADS", "2")
+        assert client.submit(_threads_seen, pure=False).result()[0] == 2
+    monkeypatch.delenv("LENN_ROS_THREADS")
+    assert _threads_seen()[0] == len(os.sched_getaffinity(0))

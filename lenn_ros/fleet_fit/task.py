@@ -18,14 +18,16 @@ import argparse
 import contextlib
 import io
 import json
+import os
 import tempfile
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from lenn_ros.core.threads import THREADS_VARIABLE
 from lenn_ros.errors import user_error_types
 from lenn_ros.fleet_fit.manifest import Entry
 
@@ -57,7 +59,7 @@ def fit_entry(entry: Entry, fit_parser: Callable[[], argparse.ArgumentParser]) -
     """Fit ``entry`` here (on a worker, or in this process) as the serial ``lenn-ros fit`` would."""
     from lenn_ros.fit import command
 
-    with _ONE_AT_A_TIME, tempfile.TemporaryDirectory(prefix="lenn-ros-fleet-") as scratch:
+    with _ONE_AT_A_TIME, _the_workers_threads(), tempfile.TemporaryDirectory(prefix="lenn-ros-fleet-") as scratch:
         started, worker = time.monotonic(), _worker()
         output = Path(scratch) / entry.name
         args = fit_parser().parse_args(entry.argv(str(output)))
@@ -84,6 +86,36 @@ def report_figures(report: dict[str, Any]) -> dict[str, str]:
 
 def _number(value: Any) -> str:
     return "" if value is None else f"{value:.6g}"
+
+
+@contextlib.contextmanager
+def _the_workers_threads() -> Iterator[None]:
+    """On a Dask worker, the fit spreads its work (and BLAS's) over the worker's own threads (``--nthreads``) unless
+    its environment sets LENN_ROS_THREADS (``--cluster local`` does): a ``dask worker --nthreads 1`` started as
+    docs/fleet.md's plain line (no variables) would otherwise fit on every core, and two such workers on a host
+    would each run twice their share of threads. Outside a worker, nothing changes (the serial fit's threads)."""
+    threads = _worker_threads()
+    if threads is None or os.environ.get(THREADS_VARIABLE):
+        yield
+        return
+    from threadpoolctl import threadpool_limits
+
+    os.environ[THREADS_VARIABLE] = str(threads)
+    try:
+        with threadpool_limits(limits=threads):
+            yield
+    finally:
+        del os.environ[THREADS_VARIABLE]
+
+
+def _worker_threads() -> int | None:
+    """The task threads of the Dask worker this runs on (None outside one)."""
+    try:
+        from distributed import get_worker
+
+        return max(1, int(get_worker().state.nthreads))
+    except (ImportError, ValueError, AttributeError):
+        return None
 
 
 def _worker() -> str:

@@ -6,7 +6,10 @@
 The same logs (a plant with a cubic stiffness, one seed each) are fitted twice:
 
 - ``serial``: one ``lenn-ros fit LOG ... -o MODELS/NAME`` process after another, as a user would;
-- ``fleet``: one ``lenn-ros fit-fleet LOGS ... -o MODELS --cluster ...`` process, the cluster's start included.
+- ``fleet``: one ``lenn-ros fit-fleet LOGS ... -o MODELS --cluster ...`` process, the cluster's start included;
+- ``serial, one thread``: the serial fits confined to one thread each (``LENN_ROS_THREADS=1``, BLAS alike), as
+  each fleet worker runs them: what the fleet's two workers do against one, where the serial ``fit`` already
+  spreads its own candidates over the cores (its CPU seconds over its wall say how many it used).
 
 Both write into the same folders (the fleet first; its files are read, then the serial fit writes over
 them), so the models are compared as bytes: params.yaml whole, every array of weights.npz. One fit of
@@ -32,6 +35,8 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO / "test"))
 from test_fit_fleet import plant  # noqa: E402  (one definition of the logs' plant)
 
+from lenn_ros.core.threads import worker_environment  # noqa: E402
+
 FLAGS = ["--u", "input", "--y", "output"]
 
 
@@ -46,10 +51,11 @@ def write_logs(folder: Path, count: int, samples: int) -> list[Path]:
     return paths
 
 
-def lenn_ros(*arguments: str) -> float:
-    """Run ``lenn-ros ARGUMENTS`` (its output kept quiet); its wall time in seconds."""
+def lenn_ros(*arguments: str, env: dict[str, str] | None = None) -> float:
+    """Run ``lenn-ros ARGUMENTS`` (its output kept quiet; ``env`` added to the environment); its wall time in s."""
     started = time.monotonic()
-    done = subprocess.run([sys.executable, "-m", "lenn_ros.cli", *arguments], capture_output=True, text=True)
+    done = subprocess.run([sys.executable, "-m", "lenn_ros.cli", *arguments], capture_output=True, text=True,
+                          env={**os.environ, **(env or {})})  # fmt: skip
     if done.returncode != 0:
         sys.exit(f"lenn-ros {arguments[0]} failed: {done.stderr.strip().splitlines()[-1:]}")
     return time.monotonic() - started
@@ -81,7 +87,8 @@ def main() -> int:
     parser.add_argument("--rounds", type=int, default=2, help="serial and fleet alternately (default 2)")
     options = parser.parse_args()
     flags = [*FLAGS, "--test-from", str(options.samples * 4 // 5 + 1)]
-    runs: dict[str, list[tuple[float, float, float]]] = {"serial": [], "fleet": []}
+    runs: dict[str, list[tuple[float, float, float]]] = {"serial": [], "fleet": [], "serial, one thread": []}
+    one_thread = worker_environment(1)
     with tempfile.TemporaryDirectory(prefix="fit-fleet-bench-") as scratch:
         root = Path(scratch)
         logs, models = write_logs(root / "logs", options.logs, options.samples), root / "models"
@@ -94,6 +101,8 @@ def main() -> int:
             fleet_models = {log.stem: model_files(models / log.stem) for log in logs}
             runs["serial"].append(measured(lambda: sum(lenn_ros(*argv) for argv in serial)))
             equal = sum(same(fleet_models[log.stem], model_files(models / log.stem)) for log in logs)
+            runs["serial, one thread"].append(measured(lambda: sum(lenn_ros(*a, env=one_thread) for a in serial)))
+            equal = min(equal, sum(same(fleet_models[log.stem], model_files(models / log.stem)) for log in logs))
     print(f"{options.logs} logs of {options.samples} samples, fit-fleet --cluster {options.cluster}, "
           f"{os.cpu_count()} cores, best of {options.rounds} rounds")  # fmt: skip
     print("| | wall (best) | wall (each round) | CPU s | load avg |")
@@ -102,7 +111,8 @@ def main() -> int:
         walls = ", ".join(f"{wall:.1f}" for wall, _, _ in rows)
         cpu, load = min(rows)[1], sum(row[2] for row in rows) / len(rows)
         print(f"| {name} | {min(rows)[0]:.1f} s | {walls} | {cpu:.1f} | {load:.1f} |")
-    print(f"speed-up (best wall): {min(runs['serial'])[0] / min(runs['fleet'])[0]:.2f}x; "
+    print(f"speed-up (best wall): {min(runs['serial'])[0] / min(runs['fleet'])[0]:.2f}x over serial fit, "
+          f"{min(runs['serial, one thread'])[0] / min(runs['fleet'])[0]:.2f}x over it on one thread each; "
           f"models bit-identical: {equal} of {options.logs}")  # fmt: skip
     return 0 if equal == options.logs else 1
 

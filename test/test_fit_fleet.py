@@ -304,3 +304,28 @@ def test_a_plain_dask_worker_fits_on_its_own_threads_not_every_core(monkeypatch:
         assert client.submit(_threads_seen, pure=False).result()[0] == 2
     monkeypatch.delenv("LENN_ROS_THREADS")
     assert _threads_seen()[0] == len(os.sched_getaffinity(0))
+
+
+def test_a_scheduler_with_no_worker_or_an_odd_one_is_refused_in_one_line() -> None:
+    """Nothing is submitted to a cluster no worker joined (it would wait in silence) or where a worker runs another
+    lenn_ros or none (each entry would fail on it): one line, naming the address and a worker."""
+    from lenn_ros.fleet_fit.run import ClusterError, ready_workers, version_refusal
+
+    with (
+        distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=None) as empty,
+        distributed.Client(empty) as client,
+    ):
+        with pytest.raises(ClusterError, match=r"^--cluster \S+: no worker joined the scheduler within 0.5 s"):
+            ready_workers(client, timeout=0.5)
+        empty.scale(1)
+        assert ready_workers(client, timeout=READY) == 1  # (a worker of this process: this lenn_ros)
+
+    def versions(*found):
+        workers = {f"tcp://10.0.0.{i}:4000": {"packages": {"lenn_ros": v}} for i, v in enumerate(found)}
+        return {"client": {"packages": {"lenn_ros": "0.1.0"}}, "workers": workers}
+
+    assert version_refusal(versions("0.1.0", "0.1.0")) == ""
+    assert version_refusal(versions("0.1.0", None, "0.0.9")) == (
+        "2 of 3 workers do not run this lenn_ros (0.1.0): tcp://10.0.0.1:4000 has no lenn_ros; install the same "
+        "version on every worker"
+    )

@@ -113,12 +113,47 @@ def fit_fleet(
     todo = [entry for entry in entries if entry.name not in outcomes]
     if todo:
         with connect() as client:
-            workers = len(client.scheduler_info().get("workers", {}))
+            workers = ready_workers(client)
             say(f"fit-fleet: {len(todo)} of {len(entries)} entries to fit on {workers} workers, into {models.root}")
             outcomes.update(_fitted(todo, models, client, fit_parser, bar, say, entries))
     ordered = [outcomes[entry.name] for entry in entries]
     models.write_summary(ordered)
     return ordered
+
+
+def ready_workers(client: Any, timeout: float = CONNECT_TIMEOUT) -> int:
+    """How many workers the cluster has, once at least one has joined and every one runs the client's lenn_ros;
+    else :class:`ClusterError` in one line (nothing is submitted: N entries would otherwise fail N times on a
+    worker that cannot import the fit, or wait in silence on a scheduler with no worker)."""
+    try:
+        client.wait_for_workers(1, timeout=timeout)
+    except TimeoutError:
+        raise ClusterError(
+            f"--cluster {client.scheduler.address}: no worker joined the scheduler within {timeout:g} s "
+            "(start some: dask worker ADDRESS --nthreads 1)"
+        ) from None
+    refusal = version_refusal(client.get_versions(packages=["lenn_ros"]))
+    if refusal:
+        raise ClusterError(f"--cluster {client.scheduler.address}: {refusal}")
+    return len(client.scheduler_info().get("workers", {}))
+
+
+def version_refusal(versions: dict[str, Any]) -> str:
+    """'' when every worker has the client's lenn_ros version (Dask's ``get_versions``), else one line naming how
+    many do not and one of them: the fit runs on the workers, so a model is the serial one only with the same
+    package there."""
+    mine = versions["client"]["packages"].get("lenn_ros")
+    workers = versions.get("workers", {})
+    odd = {address: info["packages"].get("lenn_ros") for address, info in workers.items()}
+    odd = {address: found for address, found in odd.items() if found != mine}
+    if not odd:
+        return ""
+    address, found = next(iter(sorted(odd.items())))
+    has = "no lenn_ros" if found is None else f"lenn_ros {found}"
+    return (
+        f"{len(odd)} of {len(workers)} workers do not run this lenn_ros ({mine}): {address} has {has}; install the "
+        "same version on every worker"
+    )
 
 
 def _fitted(

@@ -372,6 +372,13 @@ def _input_names(channels: Channels) -> list[str]:
     return [_channel_name(name, lag + 1) for name, lags in channels for lag in range(lags)]
 
 
+def round6(value: float) -> float:
+    """Six significant digits, as :func:`format_terms` writes a term's parameters: a term's parameters are kept
+    so (by the families that make them, and by any scaling of them after), so that the params file holds the very
+    terms the weights were fitted with."""
+    return float(f"{value:.6g}")
+
+
 def _format_linear(factor: np.ndarray, names: list[str]) -> str:
     """b + w . x as ``2.5*y1-2.5*y2+0.1`` (coefficients to 6 significant digits, which fit rounds them to)."""
     parts = [

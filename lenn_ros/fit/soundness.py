@@ -17,6 +17,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from lenn_ros.core.expansions import round6
 from lenn_ros.core.scaling import ranges
 from lenn_ros.fit.record import Record, Simulation
 from lenn_ros.fit.termmodel import Layout, TermModel
@@ -128,8 +129,8 @@ def widened(model: TermModel, width: float) -> TermModel:
     lags = layout.lags
     wide = Layout(lags, layout.offsets, (layout.scales[0] * width, *layout.scales[1:]), layout.names)
     factors = np.array(model.factors)
-    if len(factors):
-        factors[:, 2 : 2 + lags] *= width
+    if len(factors):  # (kept to the six digits the params file writes: 10 x 0.988667 is 9.886669999999999)
+        factors[:, 2 : 2 + lags] = [[round6(w * width) for w in row] for row in factors[:, 2 : 2 + lags]]
     weights = np.array(model.weights, dtype=np.float64)
     weights[output_rows(model)] *= width
     return TermModel(wide, model.exponents, model.basis, weights, factors if len(factors) else None)

@@ -14,19 +14,13 @@ from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
-from lenn_ros.core.expansions import FACTOR_KINDS
+from lenn_ros.core.expansions import FACTOR_KINDS, round6
 
 if TYPE_CHECKING:
     from lenn_ros.fit.families import Spec
 
 #: nonlinear terms involve the 3 most recent lags of each signal (the usual home of a static nonlinearity)
 RECENT = 3
-
-
-def round6(value: float) -> float:
-    """Six significant digits, as ``format_terms`` writes a term's parameters: the params file holds the very
-    terms the weights were fitted with."""
-    return float(f"{value:.6g}")
 
 
 class OutputScaling(Protocol):

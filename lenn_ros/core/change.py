@@ -223,11 +223,10 @@ class ChangeDetector:
         return event
 
     def _block(self, index: int, seed: int) -> str:
-        if self._pending is not None and not self.alarm and self.statistic == 0.0:
-            self.reference, self._pending = self._pending, None  # nothing builds up: the newer model is adopted
-        reference = self.reference
-        assert reference is not None
+        reference = self._adopted()
         self.blocks += 1
+        if getattr(reference.structure, "y_abs", False):
+            return self._cannot_simulate()
         if self._moving < self.block // 2:
             return ""  # at rest: nothing to tell
         u = np.asarray(self._u, dtype=np.float64)
@@ -260,6 +259,25 @@ class ChangeDetector:
         self.spread += self.level_rate * (min(deviation * deviation, 9.0 * self.spread) - self.spread)
         self._variance += self.level_rate * (variance - self._variance)
         return self._arming()
+
+    def _adopted(self) -> Reference:
+        """The reference this block is tested with: the pending snapshot once nothing builds up and no alarm is on."""
+        if self._pending is not None and not self.alarm and self.statistic == 0.0:
+            self.reference, self._pending = self._pending, None
+        assert self.reference is not None
+        return self.reference
+
+    def _cannot_simulate(self) -> str:
+        """A model of an output its sensor reads as |y| (``y_abs``): its free run would start from the measured |y|,
+        not from the signed output it models, so no block can be tested; UNARMED once, with why."""
+        if self._said:
+            return ""
+        self._said = True
+        self._why = (
+            "the model reads its output as an absolute value (y_abs): a free run of the reference would start from "
+            "the measured |y|, not from the signed output it models, so the alarm cannot test it"
+        )
+        return UNARMED
 
     def _learn_level(self, x: float, variance: float) -> str:
         """The first blocks after a start: the level is their running mean; armed or not once it is learnt."""

@@ -284,6 +284,12 @@ def _add_fit_fleet(commands: Any) -> None:
         "scheduler's address, tcp://HOST:PORT or tls://HOST:PORT (dask scheduler; dask worker ADDRESS)",
     )
     p.add_argument("--force", action="store_true", help="fit the entries whose model is already whole too")
+    p.add_argument(
+        "--send-logs",
+        action="store_true",
+        help="send each entry's logs to its worker with the task (workers that do not share this disk); without "
+        "it the workers read the logs at the manifest's paths",
+    )
     p.add_argument("--tls-ca-file", metavar="PEM", help="tls:// cluster: the CA that signed the cluster's certificates")
     p.add_argument("--tls-cert", metavar="PEM", help="tls:// cluster: this client's certificate")
     p.add_argument("--tls-key", metavar="PEM", help="tls:// cluster: this client's private key")

@@ -8,7 +8,9 @@ every whole model. Manifests are refused in one line naming the entry and the ke
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import json
 import os
 import signal
 import socket
@@ -329,3 +331,68 @@ def test_a_scheduler_with_no_worker_or_an_odd_one_is_refused_in_one_line() -> No
         "2 of 3 workers do not run this lenn_ros (0.1.0): tcp://10.0.0.1:4000 has no lenn_ros; install the same "
         "version on every worker"
     )
+
+
+def serial_fit(argv: list[str], cwd: Path) -> None:
+    done = subprocess.run([sys.executable, "-m", "lenn_ros.cli", *argv], capture_output=True, text=True, cwd=cwd,
+                          timeout=RUN)  # fmt: skip
+    assert done.returncode == 0, done.stderr
+
+
+def model_bytes(folder: Path) -> dict[str, bytes]:
+    """params.yaml, every weights array and fit.json as bytes, fit.json's own timing taken out."""
+    with np.load(folder / "weights.npz") as weights:
+        arrays = {key: weights[key].tobytes() for key in weights.files}
+    report = json.loads((folder / "fit.json").read_text())
+    report.pop("seconds")
+    return {"params.yaml": (folder / "params.yaml").read_bytes(), **arrays, "fit.json": json.dumps(report).encode()}
+
+
+def test_sent_logs_are_fitted_from_the_workers_copy_into_the_serial_fits_very_bytes(tmp_path: Path) -> None:
+    """``--send-logs``: a worker that cannot read the client's logs fits copies sent with the task (two records of
+    the same file name in two folders, and a --test record given relative to the client's folder); the files come
+    back naming the logs as the entry gave them: the very bytes a serial fit of the entry writes."""
+    from lenn_ros.cli import build_parser
+    from lenn_ros.fleet_fit.manifest import Entry
+    from lenn_ros.fleet_fit.shipping import pack
+    from lenn_ros.fleet_fit.store import Models
+    from lenn_ros.fleet_fit.task import fit_entry
+
+    for folder, seed in (("a", 0), ("b", 1), ("c", 2)):
+        (tmp_path / "logs" / folder).mkdir(parents=True)
+        (tmp_path / "logs" / folder / "joint00.csv").write_bytes(_log_text(seed))
+    records = (str(tmp_path / "logs" / "a" / "joint00.csv"), str(tmp_path / "logs" / "b" / "joint00.csv"))
+    flags = ("--u", "input", "--y", "output", "--test", "logs/c/joint00.csv")
+    entry = Entry("arm", records, flags)
+    with contextlib.chdir(tmp_path):  # the client's folder: the --test record is relative to it
+        logs = pack(entry)
+    assert sorted(logs) == ["0/joint00.csv", "1/joint00.csv", "2/joint00.csv"]
+    (tmp_path / "logs").rename(tmp_path / "away")  # the worker's host has none of them, where the entry says
+    outcome = fit_entry(entry, build_parser, logs)
+    assert outcome.status == "done", outcome.reason
+    assert Models(tmp_path / "models").install(outcome).status == "done"
+    fleet = model_bytes(tmp_path / "models" / "arm")
+    (tmp_path / "away").rename(tmp_path / "logs")
+    serial_fit(list(entry.argv(str(tmp_path / "models" / "arm"))), cwd=tmp_path)
+    assert model_bytes(tmp_path / "models" / "arm") == fleet
+    assert b"logs/c/joint00.csv" in fleet["fit.json"] and b"lenn-ros-fleet-" not in fleet["fit.json"]
+
+
+def _log_text(seed: int) -> bytes:
+    u, y = plant(SAMPLES, seed)
+    lines = ["t,input,output", *(f"{k},{float(a)!r},{float(b)!r}" for k, (a, b) in enumerate(zip(u, y, strict=True)))]
+    return ("\n".join(lines) + "\n").encode()
+
+
+def test_the_command_sends_the_logs_a_few_at_a_time_and_writes_the_serial_models(tmp_path: Path) -> None:
+    """``fit-fleet DIR --send-logs`` end to end on an embedded cluster (one worker: the logs of two entries in flight):
+    every model done, each one's files the serial fit's."""
+    logs = write_logs(tmp_path / "logs", 3)
+    models = tmp_path / "models"
+    run = fleet(tmp_path / "logs", models, "local:1", "--send-logs")
+    out, err = run.communicate(timeout=RUN)
+    assert run.returncode == 0 and "3 done" in out, err
+    assert {name: row["status"] for name, row in summary(models).items()} == {p.stem: "done" for p in logs}
+    fleet_made = model_bytes(models / logs[2].stem)
+    serial_fit(["fit", str(logs[2]), *FLAGS, "-o", str(models / logs[2].stem)], cwd=tmp_path)
+    assert model_bytes(models / logs[2].stem) == fleet_made

@@ -30,7 +30,7 @@ def main(args: Any, fit_parser: Callable[[], argparse.ArgumentParser]) -> int:
     models = Models(args.output)
     say = lambda text: print(text, file=sys.stderr, flush=True)  # noqa: E731
     connect = functools.partial(open_client, args.cluster, tls)
-    outcomes = fit_fleet(entries, models, connect, fit_parser, args.force, sys.stderr.isatty(), say)
+    outcomes = fit_fleet(entries, models, connect, fit_parser, args.force, sys.stderr.isatty(), say, args.send_logs)
     counts = Counter(outcome.status for outcome in outcomes)
     told = ", ".join(f"{counts[status]} {status}" for status in ("done", "skipped", "failed") if counts[status])
     print(f"fit-fleet: {told} in {time.monotonic() - started:.1f} s; {models.root / SUMMARY}")

@@ -22,6 +22,7 @@ from typing import Any
 from lenn_ros.core.threads import cores, worker_environment
 from lenn_ros.errors import UserError
 from lenn_ros.fleet_fit.manifest import Entry
+from lenn_ros.fleet_fit.shipping import IN_FLIGHT_PER_WORKER, ShippingError, pack
 from lenn_ros.fleet_fit.store import Models
 from lenn_ros.fleet_fit.task import Outcome, fit_entry
 from lenn_ros.progress import progress
@@ -105,17 +106,20 @@ def fit_fleet(
     force: bool = False,
     bar: bool = False,
     say: Callable[[str], None] = print,
+    send_logs: bool = False,
 ) -> list[Outcome]:
     """Every entry's outcome, in the entries' order: whole models skipped (unless ``force``), the others fitted
     on the cluster ``connect()`` opens (a client, as a context; only when there is something to fit) and put in
-    MODELS/NAME/ as each comes back; a failed entry said in one line by ``say``."""
+    MODELS/NAME/ as each comes back; a failed entry said in one line by ``say``. ``send_logs``: each entry's logs
+    go with its task (:mod:`~lenn_ros.fleet_fit.shipping`), a few entries per worker at a time."""
     outcomes = {e.name: models.skipped(e.name) for e in entries if not force and models.complete(e.name)}
     todo = [entry for entry in entries if entry.name not in outcomes]
     if todo:
         with connect() as client:
             workers = ready_workers(client)
             say(f"fit-fleet: {len(todo)} of {len(entries)} entries to fit on {workers} workers, into {models.root}")
-            outcomes.update(_fitted(todo, models, client, fit_parser, bar, say, entries))
+            window = IN_FLIGHT_PER_WORKER * workers if send_logs else len(todo)
+            outcomes.update(_fitted(todo, models, client, fit_parser, bar, say, entries, window, send_logs))
     ordered = [outcomes[entry.name] for entry in entries]
     models.write_summary(ordered)
     return ordered
@@ -164,24 +168,47 @@ def _fitted(
     bar: bool,
     say: Callable[[str], None],
     entries: list[Entry],
+    window: int,
+    send_logs: bool,
 ) -> dict[str, Outcome]:
-    """``todo`` submitted to ``client``, each model put in place as it comes back (the summary kept current)."""
+    """``todo`` submitted to ``client``, at most ``window`` at a time, each model put in place as it comes back (the
+    summary kept current); ``send_logs``: each entry's logs read as it is submitted, sent with it."""
     from distributed import as_completed
 
     outcomes: dict[str, Outcome] = {}
-    run = uuid.uuid4().hex[:8]
-    futures = {
-        client.submit(fit_entry, entry, fit_parser, key=f"fit-{entry.name}-{run}", pure=False, retries=RETRIES): entry
-        for entry in todo
-    }
-    shown, written = progress(len(todo), bar, "fit-fleet", unit="model"), time.monotonic()
-    for future in as_completed(futures):
-        outcome = _collected(future, futures[future], models)
+    run, waiting = uuid.uuid4().hex[:8], iter(todo)
+    futures: dict[Any, Entry] = {}
+
+    def done(outcome: Outcome) -> None:
         if outcome.status == "failed":
             say(f"fit-fleet: {outcome.name}: failed: {outcome.reason}")
         outcomes[outcome.name] = outcome
-        future.release()
         shown.update()
+
+    def submit(entries: Iterator[Entry], count: int) -> list[Any]:
+        """The next ``count`` entries submitted (an entry whose logs cannot be read to send fails, the next is
+        taken in its place)."""
+        submitted: list[Any] = []
+        for entry in entries:
+            try:
+                logs = pack(entry) if send_logs else None
+            except (OSError, ShippingError) as error:
+                done(Outcome(entry.name, "failed", " ".join(str(error).split())))
+                continue
+            key = f"fit-{entry.name}-{run}"
+            submitted.append(client.submit(fit_entry, entry, fit_parser, logs, key=key, pure=False, retries=RETRIES))
+            futures[submitted[-1]] = entry
+            if len(submitted) == count:
+                break
+        return submitted
+
+    shown, written = progress(len(todo), bar, "fit-fleet", unit="model"), time.monotonic()
+    started = as_completed(submit(waiting, max(1, window)))
+    for future in started:
+        done(_collected(future, futures.pop(future), models))
+        future.release()
+        for following in submit(waiting, 1):
+            started.add(following)
         if time.monotonic() - written > SUMMARY_EVERY:
             models.write_summary(outcomes.get(e.name) or models.skipped(e.name) for e in entries)
             written = time.monotonic()

@@ -63,7 +63,8 @@ class Models:
         try:
             for name, content in outcome.files.items():
                 texts = name in TEXTS
-                (partial / name).write_bytes(relocated(content, outcome.written_to, str(final)) if texts else content)
+                text = relocated(content, outcome.written_to, str(final), outcome.read_from) if texts else content
+                (partial / name).write_bytes(text)
         except RelocationError as error:
             shutil.rmtree(partial, ignore_errors=True)
             return _failed(outcome, str(error))
@@ -100,11 +101,14 @@ class RelocationError(Exception):
     """A file still names the worker's scratch folder after its paths were given their place."""
 
 
-def relocated(content: bytes, written_to: str, final: str) -> bytes:
-    """``content`` with the folder fit wrote to (as text and as JSON writes it) replaced by ``final``."""
-    forms = {written_to: final, json.dumps(written_to)[1:-1]: json.dumps(final)[1:-1]}
-    for old, new in forms.items():
-        content = content.replace(old.encode(), new.encode())
+def relocated(content: bytes, written_to: str, final: str, read_from: dict[str, str] | None = None) -> bytes:
+    """``content`` with the folder fit wrote to replaced by ``final``, and each copy of a log it read (``read_from``,
+    ``--send-logs``: in the same scratch folder) by the log's own path, as text and as JSON writes them."""
+    moved = {**(read_from or {}), written_to: final}
+    for there in sorted(moved, key=len, reverse=True):  # (longest first: no path is replaced inside another)
+        here = moved[there]
+        for old, new in {there: here, json.dumps(there)[1:-1]: json.dumps(here)[1:-1]}.items():
+            content = content.replace(old.encode(), new.encode())
     if Path(written_to).parent.name.encode() in content:
         raise RelocationError(f"a file still names {written_to} after relocation (a path YAML or JSON rewrote)")
     return content

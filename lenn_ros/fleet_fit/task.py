@@ -30,6 +30,7 @@ from typing import Any
 from lenn_ros.core.threads import THREADS_VARIABLE
 from lenn_ros.errors import user_error_types
 from lenn_ros.fleet_fit.manifest import Entry
+from lenn_ros.fleet_fit.shipping import unpack
 
 #: the report text fit prints, kept beside what ``fit -o`` writes
 REPORT_TEXT = "fit.txt"
@@ -53,15 +54,23 @@ class Outcome:
     figures: dict[str, str] = field(default_factory=dict)
     seconds: float = 0.0
     worker: str = ""
+    #: the records' copies the worker fitted (``--send-logs``) -> the records' own paths, which the files must name
+    read_from: dict[str, str] = field(default_factory=dict)
 
 
-def fit_entry(entry: Entry, fit_parser: Callable[[], argparse.ArgumentParser]) -> Outcome:
-    """Fit ``entry`` here (on a worker, or in this process) as the serial ``lenn-ros fit`` would."""
+def fit_entry(
+    entry: Entry, fit_parser: Callable[[], argparse.ArgumentParser], logs: dict[str, bytes] | None = None
+) -> Outcome:
+    """Fit ``entry`` here (on a worker, or in this process) as the serial ``lenn-ros fit`` would; ``logs``: its
+    records' files sent with it (``--send-logs``: :mod:`~lenn_ros.fleet_fit.shipping`), fitted from a copy here."""
     from lenn_ros.fit import command
 
     with _ONE_AT_A_TIME, _the_workers_threads(), tempfile.TemporaryDirectory(prefix="lenn-ros-fleet-") as scratch:
         started, worker = time.monotonic(), _worker()
         output = Path(scratch) / entry.name
+        read_from: dict[str, str] = {}
+        if logs is not None:
+            entry, read_from = unpack(entry, logs, Path(scratch) / "logs")
         args = fit_parser().parse_args(entry.argv(str(output)))
         report = io.StringIO()
         try:
@@ -69,12 +78,14 @@ def fit_entry(entry: Entry, fit_parser: Callable[[], argparse.ArgumentParser]) -
                 command.main(args)
         except user_error_types() as error:
             reason = " ".join(str(error).split())
+            for copy, given in read_from.items():  # (a sent log is named as the entry gave it)
+                reason = reason.replace(copy, given)
             return Outcome(entry.name, "failed", reason, seconds=time.monotonic() - started, worker=worker)
         files = {path.name: path.read_bytes() for path in sorted(output.iterdir()) if path.is_file()}
         files[REPORT_TEXT] = report.getvalue().encode()
         figures = report_figures(json.loads(files["fit.json"]))
         seconds = time.monotonic() - started
-        return Outcome(entry.name, "done", "", files, str(output), figures, seconds, worker)
+        return Outcome(entry.name, "done", "", files, str(output), figures, seconds, worker, read_from)
 
 
 def report_figures(report: dict[str, Any]) -> dict[str, str]:

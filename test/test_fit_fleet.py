@@ -240,26 +240,36 @@ def test_relocation_gives_the_files_their_place_or_fails_the_entry() -> None:
         relocated(b"weights_in: /tmp/lenn-ros-fleet-abc/\n  arm/weights.npz", scratch, "/m/arm")
 
 
-def test_a_cluster_across_hosts_fits_from_shared_logs_and_sends_the_models_back(tmp_path: Path) -> None:
-    """Scheduler and client in one network namespace, a worker in each of two others (test_hosts' hosts):
-    the workers read the logs at the manifest's paths, the models come back over the (virtual) network."""
+@pytest.mark.parametrize("logs_are", ["shared", "sent"])
+def test_a_cluster_across_hosts_fits_the_logs_and_sends_the_models_back(tmp_path: Path, logs_are: str) -> None:
+    """Scheduler and client in one network namespace, a worker in each of two others (test_hosts' hosts), the
+    models coming back over the (virtual) network. ``shared``: the workers read the logs at the manifest's paths;
+    ``sent``: the workers' own mounts hide the logs' folder (an empty tmpfs over it) and ``--send-logs`` carries
+    them over the network."""
     hosts_module = pytest.importorskip("test_hosts", reason="the hosts of test_hosts (it needs rclpy)")
     refusal = hosts_module.netns_refusal()
     if refusal is not None:
         pytest.skip(f"a cluster across hosts needs network namespaces: {refusal}")
     logs = write_logs(tmp_path / "logs", count=2)
+    over = 'mount -t tmpfs none "$0" && exec "$@"'  # (an empty folder over the logs', then the command)
+    hidden = ["unshare", "--mount", "--propagation", "private", "sh", "-c", over, str(tmp_path / "logs")]
+    hidden = hidden if logs_are == "sent" else []
     with hosts_module.Hosts(f"f{os.getpid() % 10000}", multicast=False) as hosts:
         scheduler_ns, *worker_ns = hosts.namespaces.values()
         scheduler, *workers = hosts.addresses()
         address = f"tcp://{scheduler}:8786"
 
-        def inside(namespace: str, *argv: str, log: str) -> subprocess.Popen:
-            return dask(*argv, log=tmp_path / log, prefix=["ip", "netns", "exec", namespace])
+        def inside(namespace: str, *argv: str, log: str, mounts: list[str] | None = None) -> subprocess.Popen:
+            return dask(*argv, log=tmp_path / log, prefix=["ip", "netns", "exec", namespace, *(mounts or [])])
 
+        if hidden:  # (the hiding holds: a worker's view of the logs' folder is empty)
+            view = subprocess.run(["ip", "netns", "exec", worker_ns[0], *hidden, "ls", "-A", str(tmp_path / "logs")],
+                                  capture_output=True, text=True, timeout=READY)  # fmt: skip
+            assert view.returncode == 0 and view.stdout == "", (view.stdout, view.stderr)
         started = [inside(scheduler_ns, "scheduler", "--host", scheduler, "--port", "8786", "--no-dashboard",
                           log="scheduler.log")]  # fmt: skip
-        started += [inside(ns, "worker", address, "--host", host, "--nthreads", "1", "--no-dashboard", log=f"{ns}.log")
-                    for ns, host in zip(worker_ns, workers, strict=True)]  # fmt: skip
+        started += [inside(ns, "worker", address, "--host", host, "--nthreads", "1", "--no-dashboard", log=f"{ns}.log",
+                           mounts=hidden) for ns, host in zip(worker_ns, workers, strict=True)]  # fmt: skip
         try:
             ready = f"import distributed; distributed.Client({address!r}, timeout=60).wait_for_workers(2, timeout=60)"
             polled = subprocess.run(["ip", "netns", "exec", scheduler_ns, sys.executable, "-c", ready],
@@ -267,7 +277,8 @@ def test_a_cluster_across_hosts_fits_from_shared_logs_and_sends_the_models_back(
             assert polled.returncode == 0, polled.stderr
             before = {role: hosts.bytes_through(role) for role in list(hosts.namespaces)[1:]}
             command = [sys.executable, "-m", "lenn_ros.cli", "fit-fleet", str(tmp_path / "logs"), *FLAGS,
-                       "-o", str(tmp_path / "models"), "--cluster", address]  # fmt: skip
+                       "-o", str(tmp_path / "models"), "--cluster", address,
+                       *(["--send-logs"] if logs_are == "sent" else [])]  # fmt: skip
             run = subprocess.run(["ip", "netns", "exec", scheduler_ns, *command], capture_output=True, text=True,
                                  timeout=RUN)  # fmt: skip
             assert run.returncode == 0, run.stderr
@@ -278,8 +289,10 @@ def test_a_cluster_across_hosts_fits_from_shared_logs_and_sends_the_models_back(
     rows = summary(tmp_path / "models")
     assert {row["status"] for row in rows.values()} == {"done"} and len(rows) == len(logs)
     assert {row["worker"].rsplit(":", 1)[0] for row in rows.values()} <= {f"tcp://{host}" for host in workers}
-    model_bytes = sum(f.stat().st_size for f in (tmp_path / "models" / logs[0].stem).iterdir())
-    assert max(carried.values()) > model_bytes  # a model's files crossed the network to the client
+    size = sum(f.stat().st_size for f in (tmp_path / "models" / logs[0].stem).iterdir())
+    assert max(carried.values()) > size  # a model's files crossed the network to the client
+    if logs_are == "sent":  # and a log's, to the worker
+        assert max(carried.values()) > size + logs[0].stat().st_size
 
 
 def _threads_seen() -> tuple[int, list[int]]:

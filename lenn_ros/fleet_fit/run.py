@@ -185,11 +185,11 @@ def _fitted(
         outcomes[outcome.name] = outcome
         shown.update()
 
-    def submit(entries: Iterator[Entry], count: int) -> list[Any]:
+    def submit(source: Iterator[Entry], count: int) -> list[Any]:
         """The next ``count`` entries submitted (an entry whose logs cannot be read to send fails, the next is
         taken in its place)."""
         submitted: list[Any] = []
-        for entry in entries:
+        for entry in source:
             try:
                 logs = pack(entry) if send_logs else None
             except (OSError, ShippingError) as error:

@@ -312,7 +312,10 @@ def test_a_plain_dask_worker_fits_on_its_own_threads_not_every_core(monkeypatch:
     monkeypatch.delenv("LENN_ROS_THREADS", raising=False)
     if len(os.sched_getaffinity(0)) < 2:
         pytest.skip("one core: a fit takes one thread anyway")
-    with distributed.Client(processes=False, n_workers=1, threads_per_worker=1, dashboard_address=None) as client:
+    with (
+        distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as local,
+        distributed.Client(local) as client,
+    ):
         assert client.submit(_threads_seen, pure=False).result() == (1, [1] * len(_threads_seen()[1]))
         assert "LENN_ROS_THREADS" not in os.environ  # (the worker shares this process: its setting is undone)
         monkeypatch.setenv("LENN_ROS_THREADS", "2")

@@ -62,7 +62,8 @@ def unpack(entry: Entry, files: dict[str, bytes], folder: Path) -> tuple[Entry, 
         target.parent.mkdir(parents=True, exist_ok=True)
         target.write_bytes(content)
     given = sent_paths(entry)
-    copies = [str(folder / str(i) / Path(log).expanduser().resolve().name) for i, log in enumerate(given)]
+    names = {int(key.split("/")[0]): key.split("/")[1] for key in files}  # (as the client named each log: pack)
+    copies = [str(folder / str(i) / names[i]) for i in range(len(given))]
     there = dict(zip(given, copies, strict=True))
     records = tuple(there[record] for record in entry.records)
     flags = [

@@ -216,7 +216,7 @@ class HorizonBand:
 
     @classmethod
     def from_dict(cls, figures: dict[str, Any]) -> HorizonBand:
-        """The band as :meth:`as_dict` wrote it (fit.json's ``by_horizon``): evaluate and a loaded model read it."""
+        """The band as :meth:`as_dict` wrote it (fit.json's ``by_horizon``), as evaluate reads it."""
         return cls(
             np.asarray(figures["from_step"], dtype=np.int64),
             np.asarray(figures["half_width"], dtype=np.float64),

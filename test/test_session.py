@@ -262,12 +262,15 @@ def test_sequence_pairing_refuses_halves_published_apart(series) -> None:
 def test_a_lockstep_publisher_stalled_between_the_halves_is_still_one_sample(series) -> None:
     """Descheduled 0.4 s between u(k) and y_p(k), a lockstep publisher is in turn: every pair learnt.
 
+    The first pair has no pair before it: the second, in turn after it, vouches for it (seen in CI:
+    a fleet's driver descheduled between its very first u and y_p lost that pair).
+
     The skew alone cannot tell this from two streams that share indices; the turn can. The same
     skew out of turn (a second stream, 5 ms slower per sample) is refused from the pair it passes
     max_skew on, as before.
     """
     learned = []
-    for stalls in ((), (100, 200)):
+    for stalls in ((), (0, 100, 200)):
         live = session()
         t = 0.0
         for k in range(300):
@@ -286,6 +289,23 @@ def test_a_lockstep_publisher_stalled_between_the_halves_is_still_one_sample(ser
     counters = live.all_counters()
     # y_p(k) falls 5 ms a sample behind u(k): over max_skew (0.25 s) from k = 51 on, refused from there
     assert counters["misaligned"] == 300 - 51, counters
+
+
+def test_a_first_pair_published_apart_is_refused_unless_the_next_is_in_turn_after_it(series) -> None:
+    """The first pair's halves 0.4 s apart: the second pair, out of turn (u before the first y_p), refuses it;
+    a first pair alone at the end of a recording is refused too (nothing vouches for it)."""
+    live = session()
+    live.offer(U, series.u[0], 0.0, sequence=1, source_time=0.0)
+    live.offer(Y, series.y[0], 0.4, sequence=1, source_time=0.4)
+    live.offer(U, series.u[1], 0.01, sequence=2, source_time=0.01)
+    live.offer(Y, series.y[1], 0.41, sequence=2, source_time=0.41)
+    assert live.all_counters()["misaligned"] == 2
+    alone = session()
+    alone.offer(U, series.u[0], 0.0, sequence=1, source_time=0.0)
+    assert alone.offer(Y, series.y[0], 0.4, sequence=1, source_time=0.4) == []  # waits for the next pair
+    alone.flush()
+    assert alone.all_counters()["misaligned"] == 1
+    assert any("published 0.400 s apart" in notice.text for notice in alone.take_notices())
 
 
 def _offer_lockstep(live: Session, series, first: int, count: int) -> list:

@@ -69,6 +69,7 @@ class Stream:
         self._seen_dropped = 0
         self._seen_faults = 0  # sequence mode: stale + duplicate halves already said
         self._last_sources: tuple[float, float] | None = None  # sequence mode: the last pair's (u, y) publish times
+        self._first: tuple[Pair, tuple[float, float]] | None = None  # a first pair published apart: the next judges it
 
     # -- overload ------------------------------------------------------------------------------
     def admit(self, queue: object, received: float, now: float) -> bool:
@@ -165,7 +166,11 @@ class Stream:
         return pairs
 
     def flush(self) -> list[Pair]:
-        """End of a recording: settle what can still be settled (a side's incomplete parts are dropped)."""
+        """End of a recording: settle what can still be settled (a side's incomplete parts are dropped;
+        a first pair published apart with no second to vouch for it is refused)."""
+        if self._first is not None:
+            first, self._first = self._first, None
+            return [self._refused(*first)]
         for channel, merger in self.mergers.items():
             merger.flush()
             self._after_merge(channel, merger)
@@ -193,30 +198,54 @@ class Stream:
         if self.pairer.counters["restarts"] != restarts:
             self.on_restart()
             self._last_sources = None
+            if self._first is not None:  # the old run's first pair never had a second to vouch for it: said, dropped
+                self._refused(*self._first)
+                self._first = None
             self.notices.say("restart", "sample indices started over (publisher restart): history reset")
         self._say_pairing_faults(bool(released))
-        return [self._checked(index, u, y) for index, u, y in released]
+        pairs = []
+        for index, u, y in released:
+            pairs += self._checked(index, u, y)
+        return pairs
 
-    def _checked(self, index: int, u: tuple, y: tuple) -> Pair:
-        """A pair of released halves, refused (NaN) when they were published apart and out of turn."""
+    def _checked(self, index: int, u: tuple, y: tuple) -> list[Pair]:
+        """A pair of released halves, refused (NaN) when they were published apart and out of turn.
+
+        A pair with none before it (the first, or the first after a restart) has no turn to be in: if its
+        halves are further apart than ``max_skew`` it waits for the next pair, which vouches for it when both
+        its halves come after both of the first's (a lockstep publisher descheduled between its first u and
+        y_p), and refuses it otherwise. The next pair then goes with it.
+        """
         (u_value, _u_time, u_source), (y_value, y_time, y_source) = u, y
+        pair = Pair(index, y_time, u_value, y_value)
         if u_source is None or y_source is None:
-            return Pair(index, y_time, u_value, y_value)
-        skew = abs(u_source - y_source)
-        previous, self._last_sources = self._last_sources, (u_source, y_source)
-        in_turn = previous is not None and min(u_source, y_source) >= max(previous)
-        if skew <= self.config.max_skew or in_turn:
-            return Pair(index, y_time, u_value, y_value)
+            return [pair]
+        sources = (u_source, y_source)
+        previous, self._last_sources = self._last_sources, sources
+        judged = []
+        if self._first is not None:
+            first, self._first = self._first, None
+            judged.append(first[0] if min(sources) >= max(first[1]) else self._refused(*first))
+        if abs(u_source - y_source) <= self.config.max_skew or (previous is not None and min(sources) >= max(previous)):
+            judged.append(pair)
+        elif previous is None:
+            self._first = (pair, sources)
+        else:
+            judged.append(self._refused(pair, sources))
+        return judged
+
+    def _refused(self, pair: Pair, sources: tuple[float, float]) -> Pair:
+        """``pair`` refused as two streams' halves that share an index (counted and said): NaN, never learnt."""
         config = self.config
         self.notices.counters["misaligned"] += 1
         self.notices.say(
             "misaligned",
-            f"{config.u_name}[{index}] and {config.y_name}[{index}] were published {skew:.3f} s "
-            "apart and not both after the pair before: not one lockstep publisher, so equal indices are "
-            "not one sample; refused, never learnt. "
+            f"{config.u_name}[{pair.index}] and {config.y_name}[{pair.index}] were published "
+            f"{abs(sources[0] - sources[1]):.3f} s apart and not both after the pair before: not one lockstep "
+            "publisher, so equal indices are not one sample; refused, never learnt. "
             "Use pairing:=sample sample_period:=T (or pairing:=stamp)",
         )
-        return Pair(index, y_time, math.nan, math.nan)
+        return Pair(pair.index, pair.time, math.nan, math.nan)
 
     def _say_pairing_faults(self, released: bool) -> None:
         """Stale, repeated and unpaired halves of sequence pairing, each said as its count grows.

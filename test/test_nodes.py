@@ -144,6 +144,51 @@ def check_lost_and_reordered_messages(bag: Path, tmp_path: Path, params: Path, l
     )
 
 
+def test_lockstep_waits_for_the_first_y_hat_while_the_identifier_holds_its_pairs(domain: int) -> None:
+    """An identifier holds every pair until its error topic has a reader, which joins after the simulator
+    has sent its last sample and ``stall_timeout`` (2 s) has passed: the simulator waits for the first y_hat
+    (as an identifier under load holds its first pairs for the graph's names, up to 5 s), and every pair is
+    learnt. It used to exit after 2 s, and the run ended with every pair held, unlearnt."""
+    from std_msgs.msg import Float64, String
+
+    from lenn_ros import topics
+
+    samples = 300
+    identifier = start_node("identifier", "example:=1", "status_period:=0.1", "wait_for_error_subscribers:=1")
+    simulator = start_node(
+        "plant_simulator", "example:=1", f"train_samples:={samples}", "test_samples:=0", "rate_hz:=0.0",
+        "exit_when_done:=true",
+    )  # fmt: skip
+    context = rclpy.context.Context()
+    rclpy.init(context=context, domain_id=domain)
+    node = rclpy.create_node("late_reader", context=context)
+    statuses: list[dict] = []
+    node.create_subscription(String, topics.STATUS, lambda m: statuses.append(json.loads(m.data)), topics.data_qos())
+    executor = rclpy.executors.SingleThreadedExecutor(context=context)
+    executor.add_node(node)
+    try:
+        deadline = time.monotonic() + 60
+        while not statuses or statuses[-1]["held"] < samples:  # everything sent, and held
+            assert time.monotonic() < deadline and simulator.poll() is None, (statuses[-1:], simulator.poll())
+            executor.spin_once(timeout_sec=0.1)
+        held_at = time.monotonic()
+        while time.monotonic() - held_at < 3.0:  # the reader is late by more than stall_timeout: the scenario
+            executor.spin_once(timeout_sec=0.1)
+        assert simulator.poll() is None, "the simulator left while the identifier still held every pair"
+        node.create_subscription(Float64, topics.ERROR, lambda _: None, topics.data_qos())
+        _, sim_err = simulator.communicate(timeout=60)
+    finally:
+        if simulator.poll() is None:
+            stop(simulator)
+        _, id_err = stop(identifier)
+        executor.shutdown()
+        node.destroy_node()
+        context.try_shutdown()
+    assert simulator.returncode == 0 and "none of" not in sim_err and "no y_hat for" not in sim_err, sim_err[-2000:]
+    counters = final_status(id_err)["counters"]
+    assert counters["paired"] == samples and counters["learned"] == samples - EXAMPLES[1].structure.warm_up, counters
+
+
 def test_live_parameters_are_validated_and_applied(tmp_path: Path, domain: int) -> None:
     from rosutil import ParameterClient
 

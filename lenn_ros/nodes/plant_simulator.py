@@ -22,6 +22,7 @@ from rclpy.node import Node
 from std_msgs.msg import Float64, Float64MultiArray, Int64
 
 from lenn_ros import topics
+from lenn_ros.core.holding import START_GRACE
 from lenn_ros.nodes import TEST_START_UNMATCHED, latched_readers_matched, run_node
 from lenn_ros.nodes.channels import Channels
 from lenn_ros.paper.examples import get_example
@@ -37,6 +38,11 @@ def _describe(text: str, low: float | None = None, high: float | None = None, re
     elif low is not None:
         descriptor.floating_point_range = [FloatingPointRange(from_value=float(low), to_value=float(high))]
     return descriptor
+
+
+#: Seconds lockstep waits for an identifier's first y_hat (see PlantSimulator._stall_limit): its
+#: hold's grace for the publishers' names, and as long again for its outputs' readers.
+FIRST_ANSWER_WAIT = 3 * START_GRACE
 
 
 class PlantSimulator(Node):
@@ -117,7 +123,7 @@ class PlantSimulator(Node):
         self.u_publisher = self.create_publisher(value_type, topics.U, topics.data_qos())
         self.y_publisher = self.create_publisher(value_type, topics.Y_P, topics.data_qos())
         self.test_start_publisher = self.create_publisher(Int64, topics.TEST_START, topics.latched_qos())
-        self.create_subscription(value_type, topics.Y_HAT, self._on_y_hat, topics.data_qos())
+        self.y_hat_subscription = self.create_subscription(value_type, topics.Y_HAT, self._on_y_hat, topics.data_qos())
         if self.excitation.test_start is not None:
             self.test_start_publisher.publish(Int64(data=self.excitation.test_start + 1))
         self.started: float | None = None
@@ -192,6 +198,19 @@ class PlantSimulator(Node):
     def _on_y_hat(self, _message: Float64 | Float64MultiArray) -> None:
         self.acknowledged += 1
 
+    def _stall_limit(self) -> float:
+        """Seconds without a y_hat before lockstep takes the samples in flight as lost (or, when done, exits).
+
+        Until an identifier's first y_hat, at least :data:`FIRST_ANSWER_WAIT`: it holds its first
+        pairs, unlearnt, until its outputs' readers match and the graph names who publishes u and
+        y_p, which under load takes longer than ``stall_timeout`` (a 500-sample launch in CI ended
+        with every pair held). Only while some node publishes y_hat: with none, nothing will answer.
+        """
+        limit = self.get_parameter("stall_timeout").value
+        if self.acknowledged == 0 and self.y_hat_subscription.get_publisher_count() > 0:
+            return max(limit, FIRST_ANSWER_WAIT)
+        return limit
+
     def _ready(self) -> bool:
         """The data topics are VOLATILE: a reader that has not matched yet would miss sample 1.
 
@@ -228,9 +247,9 @@ class PlantSimulator(Node):
             due = self.get_parameter("window").value - (self.k - self.acknowledged)
             if due > 0 or self.acknowledged != self._last_acknowledged:
                 self._last_acknowledged, self._stalled_since = self.acknowledged, time.monotonic()
-            elif time.monotonic() - self._stalled_since > self.get_parameter("stall_timeout").value:
+            elif time.monotonic() - self._stalled_since > (limit := self._stall_limit()):
                 self.get_logger().warning(
-                    f"no y_hat for {self.get_parameter('stall_timeout').value} s at step {self.k}: "
+                    f"no y_hat for {limit:g} s at step {self.k}: "
                     "the samples in flight are taken as lost and stepping resumes"
                 )
                 self.acknowledged = self.k
@@ -301,12 +320,17 @@ class PlantSimulator(Node):
             raise SystemExit(0)
         if self.acknowledged != count:
             self._quiet_since = (now, self.acknowledged)
-        elif now - since >= (self.get_parameter("stall_timeout").value if lockstep else 0.5):
+        elif now - since >= (self._stall_limit() if lockstep else 0.5):
             if lockstep and self.acknowledged:
                 self.get_logger().info(
                     f"exiting: {self.k - self.acknowledged} of {self.k} steps had no y_hat after {now - since:.1f} s "
                     "without one (an identifier's first steps have none, until its regressor is complete; "
                     "more means it lost some)"
+                )
+            elif lockstep and self.y_hat_subscription.get_publisher_count() > 0:
+                self.get_logger().warning(
+                    f"exiting: none of {self.k} steps had a y_hat within {now - since:.1f} s: the identifier "
+                    "still holds them (its 'pairs held' line says what for)"
                 )
             raise SystemExit(0)
 

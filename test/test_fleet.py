@@ -124,6 +124,17 @@ def drive(publishers: dict[str, list], counts: dict[str, int]) -> None:
             y_pub.publish(float64(data=float(series.y[k])))
 
 
+def poll_learnt(learnt: dict, predictions: dict, expected: dict[str, int], deadline: float) -> str | None:
+    """Until each plant has learnt ``expected`` pairs and published one y_hat more (from the warm-up's last
+    sample on): None, or what was reached by ``deadline`` (monotonic)."""
+    published = {plant: count + 1 for plant, count in expected.items()}
+    while learnt != expected or predictions != published:
+        if time.monotonic() > deadline:
+            return f"learnt {learnt}, y_hat {predictions}, expected {expected} in 30 s"
+        time.sleep(0.05)
+    return None
+
+
 def assert_each_its_own(err: str, counts: dict[str, int]) -> None:
     """Every plant's final status: the driven ones paired and learnt all they were sent, the idle one nothing."""
     statuses = final_statuses(err)
@@ -180,19 +191,18 @@ def test_fleet_identifies_each_plant_on_its_own(tmp_path: Path, domain: int, wor
         # poll until every pair is learnt (held first: the graph check's grace), not a sleep tied to that grace
         expected = {plant: count - EXAMPLES[1].structure.warm_up for plant, count in counts.items()}
         deadline = time.monotonic() + 30
-        published = {plant: count + 1 for plant, count in expected.items()}  # y_hat from the warm-up's last sample on
-        while learnt != expected or predictions != published:
-            assert time.monotonic() < deadline, f"learnt {learnt}, y_hat {predictions}, expected {expected} in 30 s"
-            time.sleep(0.05)
-        wanted = {f"/{plant}/identifier": ["network", "status_period"] for plant in PLANTS}
-        parameters = read_parameters(node, {**wanted, "/fleet": ["plants", "workers"]})
-        processes = descendants(fleet.pid)
+        stalled = poll_learnt(learnt, predictions, expected, deadline)  # on a timeout the fleet's last lines say why
+        if stalled is None:
+            wanted = {f"/{plant}/identifier": ["network", "status_period"] for plant in PLANTS}
+            parameters = read_parameters(node, {**wanted, "/fleet": ["plants", "workers"]})
+            processes = descendants(fleet.pid)
     finally:
         _, err = stop(fleet, signum)
         executor.shutdown()
         thread.join(timeout=5)
         node.destroy_node()
         context.try_shutdown()
+    assert stalled is None, f"{stalled}; the fleet's last lines:\n{err[-3000:]}"
     assert_each_its_own(err, counts)
     for plant in PLANTS:  # the per-plant section applies to its plant only, the /** one to all
         network = "mlp" if plant == "line2/oven" else "lenn"

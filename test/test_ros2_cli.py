@@ -241,7 +241,8 @@ def test_ros2_launch_runs_simulator_identifier_and_recorder(ros2_env: dict[str, 
     assert counts["/u"] == counts["/y_p"] == 500, counts
     # everything the identifier published reached the bag: its configuration, one sample record per
     # paired sample, and its outputs (y_hat from the first complete regressor on)
-    assert counts.get("/identifier_config") == 1 and counts.get("/samples") == 500, (sorted(counts.items()), output)
+    recorded = f"{sorted(counts.items())}\n{output[-4000:]}"
+    assert counts.get("/identifier_config") == 1 and counts.get("/samples") == 500, recorded
     assert counts.get("/y_hat", 0) >= 490, sorted(counts.items())
     # the identifier's exit line (launch prefixes it with "[identifier-N] "): every sample paired
     final = [line.split("identifier: ", 1)[1] for line in output.splitlines() if "identifier: {" in line]

@@ -34,6 +34,7 @@ import numpy as np
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.structure import Identifier
 from lenn_ros.fit.data import REPORT_FILE
+from lenn_ros.service.scoring import fit_free_run_widths
 
 
 class ModelError(ValueError):
@@ -82,8 +83,31 @@ class Model:
         return (u0 if u0.size else np.zeros(self.n_u)), (y0 if y0.size else np.zeros(self.n_y))
 
     def intervals(self) -> dict[str, Any]:
-        """``fit``'s residual statistics: ``one_step_std`` and ``free_run_half_width`` (95 %), per output."""
+        """``fit``'s nominal 95 % bands as its report gives them (``one_step``, ``free_run``; for the half-widths
+        along a run of this model, :meth:`free_run_band`)."""
         return dict(self.report.get("intervals", {}))
+
+    def free_run_band(self, y_free: np.ndarray) -> np.ndarray:
+        """Half-widths of ``fit``'s nominal 95 % free-run band at each sample of a run :meth:`simulate` or
+        :meth:`predict` returned (shaped like it; NaN after a divergence): narrow at the run's first steps, growing
+        with the steps as the held-out runs' errors grew. Read it as ``y_free +- band``.
+
+        The rule is evaluate's (:func:`~lenn_ros.service.scoring.fit_free_run_widths`): by steps since the run's
+        start, so a run restarted after a NaN starts narrow again; the median as one number would be too wide
+        at first and too narrow late in a long run.
+        """
+        y_free = np.asarray(y_free, dtype=np.float64)
+        columns = y_free.reshape(len(y_free), -1)
+        parts = self.report.get("per_output") or [self.report]
+        if columns.shape[1] != self.n_y or len(parts) != self.n_y:
+            raise ModelError(f"free_run_band takes a run of {self.n_y} output(s), not {columns.shape[1]}")
+        widths = []
+        for j, part in enumerate(parts):
+            found = fit_free_run_widths(part.get("intervals", {}).get("free_run", {}), columns[:, j])
+            if found is None:
+                raise ModelError(f"{self.source or 'the model'} has no fit report (fit.json) with a free-run band")
+            widths.append(found)
+        return np.column_stack(widths).reshape(y_free.shape)
 
     # -- running the model -------------------------------------------------------------------
     def simulate(

@@ -7,6 +7,7 @@ reported for the test part, never with numbers written here.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import math
 import threading
@@ -59,6 +60,12 @@ def test_load_model_simulates_what_fit_reported(fitted: dict) -> None:
     again = model.simulate(u[k : k + steps], y_initial=y[k - w : k], u_initial=u[k - w : k])
     np.testing.assert_array_equal(ahead, again)
     assert model.intervals()["free_run"]["half_width"] > 0
+    # the band along the run: fit's own half-widths of its test part, sample for sample
+    band = model.free_run_band(free)
+    np.testing.assert_array_equal(band, fitted["result"].only.free_run_half_width_test)
+    assert band[0] < band[-1] and np.all(np.diff(band) >= 0)
+    restarted = model.free_run_band(np.r_[free[:100], np.nan, free[:100]])  # a run restarted: narrow again
+    np.testing.assert_array_equal(restarted[101:], band[:100])
 
 
 def test_load_model_says_what_is_wrong(fitted: dict, tmp_path: Path) -> None:
@@ -71,6 +78,10 @@ def test_load_model_says_what_is_wrong(fitted: dict, tmp_path: Path) -> None:
         model.simulate(np.array([0.0, np.nan]))
     with pytest.raises(ModelError, match="u_future has"):
         model.predict(fitted["u"][:50], fitted["y"][:50], 5, u_future=np.zeros(2))
+    with pytest.raises(ModelError, match="takes a run of 1 output"):
+        model.free_run_band(np.zeros((10, 2)))
+    with pytest.raises(ModelError, match="no fit report"):  # weights without fit's report (fit.json)
+        dataclasses.replace(model, report={}).free_run_band(np.zeros(10))
 
 
 def test_compose_reads_back_through_the_same_field() -> None:

@@ -313,7 +313,7 @@ def test_a_plain_dask_worker_fits_on_its_own_threads_not_every_core(monkeypatch:
     if len(os.sched_getaffinity(0)) < 2:
         pytest.skip("one core: a fit takes one thread anyway")
     with (
-        distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as local,
+        distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=":0") as local,
         distributed.Client(local) as client,
     ):
         assert client.submit(_threads_seen, pure=False).result() == (1, [1] * len(_threads_seen()[1]))
@@ -330,7 +330,7 @@ def test_a_scheduler_with_no_worker_or_an_odd_one_is_refused_in_one_line() -> No
     from lenn_ros.fleet_fit.run import ClusterError, ready_workers, version_refusal
 
     with (
-        distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=None) as empty,
+        distributed.LocalCluster(n_workers=0, processes=False, dashboard_address=":0") as empty,
         distributed.Client(empty) as client,
     ):
         with pytest.raises(ClusterError, match=r"^--cluster \S+: no worker joined the scheduler within 0.5 s"):

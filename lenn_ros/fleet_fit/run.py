@@ -81,7 +81,8 @@ def open_client(cluster: str, tls: TLS | None = None) -> Iterator[Any]:
         return
     workers = _local_workers(cluster)
     threads = max(1, cores() // workers)  # set before each worker's numpy loads
-    options = {"dashboard_address": None, "silence_logs": logging.ERROR, "env": worker_environment(threads)}
+    # its HTTP server on a free port: None still takes 8787 and warns when another cluster holds it
+    options = {"dashboard_address": ":0", "silence_logs": logging.ERROR, "env": worker_environment(threads)}
     with (
         LocalCluster(n_workers=workers, threads_per_worker=1, processes=True, **options) as local,
         Client(local) as client,

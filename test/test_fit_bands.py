@@ -15,6 +15,7 @@ from lenn_ros.fit.bands import (
     HORIZON_BIN,
     HeldOut,
     HorizonBand,
+    blocks_covered,
     horizon_band,
     horizon_bins,
     isotonic,
@@ -35,11 +36,12 @@ def cubic_fits() -> list[FitResult]:
 
 
 def test_bands_cover_about_95_percent_of_a_test_part_drawn_like_the_build_part(cubic_fits: list[FitResult]) -> None:
-    """Measured (bench/intervals.py): one step 93.2-96.8 % (mean 94.9), free run 93.6-95.2 % (mean 94.5); the
-    one number per band the same blocks gave covered 93.6-96.6 % and 93.6-95.2 %."""
+    """Measured (bench/intervals.py): one step 93.2-97.6 % (mean 95.3), free run 93.6-95.4 % (mean 94.5), the blocks
+    run by their weights refined as the delivered model's are; the one number per band the same blocks gave
+    covered 93.6-96.6 % and 93.6-95.2 %."""
     for kind in ("one_step", "free_run"):
         covered = [result.intervals[kind]["coverage_test"] for result in cubic_fits]
-        assert min(covered) >= 0.93 and max(covered) <= 0.97, f"{kind} coverage per seed {covered}"
+        assert min(covered) >= 0.93 and max(covered) <= 0.98, f"{kind} coverage per seed {covered}"
         assert abs(np.mean(covered) - 0.95) <= 0.01, f"{kind} mean coverage {np.mean(covered):.3f}"
     assert not any(result.intervals.get("unlike_build") for result in cubic_fits), "drawn alike, said unlike"
 
@@ -121,6 +123,23 @@ def test_horizon_band_follows_errors_that_grow_along_the_run() -> None:
     assert np.all(np.diff(widths) >= 0) and widths[0] < widths[399] / 3
     assert np.mean(np.abs(errors) <= band.at(steps)) == pytest.approx(0.95, abs=0.005)
     assert 0.0 < band.growth <= 0.5 and widths[-1] > widths[399]
+
+
+def test_blocks_covered_is_each_blocks_coverage_by_the_others_quantile(cubic_fits: list[FitResult]) -> None:
+    """Five exchangeable blocks: each covered about 95 % by the others' quantile; one block whose errors are
+    twice as large is covered far less, and the spread says so. fit reports the spread of both bands."""
+    rng = np.random.default_rng(2)
+    scores, blocks = np.abs(rng.standard_normal(10_000)), np.repeat(np.arange(5), 2000)
+    low, high = blocks_covered(scores, blocks)
+    assert 0.93 <= low <= 0.95 <= high <= 0.97, (low, high)
+    scores[blocks == 4] *= 2
+    low, high = blocks_covered(scores, blocks)
+    assert low < 0.7 and high > 0.99, (low, high)  # (measured 0.66 and 0.996)
+    assert blocks_covered(scores[:2000], blocks[:2000]) is None  # one block: nothing to calibrate it on
+    for result in cubic_fits:
+        for kind in ("one_step", "free_run"):
+            low, high = result.intervals[kind]["held_out_blocks_covered"]
+            assert 0.9 < low <= 0.95 <= high < 0.985, (kind, low, high)  # measured 0.907-0.94, 0.957-0.98
 
 
 def test_horizon_bins_isotonic_and_run_steps() -> None:

@@ -81,21 +81,37 @@ def held_out_one_step(candidate: Candidate, record: Record) -> HeldOut:
     return HeldOut(np.concatenate(errors), np.vstack(features), np.concatenate(blocks))
 
 
-def held_out_free_runs(candidate: Candidate, record: Record) -> tuple[np.ndarray, np.ndarray]:
-    """(errors, steps since the run's start) of every block's free run by the weights fitted without it, one run
-    per contiguous piece from the measured outputs before it (NaN where a run diverged)."""
+def held_out_free_runs(candidate: Candidate, record: Record) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(errors, steps since the run's start, block) of every block's free run by the weights fitted without it, one
+    run per contiguous piece from the measured outputs before it (NaN where a run diverged)."""
     model = candidate.model
     if model is None or not candidate.fold_weights:
-        return np.empty(0), np.empty(0, dtype=np.int64)
+        return np.empty(0), np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
     warm = model.warm_up
-    errors, steps = [], []
-    for (a, b), w in zip(fold_blocks(record.n, warm), candidate.fold_weights, strict=True):
+    errors, steps, blocks = [], [], []
+    for index, ((a, b), w) in enumerate(zip(fold_blocks(record.n, warm), candidate.fold_weights, strict=True)):
         for first, stop in record.pieces(a, b, warm):
             errors.append(record.residuals(model, first, stop, w))
             steps.append(np.arange(stop - first))
+            blocks.append(np.full(stop - first, index))
     if not errors:
-        return np.empty(0), np.empty(0, dtype=np.int64)
-    return np.concatenate(errors), np.concatenate(steps)
+        return np.empty(0), np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+    return np.concatenate(errors), np.concatenate(steps), np.concatenate(blocks)
+
+
+def blocks_covered(scores: np.ndarray, blocks: np.ndarray) -> tuple[float, float] | None:
+    """(lowest, highest) share of a block's normalised errors ``scores`` within the 95 % quantile of the other
+    blocks' (None with fewer than two blocks): what a band calibrated as fit calibrates it covered of parts it was
+    not calibrated on. Its spread says how far a test part's coverage may stray from 95 % when the record's parts
+    differ (a drifting plant, another operating region); it is no bound, a test part unlike every block may go
+    beyond it."""
+    covered = []
+    for block in np.unique(blocks).tolist():
+        inside = blocks == block
+        if inside.all():
+            continue
+        covered.append(float(np.mean(scores[inside] <= np.quantile(scores[~inside], LEVEL))))
+    return (min(covered), max(covered)) if len(covered) >= 2 else None
 
 
 def raw_features(model: TermModel, view: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -152,6 +168,7 @@ class OneStepBand:
     rows: int
     level: LocalLevel | None
     typical_r: float
+    blocks_covered: tuple[float, float] | None = None  # (:func:`blocks_covered`)
 
     def distance(self, raw: np.ndarray) -> np.ndarray:
         """r = h / (p / N) of each row of features: about 1 among the build rows, more the farther from them."""
@@ -178,8 +195,10 @@ def one_step_band(held: HeldOut) -> OneStepBand | None:
         r = _leverage(features[inside], _inverse(gram - features[inside].T @ features[inside]))
         local = LocalLevel.fit(features[others], errors[others])(features[inside])
         scale[inside] = local * np.sqrt(1.0 + r * others.sum() / features.shape[1])
-    quantile = float(np.quantile(np.abs(errors) / scale, LEVEL))
+    scores = np.abs(errors) / scale
+    quantile = float(np.quantile(scores, LEVEL))
     band = OneStepBand(quantile, _inverse(gram), len(errors), LocalLevel.fit(features, errors), 0.0)
+    band.blocks_covered = blocks_covered(scores, blocks)
     band.typical_r = float(np.quantile(band.distance(features), 0.99))
     return band
 
@@ -206,6 +225,7 @@ class HorizonBand:
     widths: np.ndarray
     longest: int
     growth: float
+    blocks_covered: tuple[float, float] | None = None  # (:func:`blocks_covered`; not part of :meth:`as_dict`)
 
     def at(self, steps: np.ndarray) -> np.ndarray:
         """The half-width at each of ``steps`` (0: the run's first simulated sample); non-decreasing in steps."""
@@ -233,12 +253,14 @@ class HorizonBand:
         }
 
 
-def horizon_band(errors: np.ndarray, steps: np.ndarray) -> HorizonBand | None:
+def horizon_band(errors: np.ndarray, steps: np.ndarray, blocks: np.ndarray | None = None) -> HorizonBand | None:
     """The free-run band from errors of runs and each one's steps since its run's start: mean |e| per horizon
     bin (:func:`horizon_bins`), isotonic in the steps, times the 95 % quantile of |e| over it; the growth beyond
-    the longest run is that between the last two bins, within [0, MAX_GROWTH]. None without errors."""
+    the longest run is that between the last two bins, within [0, MAX_GROWTH]. None without errors. With each
+    error's held-out ``blocks``, the band's :func:`blocks_covered` too."""
     finite = np.isfinite(errors)
     errors, steps = np.abs(errors[finite]), steps[finite]
+    blocks = blocks[finite] if blocks is not None else None
     if not len(errors):
         return None
     starts = horizon_bins(steps)
@@ -249,12 +271,15 @@ def horizon_band(errors: np.ndarray, steps: np.ndarray) -> HorizonBand | None:
     if not positive.any():
         return HorizonBand(starts, np.zeros(len(starts)), int(steps.max()) + 1, 0.0)
     level = np.maximum(level, level[positive][0])  # (a bin of exact zeros: the first level that is not)
-    quantile = float(np.quantile(errors / level[where], LEVEL))
+    scores = errors / level[where]
+    quantile = float(np.quantile(scores, LEVEL))
     growth = 0.0
     if len(starts) > 1:
         centres = np.bincount(where, steps + 1.0, minlength=len(starts)) / counts
         growth = math.log(level[-1] / level[-2]) / math.log(centres[-1] / centres[-2])
-    return HorizonBand(starts, quantile * level, int(steps.max()) + 1, float(np.clip(growth, 0.0, MAX_GROWTH)))
+    band = HorizonBand(starts, quantile * level, int(steps.max()) + 1, float(np.clip(growth, 0.0, MAX_GROWTH)))
+    band.blocks_covered = blocks_covered(scores, blocks) if blocks is not None else None
+    return band
 
 
 def horizon_bins(steps: np.ndarray) -> np.ndarray:

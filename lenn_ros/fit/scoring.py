@@ -28,6 +28,8 @@ from lenn_ros.fit.bands import (
     LEVEL,
     UNLIKE_SHARE,
     HeldOut,
+    HorizonBand,
+    OneStepBand,
     held_out_free_runs,
     held_out_one_step,
     horizon_band,
@@ -207,7 +209,7 @@ def fit_intervals(
     record = fitted.record
     if held_out:
         held = held_out_one_step(fitted.chosen, record)
-        free, steps = held_out_free_runs(fitted.chosen, record)
+        free, steps, blocks = held_out_free_runs(fitted.chosen, record)
         source = "the selection's blocks, each run by the weights fitted without it"
     else:
         warm = identifier.structure.warm_up
@@ -215,9 +217,10 @@ def fit_intervals(
         held = HeldOut(errors[np.isfinite(errors)], np.empty((0, 0)), np.empty(0, dtype=np.int64))
         free = identifier.free_run(record.values[:, 1], record.y, warm) - record.y[warm:]
         steps = np.zeros(len(free), dtype=np.int64)  # one run, not runs by horizon: its band is one number
+        blocks = None
         source = "the delivered model over the training record (in-sample: optimistic)"
     one_step, notes = _one_step(part, fitted, held, source)
-    free_run = _free_run(part, free, steps, source)
+    free_run = _free_run(part, free, steps, blocks, source)
     return {"level": LEVEL, "one_step": one_step, "free_run": free_run, **notes}
 
 
@@ -237,7 +240,7 @@ def _one_step(part: OutputReport, fitted: OutputFit, held: HeldOut, source: str)
     else:
         widths = band.half_width(*features)
         far = float(np.mean(band.distance(features[0])[predicted] > band.typical_r)) if predicted.any() else 0.0
-        figures.update(rule=ONE_STEP_RULE, quantile=band.quantile, far_from_build_test=far)
+        figures.update(rule=ONE_STEP_RULE, quantile=band.quantile, far_from_build_test=far, **_covered(band))
         if far > UNLIKE_SHARE:
             notes["unlike_build"] = (
                 f"the test part is not drawn like the build part: {far:.0%} of its regressors lie farther from the "
@@ -274,9 +277,11 @@ def _test_features(part: OutputReport, fitted: OutputFit) -> tuple[np.ndarray, n
     return (raw, clipped) if len(raw) == part.samples else None
 
 
-def _free_run(part: OutputReport, errors: np.ndarray, steps: np.ndarray, source: str) -> dict[str, Any]:
+def _free_run(
+    part: OutputReport, errors: np.ndarray, steps: np.ndarray, blocks: np.ndarray | None, source: str
+) -> dict[str, Any]:
     """The free-run band's figures by steps since the run's start; sets the part's per-sample half-widths."""
-    band = horizon_band(errors, steps)
+    band = horizon_band(errors, steps, blocks)
     simulated = np.isfinite(part.y_free_test)
     widths = band.at(run_steps(part.y_free_test)) if band is not None else np.full(part.samples, math.nan)
     widths = np.where(simulated, widths, np.nan)
@@ -289,7 +294,15 @@ def _free_run(part: OutputReport, errors: np.ndarray, steps: np.ndarray, source:
         **_extent(widths),
         "held_out_half_width": band_half_width(errors),
         **({"by_horizon": band.as_dict()} if band is not None else {}),
+        **_covered(band),
     }
+
+
+def _covered(band: OneStepBand | HorizonBand | None) -> dict[str, list[float]]:
+    """``held_out_blocks_covered``: [lowest, highest] share of a held-out block the band calibrated on the other
+    blocks covered (:func:`~lenn_ros.fit.bands.blocks_covered`); nothing where it was not measured."""
+    covered = band.blocks_covered if band is not None else None
+    return {"held_out_blocks_covered": list(covered)} if covered is not None else {}
 
 
 def _typical(widths: np.ndarray) -> float:

@@ -1,19 +1,19 @@
-"""Coverage of ``lenn-ros fit``'s nominal 95 % bands on every shared data set, a plant like its training, and the
-paper's example plants (issue 20).
+"""Coverage of ``lenn-ros fit``'s nominal 95 % bands on every shared data set, a plant like its training, the
+paper's example plants and the plant study's classes (issues 20 and 43).
 
-For each set: ``fit`` with its defaults on the README split, then the fraction of the
-test samples inside the one-step band and inside the free-run band (both calibrated on the
-errors of the selection's held-out blocks, see ``lenn_ros.fit.bands``), beside what the
-one number per band the same blocks gave before (the 95 % quantile of |e|, kept in fit.json as
-``held_out_half_width``) covers, with the bands' mean half-widths relative to the test output's
-standard deviation and the share of test regressors farther from the build data than 99 % of the
-build rows. A band is honest when its coverage sits near 95 % on data it was not built from;
-the plant whose test part is drawn like its training (test_fit.py's cubic plant, seeds 3-8) must
-stay within 93-97 %. The paper's plants are trained on a random input and tested on a sinusoid
-(3000 + 1000 samples, seed 0, noise in both parts): test parts unlike the build part. Printed: the shared sets
-with one row summing up every group (bench/RESULTS.md's table), then the cubic plant's and the paper's rows.
+For each set: ``fit`` with its defaults on the README split (the plant study's: its last third), then the
+fraction of the test samples inside the one-step band and inside the free-run band (both calibrated on the
+errors of the selection's held-out blocks, see ``lenn_ros.fit.bands``), with the range each band covered of
+the held-out blocks when calibrated on the other blocks (how far a test part's coverage may stray), the bands'
+mean half-widths relative to the test output's standard deviation and the share of test regressors farther
+from the build data than 99 % of the build rows. A band is honest when its coverage sits near 95 % on data it
+was not built from; the plant whose test part is drawn like its training (test_fit.py's cubic plant, seeds 3-8)
+must stay within 93-97 %. The paper's plants are trained on a random input and tested on a sinusoid (3000 +
+1000 samples, seed 0, noise in both parts): test parts unlike the build part. Printed: the shared sets with one
+row summing up every group (bench/RESULTS.md's tables), then each plant's seeds in one row.
 
-    python bench/intervals.py [--quick]    (about 5 min on two busy cores; --quick: the four small sets)
+    python bench/intervals.py [--quick]    (about 12 min on two busy cores; --quick: the four small sets, no
+                                            plant study)
 """
 
 from __future__ import annotations
@@ -30,12 +30,15 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test"))
 from peer_narx import splits
 
-from lenn_ros.core.metrics import coverage
 from lenn_ros.fit.data import Data
 from lenn_ros.fit.procedure import fit
 
 #: the cubic plant's seeds (test_fit.py's, test_fit_bands.py's) and its split
 CUBIC_SEEDS = range(3, 9)
+#: plant_study.py's classes (a variant of each kind) and seeds, split as it splits them (the last third tested)
+STUDY_PLANTS = ("tanks", "belt", "axis", "axis-p2p", "backlash", "wiener-hammerstein", "hammerstein", "heater", "ph",
+                "cstr")  # fmt: skip
+STUDY_SEEDS = (0, 1, 2)
 
 
 def cases(quick: bool) -> Iterator[tuple[str, str, np.ndarray, np.ndarray, int]]:
@@ -53,6 +56,14 @@ def cases(quick: bool) -> Iterator[tuple[str, str, np.ndarray, np.ndarray, int]]
         example = get_example(number)
         series = simulate(example.plant(), example.noise_db, 0, 3000, 1000, test_noise=True)
         yield "paper's plants", f"paper Ex. {number}", series.u, series.y, 3001
+    if quick:
+        return
+    from plant_study import PLANTS
+
+    for name in STUDY_PLANTS:
+        for seed in STUDY_SEEDS:
+            u, y = PLANTS[name](seed)[:2]
+            yield "plant study", f"{name} {seed}", u, y, len(y) * 2 // 3 + 1
 
 
 def measure(name: str, u: np.ndarray, y: np.ndarray, test_from: int) -> dict:
@@ -62,14 +73,14 @@ def measure(name: str, u: np.ndarray, y: np.ndarray, test_from: int) -> dict:
     one, free = bands["one_step"], bands["free_run"]
     spread = float(np.std(report.y_test))
     return {
-        "one_step_before": coverage(part.y_test, part.y_hat_test, one["held_out_half_width"]),
         "one_step": one["coverage_test"],
         "one_step_width": float(np.nanmean(part.one_step_half_width_test)) / spread,
-        "free_run_before": coverage(part.y_test, part.y_free_test, free["held_out_half_width"]),
         "free_run": free["coverage_test"],
         "free_run_width": float(np.nanmean(part.free_run_half_width_test)) / spread,
         "far": one.get("far_from_build_test", float("nan")),
         "said": bool(bands.get("unlike_build")),
+        "one_step_blocks": one.get("held_out_blocks_covered"),
+        "free_run_blocks": free.get("held_out_blocks_covered"),
     }
 
 
@@ -83,42 +94,52 @@ def run(quick: bool) -> list[dict]:
 
 
 def table(rows: list[dict]) -> str:
-    """The shared sets' rows and one row of every group's summary (bench/RESULTS.md's table), then the rows of the
-    cubic plant's seeds and of the paper's plants."""
+    """bench/RESULTS.md's tables: the shared sets' rows, one row summing up every group, then one row per plant of
+    the others (its seeds' coverage in turn, * where the report said the test part is unlike the build part)."""
     shared = [r for r in rows if r["group"] == "shared sets"]
-    others = [r for r in rows if r["group"] != "shared sets"]
     groups = {group: [r for r in rows if r["group"] == group] for group in dict.fromkeys(r["group"] for r in rows)}
-    one, free = ("; ".join(_summary(group, members, key) for group, members in groups.items())
-                 for key in ("one_step", "free_run"))  # fmt: skip
-    summary = f"| {'; '.join(map(_label, groups))} | {one} | | {free} | | |"
-    return "\n".join([*_rows(shared), summary, "", *_rows(others)])
+    one, free = ("; ".join(_summary(members, key) for members in groups.values()) for key in ("one_step", "free_run"))
+    summary = f"| {'; '.join(groups)}: mean ± std, within 92-98 % where not said unlike | {one} | | {free} | | |"
+    plants: dict[str, list[dict]] = {}
+    for r in rows:
+        if r["group"] != "shared sets":
+            plants.setdefault(
+                r["data"].rsplit(" ", 1)[0] if r["group"] != "paper's plants" else "paper Ex. 1-4", []
+            ).append(r)
+    lines = ["", "| plant (seeds) | one-step coverage | free-run coverage |", "|---|---|---|"]
+    for plant, members in plants.items():
+        one, free = (
+            ", ".join(f"{r[key]:.1%}{'*' if r['said'] else ''}" for r in members) for key in ("one_step", "free_run")
+        )
+        lines.append(f"| {plant} | {one} | {free} |")
+    return "\n".join([*_rows(shared), summary, *lines])
 
 
 def _rows(rows: list[dict]) -> list[str]:
     lines = [
-        "| data | one-step coverage: one number -> now | half-width / std(y) | free-run coverage: one number -> now "
+        "| data | one-step coverage (held-out blocks) | half-width / std(y) | free-run coverage (held-out blocks) "
         "| half-width / std(y) | test regressors far from the build data |",
         "|---|---|---|---|---|---|",
     ]
     for r in rows:
         said = " (said)" if r["said"] else ""
         lines.append(
-            f"| {r['data']} | {r['one_step_before']:.1%} -> {r['one_step']:.1%} | {r['one_step_width']:.3f} | "
-            f"{r['free_run_before']:.1%} -> {r['free_run']:.1%} | {r['free_run_width']:.3f} | {r['far']:.1%}{said} |"
+            f"| {r['data']} | {r['one_step']:.1%} ({_range(r['one_step_blocks'])}) | {r['one_step_width']:.3f} | "
+            f"{r['free_run']:.1%} ({_range(r['free_run_blocks'])}) | {r['free_run_width']:.3f} | {r['far']:.1%}{said} |"
         )
     return lines
 
 
-def _label(group: str) -> str:
-    return f"{group}, range" if group == "cubic plant" else f"{group}, mean ± std"
+def _range(covered: list[float] | None) -> str:
+    return f"{covered[0]:.1%}-{covered[1]:.1%}" if covered else "-"
 
 
-def _summary(group: str, rows: list[dict], key: str) -> str:
-    """A group's coverage before -> now: the cubic plant's range over its seeds, another group's mean ± std."""
-    now, before = np.array([r[key] for r in rows]), np.array([r[f"{key}_before"] for r in rows])
-    if group == "cubic plant":
-        return f"{before.min():.1%}-{before.max():.1%} -> {now.min():.1%}-{now.max():.1%}"
-    return f"{before.mean():.1%} ± {before.std():.1%} -> {now.mean():.1%} ± {now.std():.1%}"
+def _summary(rows: list[dict], key: str) -> str:
+    """A group's coverage, mean ± std, and how many of its records drawn like their build part are within 92-98 %."""
+    now = np.array([r[key] for r in rows])
+    alike = [r[key] for r in rows if not r["said"]]
+    within = sum(0.92 <= value <= 0.98 for value in alike)
+    return f"{now.mean():.1%} ± {now.std():.1%}, {within} of {len(alike)}"
 
 
 def main() -> int:

@@ -58,7 +58,9 @@ def test_parameter_calls_are_answered_and_sigint_ends_the_node_during_a_flood(do
                 assert parameters.set("warn_period", value).successful
                 latencies.append(time.monotonic() - sent)
             print(f"parameter calls during the flood: {[round(1e3 * t, 1) for t in latencies]} ms")
-            assert max(latencies) < 0.25, latencies
+            # answered within a few of the loop's 0.1 s turns: 28-110 ms idle; 254 ms once in CI with two benchmarks
+            # beside it on the two cores. Starved calls would take seconds; their speed is overload.py's to measure.
+            assert max(latencies) < 0.5, latencies
         status = listener.wait_status(lambda s: s["counters"]["shed"] > 2000, timeout=30)
         assert status["counters"]["y_messages"] > 0  # it still takes the newest and learns from them
         assert identifier.poll() is None  # (setting warn_period live once stopped it at its next warning)

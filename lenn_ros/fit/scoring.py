@@ -210,7 +210,7 @@ def fit_intervals(
     if held_out:
         held = held_out_one_step(fitted.chosen, record)
         free, steps, blocks = held_out_free_runs(fitted.chosen, record)
-        source = "the selection's blocks, each run by the weights fitted without it"
+        source = "the selection's blocks, each run by the weights fitted without it (refined as the model's)"
     else:
         warm = identifier.structure.warm_up
         errors = y_hat_train[warm:] - record.y[warm:]

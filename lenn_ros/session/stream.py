@@ -168,12 +168,12 @@ class Stream:
     def flush(self) -> list[Pair]:
         """End of a recording: settle what can still be settled (a side's incomplete parts are dropped;
         a first pair published apart with no second to vouch for it is refused)."""
-        if self._first is not None:
-            first, self._first = self._first, None
-            return [self._refused(*first)]
         for channel, merger in self.mergers.items():
             merger.flush()
             self._after_merge(channel, merger)
+        if self._first is not None:  # (sequence pairing: no aligner)
+            first, self._first = self._first, None
+            return [self._refused(*first)]
         if isinstance(self.aligner, GridSampler):
             return self.aligner.flush()
         if isinstance(self.aligner, StampAligner):

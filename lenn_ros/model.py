@@ -34,7 +34,7 @@ import numpy as np
 from lenn_ros.core.mimo import MimoIdentifier
 from lenn_ros.core.structure import Identifier
 from lenn_ros.fit.data import REPORT_FILE
-from lenn_ros.service.scoring import fit_free_run_widths
+from lenn_ros.service.scoring import fit_free_run_bands, fit_free_run_widths
 
 
 class ModelError(ValueError):
@@ -98,12 +98,12 @@ class Model:
         """
         y_free = np.asarray(y_free, dtype=np.float64)
         columns = y_free.reshape(len(y_free), -1)
-        parts = self.report.get("per_output") or [self.report]
-        if columns.shape[1] != self.n_y or len(parts) != self.n_y:
+        bands = fit_free_run_bands(self.report)
+        if columns.shape[1] != self.n_y or len(bands) != self.n_y:
             raise ModelError(f"free_run_band takes a run of {self.n_y} output(s), not {columns.shape[1]}")
         widths = []
-        for j, part in enumerate(parts):
-            found = fit_free_run_widths(part.get("intervals", {}).get("free_run", {}), columns[:, j])
+        for j, band in enumerate(bands):
+            found = fit_free_run_widths(band, columns[:, j])
             if found is None:
                 raise ModelError(f"{self.source or 'the model'} has no fit report (fit.json) with a free-run band")
             widths.append(found)

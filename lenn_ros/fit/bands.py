@@ -236,7 +236,8 @@ class HorizonBand:
 
     @classmethod
     def from_dict(cls, figures: dict[str, Any]) -> HorizonBand:
-        """The band as :meth:`as_dict` wrote it (fit.json's ``by_horizon``), as evaluate reads it."""
+        """The band as :meth:`as_dict` wrote it (fit.json's ``by_horizon``), as evaluate and a loaded model read it
+        (:func:`lenn_ros.service.scoring.fit_free_run_widths`)."""
         return cls(
             np.asarray(figures["from_step"], dtype=np.int64),
             np.asarray(figures["half_width"], dtype=np.float64),

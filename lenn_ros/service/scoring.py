@@ -166,10 +166,8 @@ def fit_band_coverage(weights_in: str, evaluations: dict[str, Evaluation]) -> di
         fitted = json.loads(report.read_text())
     except (OSError, ValueError):
         return {}
-    parts = fitted.get("per_output") or [fitted]
     covered = {}
-    for (name, evaluation), part in zip(evaluations.items(), parts, strict=False):
-        band = part.get("intervals", {}).get("free_run", {})
+    for (name, evaluation), band in zip(evaluations.items(), fit_free_run_bands(fitted), strict=False):
         widths = fit_free_run_widths(band, evaluation.y_free_test)
         if widths is None:
             continue
@@ -183,6 +181,12 @@ def fit_band_coverage(weights_in: str, evaluations: dict[str, Evaluation]) -> di
     if not covered:
         return {}
     return {"level": 0.95, "free_run": covered["y"] if list(covered) == ["y"] else covered}
+
+
+def fit_free_run_bands(report: dict[str, Any]) -> list[dict[str, Any]]:
+    """Each output's free-run band in a fit report (fit.json: one output's at the top level, several under
+    ``per_output``), in the outputs' order; ``{}`` for an output without one."""
+    return [part.get("intervals", {}).get("free_run", {}) for part in report.get("per_output") or [report]]
 
 
 def fit_free_run_widths(band: dict[str, Any], y_free: np.ndarray) -> np.ndarray | None:

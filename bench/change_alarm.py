@@ -104,10 +104,12 @@ def trace(params: Path, u: np.ndarray, y: np.ndarray) -> tuple[list[tuple[int, f
     block = detector._block
 
     def watched(index: int, seed: int) -> str:
-        tested = detector.tested
+        tested, rise = detector.tested, detector.relearnt_rise
         event = block(index, seed)
         if detector.tested > tested:
             kept.append((index, detector.statistic))
+        if detector.relearnt_rise is not rise:  # a level learnt anew after novel motion, judged as S is
+            kept.append((index, detector.relearnt_rise))
         return event
 
     detector._block = watched

@@ -107,6 +107,29 @@ def test_the_grid_a_half_block_later_finds_a_change_the_first_grid_finds_late(se
         ChangeDetector(block=100, grids=3)
 
 
+@pytest.mark.parametrize(("kind", "size"), [("gain", -0.2), ("payload", 0.3), ("unchanged", 0.0)])
+def test_a_change_while_novel_motion_holds_the_test_is_found_when_the_level_is_learnt_anew(
+    servo_params: Path, kind: str, size: float
+) -> None:
+    """A burst faster than the day before (novel: not tested) makes the test wait 40 blocks and learn its level
+    anew; the plant changes 1 000 samples into that wait. Before, the changed plant's level was learnt as the new
+    normal and nothing was raised. Measured: the level learnt anew is 7.4 (gain) and 4.0 (payload) spreads over the
+    one before, 0.4 unchanged; the alarm rises when it is learnt, from the first novel block."""
+    pieces = [(15_000, {}), (1_500, {"speed": 4.0}), (12_000, {})]
+    changed = kind != "unchanged"
+    u, y = servo_log(4, 28_500, kind if changed else "gain", 17_500 if changed else None, size, pieces=pieces)
+    session = run(servo_params, u, y)
+    status = session.status()["change"]
+    alarms = [n.text for n in session.take_notices() if n.kind == "change"]
+    assert status["blocks_novel"] > 10, status
+    if not changed:
+        assert alarms == [] and status["count"] == 0 and status["relearnt_rise"] < 1.0, status
+        return
+    assert len(alarms) == 1 and status["count"] == 1, (alarms, status)
+    assert "learnt anew after novel motion" in alarms[0] and status["relearnt_rise"] > 3.0, alarms
+    assert 15_000 - 100 <= status["since_sample"] <= 15_000 and 17_500 < status["raised_at"] < 23_000, status
+
+
 @pytest.mark.parametrize("how", sorted(DRIVEN_DIFFERENTLY))
 def test_the_unchanged_axis_driven_differently_raises_no_alarm(servo_params: Path, how: str) -> None:
     pieces = DRIVEN_DIFFERENTLY[how]

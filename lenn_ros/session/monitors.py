@@ -182,7 +182,7 @@ class OutputMonitor:
         return (
             f"plant changed{self.where} at {when}, from about sample {detector.since_sample}: the reference model's "
             f"free run misses by {detector.magnitude:.1f} times its learnt level; what changed: {detector.kind} "
-            f"(CUSUM over change_threshold {detector.threshold:g}; alarm {detector.count})"
+            f"({detector.basis}; alarm {detector.count})"
         )
 
     def status(self) -> dict[str, Any]:

@@ -317,8 +317,11 @@ class ChangeDetector:
         self._variance = variance if self._variance is None else self._variance + rate * (variance - self._variance)
         if self._level_blocks < self.warm_up_blocks * self.grids:
             return ""
-        if self._before is not None and self.armed and self._relearnt(index, errors, simulated):
-            return RAISED
+        if self._before is not None:  # judged once, and only by an armed test (else forgotten)
+            raised = self.armed and self._relearnt(index, errors, simulated)
+            self._before = None
+            if raised:
+                return RAISED
         return self._arming()
 
     def _relearnt(self, index: int, errors: np.ndarray, simulated: np.ndarray) -> bool:
@@ -327,7 +330,6 @@ class ChangeDetector:
         the old level stays the one the blocks are judged by while it is on."""
         assert self._before is not None and self.level is not None
         level, spread, since = self._before
-        self._before = None
         rise = self.relearnt_rise = (self.level - level) / max(math.sqrt(spread), MIN_SPREAD)
         if not rise > self.threshold:
             return False

@@ -24,6 +24,7 @@ from rosutil import ParameterClient, final_status, start_node, stop
 
 from lenn_ros import topics
 from lenn_ros.nodes import EXECUTOR_VARIABLE, EXECUTORS, rclpy_internals
+from lenn_ros.nodes.identifier_outputs import OUTPUTS
 from lenn_ros.paper.examples import EXAMPLES
 
 PAIRS = 400
@@ -116,7 +117,9 @@ def test_identifier_under_each_loop(tmp_path: Path, domain: int, talker, monkeyp
     try:
         assert talker.wait_matched(timeout=30), "the identifier's subscriptions never matched"
         _wait(lambda: outputs.node.count_publishers(topics.SAMPLES) > 0 and outputs.status, 30, "status")
-        time.sleep(0.5)  # the identifier's publishers see our subscriptions too
+        # the identifier's publishers must see our readers too (a y_hat sent before that is lost: CI under load
+        # once took 46 of 419): its status counts the matched readers of each output
+        _wait(lambda: all(outputs.status.get("readers", {}).get(name, 0) > 0 for name in OUTPUTS), 30, "readers")
         for _ in range(PAIRS // 100):
             talker.publish(100)  # bursts: the loops take what is queued
             time.sleep(0.05)

@@ -277,7 +277,7 @@ class ChangeDetector:
                 self._rises[grid] = index - self.block + 1
             self._statistics[grid] = max(0.0, self._statistics[grid] + z)
             if self._statistics[grid] > self.threshold:
-                self.basis = f"CUSUM over change_threshold {self.threshold:g}"
+                self.basis = f"its CUSUM over change_threshold {self.threshold:g}"
                 return self._raise(index, errors, simulated, self._rises[grid])
         self.level += self.level_rate * deviation
         self.spread += self.level_rate * (min(deviation * deviation, 9.0 * self.spread) - self.spread)
@@ -336,8 +336,8 @@ class ChangeDetector:
         self.ratio = math.exp(self.level - level)
         self.level, self.spread = level, spread
         self.basis = (
-            f"the level learnt anew after novel motion is {rise:.1f} of its spreads over the one before "
-            f"(over change_threshold {self.threshold:g})"
+            f"its level learnt anew after novel motion, {rise:.1f} spreads over the one before "
+            f"(change_threshold {self.threshold:g})"
         )
         self._raise(index, errors, simulated, since)
         return True

@@ -181,8 +181,8 @@ class OutputMonitor:
         when = f"sample {index}" + (f" (t={time:.3f} s)" if time is not None else "")
         return (
             f"plant changed{self.where} at {when}, from about sample {detector.since_sample}: the reference model's "
-            f"free run misses by {detector.magnitude:.1f} times its learnt level; what changed: {detector.kind} "
-            f"({detector.basis}; alarm {detector.count})"
+            f"free run misses by {detector.magnitude:.1f} times its learnt level; what changed: {detector.kind}; "
+            f"raised by {detector.basis} (alarm {detector.count})"
         )
 
     def status(self) -> dict[str, Any]:

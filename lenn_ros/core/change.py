@@ -188,8 +188,16 @@ class ChangeDetector:
         self.spread = 0.0  # learnt variance of log m about the level
         self._level_blocks = 0
         self._hold = 0
+        self._reset_cusums()
+
+    def _reset_cusums(self) -> None:
         self._statistics = [0.0] * self.grids  # one CUSUM per grid of blocks
         self._rises: list[int | None] = [None] * self.grids  # the first sample of each one's rise
+
+    @property
+    def _level_learnt(self) -> bool:
+        """Whether the level is learnt: ``warm_up_blocks`` blocks of time (``grids`` evaluations each) since a start."""
+        return self.level is not None and self._level_blocks >= self.warm_up_blocks * self.grids
 
     @property
     def statistic(self) -> float:
@@ -265,7 +273,7 @@ class ChangeDetector:
         x = max(math.log(max(square, 1e-300)), variance + MATERIAL)
         if self.alarm:
             return self._while_on(x, index)
-        if self.level is None or self._level_blocks < self.warm_up_blocks * self.grids:
+        if not self._level_learnt:
             return self._learn_level(x, variance, index, errors, simulated)
         assert self._variance is not None
         self.ratio = math.exp(x - self.level)
@@ -315,7 +323,7 @@ class ChangeDetector:
         else:
             self.level, self.spread = x, 0.0
         self._variance = variance if self._variance is None else self._variance + rate * (variance - self._variance)
-        if self._level_blocks < self.warm_up_blocks * self.grids:
+        if not self._level_learnt:
             return ""
         if self._before is not None:  # judged once, and only by an armed test (else forgotten)
             raised = self.armed and self._relearnt(index, errors, simulated)
@@ -360,7 +368,7 @@ class ChangeDetector:
         self.novel += 1
         if self.alarm:
             return ""
-        if self.level is not None and self._level_blocks >= self.warm_up_blocks * self.grids:
+        if self._level_learnt:
             self._before = (self.level, self.spread, self._last_index - self.block + 1)  # (kept till judged)
         self._restart_level()
         self._hold = self.hold_blocks * self.grids
@@ -424,8 +432,7 @@ class ChangeDetector:
 
     def _off(self) -> None:
         self.alarm = False
-        self._statistics = [0.0] * self.grids
-        self._rises = [None] * self.grids
+        self._reset_cusums()
         self.since_sample = None
 
     @property
@@ -460,7 +467,7 @@ class ChangeDetector:
             "armed": self.armed,
             "reference_nmse_db": self.nmse_db,
             "why": self.why or None,
-            "testing": self.armed and self.level is not None and self._level_blocks >= self.warm_up_blocks,
+            "testing": self.armed and self._level_learnt,
             "reference_sample": self.reference.index if self.reference is not None else None,
             "blocks_tested": self.tested,
             "blocks_novel": self.novel,
